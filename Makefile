@@ -1,0 +1,62 @@
+# hapticrom: one venv (.venv, Python 3.12), meshes under meshes/, caches under .cache/.
+#   make demo   set up everything, then solve the default cornea indentation on 2 ranks
+#   make test   set up everything, then run the tests serially and under mpirun -n 2
+
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+NP ?= 2
+STAMP := $(VENV)/.installed
+
+# Python 3.12 (the DOLFINx wheel needs >= 3.12): on PATH, else under pyenv.
+PYTHON312 ?= $(shell command -v python3.12 2>/dev/null || ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.12*/bin/python3.12 /root/.pyenv/versions/3.12*/bin/python3.12 2>/dev/null | sort -V | tail -n 1)
+
+# Caches inside the project: FFCx/DOLFINx JIT (XDG_CACHE_HOME), numba, and no
+# writes to $HOME from gmsh or matplotlib.
+export XDG_CACHE_HOME := $(CURDIR)/.cache
+export NUMBA_CACHE_DIR := $(CURDIR)/.cache/numba
+export MPLCONFIGDIR := $(CURDIR)/.cache/matplotlib
+export OPENBLAS_NUM_THREADS := 1
+export OMP_NUM_THREADS := 1
+
+DEFAULT_MESHES := meshes/cornea.msh meshes/beam.msh meshes/hemisphere.msh meshes/liver.msh
+
+.PHONY: venv meshes test test-serial test-mpi demo bench lint clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@if [ -z "$(PYTHON312)" ]; then \
+	  echo "error: Python 3.12 not found (looked for python3.12 on PATH and under pyenv);" \
+	       "install it (e.g. pyenv install 3.12) or run: make PYTHON312=/path/to/python3.12 ..." >&2; \
+	  exit 1; fi
+	@echo "using $(PYTHON312)"
+	$(PYTHON312) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[offline,test]'
+	@touch $@
+
+meshes/%.msh: $(STAMP)
+	$(VENV)/bin/hapticrom mesh $* --out $@
+
+meshes: $(DEFAULT_MESHES)
+
+test: test-serial test-mpi
+
+test-serial: venv
+	$(PY) -m pytest -m "not mpi" -q tests
+
+test-mpi: venv
+	$(VENV)/bin/mpirun -n $(NP) $(PY) -m pytest -m mpi -q -p no:cacheprovider tests
+
+demo: venv meshes/cornea.msh
+	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom solve examples/cornea-hgo-indent.toml --out out/cornea-hgo-indent
+
+bench: venv meshes/cornea.msh
+	$(PY) bench/fullorder.py
+
+lint: venv
+	$(VENV)/bin/ruff check .
+
+clean:
+	rm -rf out .pytest_cache

@@ -1,0 +1,38 @@
+"""The offline trainer: full-order hyperelastic solves with DOLFINx and PETSc.
+
+Needs the ``offline`` extra (``pip install 'hapticrom[offline]'``). Modules:
+
+- :mod:`~hapticrom.offline.config` -- TOML configuration of a solve (pure Python).
+- :mod:`~hapticrom.offline.materials` -- material laws as UFL strain energies.
+- :mod:`~hapticrom.offline.organ` -- an organ mesh with its surface groups, supports, fibres.
+- :mod:`~hapticrom.offline.formulation` -- finite-element spaces, the (mixed) energy, residuals.
+- :mod:`~hapticrom.offline.contact` -- the tool's contact patch, reaction force, patch displacement.
+- :mod:`~hapticrom.offline.solver` -- PETSc SNES plumbing and incremental loading with step cutting.
+- :mod:`~hapticrom.offline.output` -- curve.csv and XDMF fields for ParaView.
+- :mod:`~hapticrom.offline.fullorder` -- the full-order model: all of the above for one problem.
+"""
+
+try:  # libmpi must be loaded (by mpi4py) before dolfinx or petsc4py are imported
+    from mpi4py import MPI as _MPI  # noqa: F401
+except ImportError:  # the offline extra is missing: require_offline() says so
+    pass
+
+OFFLINE_EXTRA_HINT = (
+    "this command needs the offline trainer stack (DOLFINx, PETSc, gmsh): "
+    "pip install 'hapticrom[offline]' (Python >= 3.12)"
+)
+
+
+def require_offline() -> None:
+    """Raise a clear ImportError when the offline extra is not installed."""
+    import importlib.util
+
+    def absent(module: str) -> bool:
+        try:
+            return importlib.util.find_spec(module) is None
+        except ImportError:
+            return True
+
+    missing = [m for m in ("dolfinx", "petsc4py", "mpi4py", "gmsh") if absent(m)]
+    if missing:
+        raise ImportError(f"{OFFLINE_EXTRA_HINT} (missing: {', '.join(missing)})")

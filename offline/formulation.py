@@ -1,0 +1,193 @@
+"""Finite-element spaces and the (mixed) hyperelastic energy of an organ (mm, N, MPa).
+
+The total potential energy of the tissue under a dead surface traction t is
+
+    Pi(u, p) = int_Omega Psi_mix(F, p) dX - int_Gamma_t t . u dA,
+    Psi_mix  = Psi_rest(F) + p theta(F) - p^2 / (2 kappa)
+
+(see :class:`~hapticrom.offline.materials.EnergySplit`). With a pressure
+space (``Q1P0``, ``P2P0``, ``Q2Q1``, ...) ``p`` is an unknown and the
+volumetric constraint is enforced weakly, which removes volumetric locking of
+nearly incompressible tissue; eliminating ``p`` gives back Psi exactly. With a
+displacement-only element (``Q1``, ``P1``, ...) Psi itself is used.
+
+Residuals and Jacobians are the UFL derivatives of Pi; nothing is hand-coded.
+Material parameters and loads are ``fem.Constant`` objects, so changing them
+never recompiles a kernel. Quadrature degrees are always explicit (UFL would
+otherwise estimate absurd degrees for the exponential fibre terms).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import dolfinx
+import numpy as np
+import ufl
+from dolfinx import fem
+from petsc4py import PETSc
+
+from hapticrom.offline.materials import MaterialLaw
+from hapticrom.offline.organ import OrganMesh
+from hapticrom.shared.errors import InputError
+
+
+@dataclass(frozen=True)
+class Element:
+    """A displacement-pressure element pair."""
+
+    name: str
+    displacement_degree: int
+    pressure: str | None  # None (displacement only), "DG0" or "CG1"
+
+    @property
+    def mixed(self) -> bool:
+        return self.pressure is not None
+
+    def default_quadrature_degree(self) -> int:
+        # 2x2x2 Gauss for trilinear hexahedra, 3x3x3 for triquadratic; degree 4 for P2 tets.
+        return 2 * self.displacement_degree
+
+
+ELEMENTS: dict[str, dict[str, Element]] = {
+    "hexahedron": {
+        e.name: e
+        for e in (
+            Element("Q1", 1, None),
+            Element("Q1P0", 1, "DG0"),
+            Element("Q2", 2, None),
+            Element("Q2P0", 2, "DG0"),
+            Element("Q2Q1", 2, "CG1"),
+        )
+    },
+    "tetrahedron": {
+        e.name: e
+        for e in (
+            Element("P1", 1, None),
+            Element("P2", 2, None),
+            Element("P2P0", 2, "DG0"),
+            Element("P2P1", 2, "CG1"),
+        )
+    },
+}
+DEFAULT_ELEMENT = {"hexahedron": "Q1P0", "tetrahedron": "P2P0"}
+
+
+def choose_element(cell_type: str, name: str) -> Element:
+    if cell_type not in ELEMENTS:
+        raise InputError(f"unsupported cell type {cell_type}; use hexahedra or tetrahedra")
+    if name == "auto":
+        name = DEFAULT_ELEMENT[cell_type]
+    if name not in ELEMENTS[cell_type]:
+        raise InputError(
+            f"element {name!r} is not available on {cell_type} meshes; "
+            f"choose auto or one of {', '.join(ELEMENTS[cell_type])}"
+        )
+    return ELEMENTS[cell_type][name]
+
+
+class HyperelasticModel:
+    """Unknowns, constants and UFL forms of one organ + one material law + one element.
+
+    Attributes:
+        u: displacement (mm), vector Lagrange of the element's degree.
+        p: pressure-like multiplier (MPa) or None for displacement-only elements.
+        unknowns: [u] or [u, p], the SNES unknowns in block order.
+        constants: material parameters by name (fem.Constant, MPa).
+        traction: dead surface traction on the loaded facets (fem.Constant, MPa).
+        load_tag: facet marker used by ``ds(load_tag)`` for the loaded facets.
+    """
+
+    LOAD_TAG = 1
+
+    def __init__(
+        self,
+        organ: OrganMesh,
+        law: MaterialLaw,
+        element: Element,
+        quadrature_degree: int | None = None,
+    ):
+        mesh = organ.mesh
+        self.organ, self.law, self.element = organ, law, element
+        self.quadrature_degree = quadrature_degree or element.default_quadrature_degree()
+
+        self.V = fem.functionspace(mesh, ("Lagrange", element.displacement_degree, (3,)))
+        self.u = fem.Function(self.V, name="displacement")
+        self.unknowns = [self.u]
+        self.Q = self.p = None
+        if element.mixed:
+            family, degree = {"DG0": ("DG", 0), "CG1": ("Lagrange", 1)}[element.pressure]
+            self.Q = fem.functionspace(mesh, (family, degree))
+            self.p = fem.Function(self.Q, name="pressure")
+            self.unknowns.append(self.p)
+
+        self.constants = {
+            k: fem.Constant(mesh, PETSc.ScalarType(v)) for k, v in law.parameters().items()
+        }
+        self.fibres = organ.fibre_fields() if law.requires_fibres else None
+        self.traction = fem.Constant(mesh, np.zeros(3, dtype=PETSc.ScalarType))
+        self.load_weight = fem.Constant(mesh, 0.0)
+        self.dx = ufl.Measure(
+            "dx", domain=mesh, metadata={"quadrature_degree": self.quadrature_degree}
+        )
+        self.set_load_region(np.empty(0, dtype=np.int32), self.load_weight)
+
+    # -- loads -----------------------------------------------------------------
+    def set_load_region(self, facets: np.ndarray, weight) -> None:
+        """The dead load is ``traction * weight(X)`` on ``facets``; call before building forms.
+
+        The load integrals use a higher quadrature degree than the volume: the
+        weight of a tool is a quartic bump with a cut-off at its radius.
+        """
+        fdim = self.organ.mesh.topology.dim - 1
+        facets = np.unique(np.asarray(facets, dtype=np.int32))
+        tags = dolfinx.mesh.meshtags(
+            self.organ.mesh, fdim, facets, np.full(facets.size, self.LOAD_TAG, dtype=np.int32)
+        )
+        self.load_weight = weight
+        self.ds = ufl.Measure(
+            "ds",
+            domain=self.organ.mesh,
+            subdomain_data=tags,
+            metadata={"quadrature_degree": self.quadrature_degree + 4},
+        )
+
+    # -- energy and its derivatives --------------------------------------------
+    def deformation_gradient(self):
+        return ufl.Identity(3) + ufl.grad(self.u)
+
+    def strain_energy_density(self):
+        """Psi_mix(F, p) of the element (Psi itself for displacement-only elements), MPa."""
+        split = self.law.energy_split(self.deformation_gradient(), self.constants, self.fibres)
+        if self.p is None:
+            return split.rest + split.kappa / 2 * split.theta**2
+        return split.rest + self.p * split.theta - self.p**2 / (2 * split.kappa)
+
+    def internal_energy(self):
+        return self.strain_energy_density() * self.dx
+
+    def external_work(self):
+        return ufl.dot(self.traction, self.u) * self.load_weight * self.ds(self.LOAD_TAG)
+
+    def potential_energy(self):
+        return self.internal_energy() - self.external_work()
+
+    def residual_forms(self, include_load: bool = True) -> list:
+        """[dPi/du . v, dPi/dp . q] (or the first alone): N, and mm^3 for the pressure rows."""
+        Pi = self.potential_energy() if include_load else self.internal_energy()
+        return [ufl.derivative(Pi, w, ufl.TestFunction(w.function_space)) for w in self.unknowns]
+
+    def jacobian_forms(self, residuals: list) -> list[list]:
+        return [
+            [ufl.derivative(R, w, ufl.TrialFunction(w.function_space)) for w in self.unknowns]
+            for R in residuals
+        ]
+
+    # -- sizes -----------------------------------------------------------------
+    def num_dofs(self) -> dict[str, int]:
+        """Global numbers of unknowns: displacement DOFs (3 per node) and pressure DOFs."""
+        im = self.V.dofmap.index_map
+        counts = {"displacement": im.size_global * self.V.dofmap.index_map_bs, "pressure": 0}
+        if self.Q is not None:
+            counts["pressure"] = self.Q.dofmap.index_map.size_global
+        return counts

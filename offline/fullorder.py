@@ -1,0 +1,234 @@
+"""The full-order model: one organ, one material, one tool load, solved by Newton (mm, N, MPa).
+
+:class:`FullOrderModel` wires together the mesh (:mod:`.organ`), the material
+law (:mod:`.materials`), the discretisation (:mod:`.formulation`), the tool
+load (:mod:`.contact`) and the SNES solver (:mod:`.solver`);
+:meth:`FullOrderModel.solve` runs the incremental loading and returns the
+load-displacement curve, writing ``curve.csv`` and XDMF fields if asked.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from dolfinx import fem
+from mpi4py import MPI
+
+from hapticrom.offline.config import ProblemConfig
+from hapticrom.offline.contact import ContactPatch, NodalMean, ReactionForce, WeightedMean
+from hapticrom.offline.formulation import HyperelasticModel, choose_element
+from hapticrom.offline.materials import make_law
+from hapticrom.offline.mpi import print0
+from hapticrom.offline.organ import OrganMesh, load_organ
+from hapticrom.offline.output import CurveWriter, FieldWriter
+from hapticrom.offline.solver import IncrementalLoading, NewtonSolver, StepRecord
+
+
+@dataclass
+class SolveResult:
+    """Load-displacement curve of a solve and its timings."""
+
+    records: list[StepRecord]
+    force: np.ndarray  # (steps, 3) N, tool on tissue
+    displacement: np.ndarray  # (steps, 3) mm, contact patch mean
+    load_factor: np.ndarray  # (steps,)
+    num_dofs: dict[str, int]
+    setup_seconds: float  # mesh, spaces, patch (no compilation)
+    jit_seconds: float  # form compilation (FFCx/CFFI, or the JIT cache)
+    solve_seconds: float
+    info: dict = field(default_factory=dict)
+
+    @property
+    def newton_iterations(self) -> int:
+        return sum(r.newton_iterations for r in self.records)
+
+
+class FullOrderModel:
+    """A configured full-order problem, ready to :meth:`solve`."""
+
+    def __init__(
+        self,
+        config: ProblemConfig,
+        comm: MPI.Comm = MPI.COMM_WORLD,
+        organ: OrganMesh | None = None,
+        verbose: bool = True,
+    ):
+        t0 = time.perf_counter()
+        self.config, self.comm, self.verbose = config, comm, verbose
+        # Validate what needs no mesh first, so a bad file fails fast and cheap.
+        self.law = make_law(config.material.law, **config.material.params)
+        self.organ = organ if organ is not None else load_organ(config.mesh.file, comm)
+        self.element = choose_element(self.organ.cell_type, config.discretisation.element)
+        self.model = HyperelasticModel(
+            self.organ, self.law, self.element, config.discretisation.quadrature_degree
+        )
+        self._setup_load()
+        self.setup_seconds = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        residuals = self.model.residual_forms()
+        jacobians = self.model.jacobian_forms(residuals)
+        self.newton = NewtonSolver(
+            residuals,
+            self.model.unknowns,
+            self.bcs,
+            prefix=config.solver.options_prefix,
+            linear_solver=config.solver.linear_solver,
+            options=config.solver.petsc_options,
+            jacobians=jacobians,
+        )
+        self.reaction = None
+        if config.load.mode == "displacement":
+            residual_u = self.newton.problem.F
+            residual_u = residual_u[0] if len(residuals) > 1 else residual_u
+            self.reaction = ReactionForce(residual_u, self.model.V, self.patch_blocks)
+            self.patch_displacement = NodalMean(self.model.u, self.patch_blocks)
+        else:
+            self.patch_displacement = WeightedMean(
+                self.model.u, self.patch.weight(), self.model.ds(self.model.LOAD_TAG)
+            )
+        self.jit_seconds = time.perf_counter() - t0
+
+    # -- load ------------------------------------------------------------------
+    def _setup_load(self) -> None:
+        load, organ, model = self.config.load, self.organ, self.model
+        if load.mode == "traction":
+            self.patch = ContactPatch.whole_group(organ, load.surface)
+        else:
+            point = load.contact_point
+            if point is None:
+                point = organ.default_contact_point()
+            self.patch = ContactPatch.around_point(organ, point, load.contact_radius, load.surface)
+        if load.mode != "displacement":
+            model.set_load_region(self.patch.facets, self.patch.weight())
+        self.bcs = organ.supports(model.V)
+        self.patch_blocks = self.patch.blocks(model.V)
+        self.load_vector = np.asarray(load.vector, dtype=float)
+        self.tool_bc_value = None
+        if load.mode == "displacement":
+            # The patch moves rigidly with the tool; nodes also held by a support keep
+            # the support (a tool does not pull a clamped rim).
+            held = organ.constrained_blocks(model.V)
+            blocks = np.setdiff1d(self.patch_blocks, held)
+            self.tool_bc_value = fem.Constant(organ.mesh, np.zeros(3))
+            self.bcs.append(fem.dirichletbc(self.tool_bc_value, blocks, model.V))
+            self.patch_blocks = blocks
+
+    def set_load(self, load_factor: float) -> None:
+        mode = self.config.load.mode
+        if mode == "displacement":
+            self.tool_bc_value.value[:] = load_factor * self.load_vector
+        elif mode == "force":
+            # Dead traction load_factor * F * w(X) / int w dA: sums to load_factor * F.
+            area = self.patch_displacement.integral
+            self.model.traction.value[:] = load_factor * self.load_vector / area
+        else:
+            self.model.traction.value[:] = load_factor * self.load_vector
+
+    def tool_force(self, load_factor: float) -> np.ndarray:
+        """Force the tool exerts on the tissue (N)."""
+        mode = self.config.load.mode
+        if mode == "displacement":
+            return self.reaction()
+        if mode == "force":
+            return load_factor * self.load_vector
+        return load_factor * self.load_vector * self.patch_displacement.integral
+
+    # -- solve -----------------------------------------------------------------
+    def describe(self) -> str:
+        dofs = self.model.num_dofs()
+        load = self.config.load
+        units = {"force": "N", "displacement": "mm", "traction": "MPa"}[load.mode]
+        return (
+            f"{self.organ.path.name}: {self.organ.cell_type}, element {self.element.name}, "
+            f"{dofs['displacement']} displacement + {dofs['pressure']} pressure DOFs on "
+            f"{self.comm.size} rank(s); material {self.law.name}; "
+            f"{load.mode} load {list(load.vector)} {units} {self._patch_summary()} "
+            f"in {load.steps} steps"
+        )
+
+    def _patch_summary(self) -> str:
+        if self.config.load.mode == "displacement":
+            return f"on {self.patch_displacement.count} node(s) within {self.patch.radius} mm"
+        where = (
+            f"within {self.patch.radius} mm" if self.patch.radius else f"on '{self.patch.group}'"
+        )
+        integral = self.patch_displacement.integral
+        return f"{where} ({self.patch.num_facets} facets, int w dA {integral:.4g} mm^2)"
+
+    def solve(self, out_dir: str | Path | None = None) -> SolveResult:
+        comm, load = self.comm, self.config.load
+        log = (lambda s: print0(comm, s)) if self.verbose else (lambda s: None)
+        log(self.describe())
+        curve = fields = None
+        if out_dir is not None:
+            out_dir = Path(out_dir)
+            if comm.rank == 0:
+                out_dir.mkdir(parents=True, exist_ok=True)
+            comm.barrier()
+            curve = CurveWriter(out_dir / "curve.csv", comm)
+            if self.config.output.xdmf:
+                fields = FieldWriter(
+                    out_dir / "fields.xdmf", self.model.u, self.model.p, self.model.fibres
+                )
+                fields.write(0.0)
+        forces, disps = [], []
+
+        def on_step(record: StepRecord) -> None:
+            force = self.tool_force(record.load_factor)
+            disp = self.patch_displacement()
+            forces.append(force)
+            disps.append(disp)
+            if curve is not None:
+                curve.write(record, force, disp)
+            if fields is not None:
+                fields.write(record.load_factor)
+            cut = f", {record.step_cuts} cut(s)" if record.step_cuts else ""
+            log(
+                f"step {record.step:3d}  load factor {record.load_factor:.4f}  "
+                f"force [{force[0]: .4e} {force[1]: .4e} {force[2]: .4e}] N  "
+                f"disp [{disp[0]: .4e} {disp[1]: .4e} {disp[2]: .4e}] mm  "
+                f"{record.newton_iterations} Newton its{cut}  {record.seconds:.2f} s"
+            )
+
+        stepper = IncrementalLoading(
+            self.newton,
+            self.set_load,
+            load.steps,
+            load.max_step_cuts,
+            load.predictor,
+            log,
+            modified_newton=self.config.solver.newton == "modified",
+        )
+        t0 = time.perf_counter()
+        try:
+            records = stepper.run(on_step)
+        finally:
+            if curve is not None:
+                curve.close()
+            if fields is not None:
+                fields.close()
+        solve_seconds = time.perf_counter() - t0
+        result = SolveResult(
+            records=records,
+            force=np.array(forces).reshape(-1, 3),
+            displacement=np.array(disps).reshape(-1, 3),
+            load_factor=np.array([r.load_factor for r in records]),
+            num_dofs=self.model.num_dofs(),
+            setup_seconds=self.setup_seconds,
+            jit_seconds=self.jit_seconds,
+            solve_seconds=solve_seconds,
+        )
+        log(
+            f"done: {len(records)} increments, {result.newton_iterations} Newton iterations, "
+            f"{solve_seconds:.2f} s solving (+{self.jit_seconds:.2f} s compiling forms)"
+        )
+        return result
+
+
+def solve_config(config: ProblemConfig, out_dir=None, comm=MPI.COMM_WORLD, verbose=True):
+    """Build and solve the full-order model of ``config``; see :class:`FullOrderModel`."""
+    return FullOrderModel(config, comm, verbose=verbose).solve(out_dir)

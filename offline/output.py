@@ -1,0 +1,99 @@
+"""Results of a full-order solve on disk: ``curve.csv`` and XDMF fields for ParaView.
+
+``curve.csv`` (written by rank 0, one row per converged increment, flushed at
+once so a crash loses nothing already computed):
+
+    step, load_factor, force_x, force_y, force_z, disp_x, disp_y, disp_z,
+    newton_iterations, step_cuts, seconds
+
+``force_*``: force the tool exerts on the tissue (N); ``disp_*``: area-mean
+displacement of the contact patch (mm). ``fields.xdmf`` (+ ``.h5``) holds the
+displacement (mm) and, for mixed elements, the pressure (MPa) at every
+increment, with the load factor as time, and the fibre directions.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+from dolfinx import fem, io
+from mpi4py import MPI
+
+from hapticrom.offline.solver import StepRecord
+
+CURVE_COLUMNS = [
+    "step",
+    "load_factor",
+    "force_x",
+    "force_y",
+    "force_z",
+    "disp_x",
+    "disp_y",
+    "disp_z",
+    "newton_iterations",
+    "step_cuts",
+    "seconds",
+]
+CURVE_UNITS = "# units: force N (tool on tissue), disp mm (contact patch mean), seconds s"
+
+
+class CurveWriter:
+    """Appends one row per converged increment to ``curve.csv`` on rank 0."""
+
+    def __init__(self, path: Path, comm: MPI.Comm):
+        self.path, self.comm = Path(path), comm
+        self._file = None
+        if comm.rank == 0:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(self.path, "w", newline="")  # noqa: SIM115 - closed in close()
+            self._writer = csv.writer(self._file)
+            self._writer.writerow(CURVE_COLUMNS)
+            self._file.flush()
+
+    def write(self, record: StepRecord, force, disp) -> None:
+        if self._file is None:
+            return
+        row = [record.step, f"{record.load_factor:.10g}"]
+        row += [f"{v:.10e}" for v in (*force, *disp)]
+        row += [record.newton_iterations, record.step_cuts, f"{record.seconds:.4f}"]
+        self._writer.writerow(row)
+        self._file.flush()
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+class FieldWriter:
+    """XDMF time series of the solution fields (interpolated to the mesh's degree)."""
+
+    def __init__(self, path: Path, u: fem.Function, p: fem.Function | None, fibres=None):
+        mesh = u.function_space.mesh
+        self._xdmf = io.XDMFFile(mesh.comm, str(path), "w")
+        self._xdmf.write_mesh(mesh)
+        self._u, self._p = u, p
+        degree = mesh.geometry.cmaps[0].degree
+        self._u_out = u
+        if u.function_space.element.basix_element.degree != degree:
+            V1 = fem.functionspace(mesh, ("Lagrange", degree, (3,)))
+            self._u_out = fem.Function(V1, name=u.name)
+        self._p_out = p
+        if p is not None and p.function_space.element.basix_element.degree not in (0, degree):
+            self._p_out = fem.Function(fem.functionspace(mesh, ("Lagrange", degree)), name=p.name)
+        if fibres is not None:
+            for f in fibres:
+                self._xdmf.write_function(f, 0.0)
+
+    def write(self, t: float) -> None:
+        if self._u_out is not self._u:
+            self._u_out.interpolate(self._u)
+        self._xdmf.write_function(self._u_out, t)
+        if self._p is not None:
+            if self._p_out is not self._p:
+                self._p_out.interpolate(self._p)
+            self._xdmf.write_function(self._p_out, t)
+
+    def close(self) -> None:
+        self._xdmf.close()

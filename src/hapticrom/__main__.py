@@ -1,0 +1,3 @@
+from hapticrom.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,156 @@
+"""The ``hapticrom`` command line.
+
+Offline commands (mesh, solve) need the ``offline`` extra and say so when it is
+missing; they run under ``mpirun -n N``. PETSc options go at the end, or after
+``--``, and reach PETSc unchanged::
+
+    mpirun -n 2 hapticrom solve examples/cornea-hgo-indent.toml --out out/cornea \\
+        -hapticrom_snes_rtol 1e-10 -hapticrom_snes_monitor
+
+A mistake in the input ends with one line ``hapticrom: error: ...`` and exit
+status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from hapticrom import __version__
+from hapticrom.shared.errors import HapticromError
+
+EXIT_USAGE = 2
+EXIT_MISSING_EXTRA = 3
+
+
+def _rank() -> int:
+    """MPI rank from the launcher's environment, without importing mpi4py."""
+    for var in ("PMI_RANK", "PMIX_RANK", "OMPI_COMM_WORLD_RANK"):
+        if var in os.environ:
+            return int(os.environ[var])
+    return 0
+
+
+def _split_petsc_args(argv: list[str]) -> tuple[list[str], list[str]]:
+    """Split off PETSc options: everything after ``--``, or from the first ``-name`` on.
+
+    argparse cannot be trusted with PETSc's single-dash long options
+    (``-hapticrom_snes_rtol`` would be read as ``-h``), so they never reach it.
+    """
+    if "--" in argv:
+        i = argv.index("--")
+        return argv[:i], argv[i + 1 :]
+    for i, token in enumerate(argv):
+        if token.startswith("-") and not token.startswith("--") and len(token) > 2:
+            return argv[:i], argv[i:]
+    return argv, []
+
+
+def _init_petsc(petsc_args: list[str]) -> None:
+    """Hand PETSc its options before anything imports petsc4py.PETSc."""
+    import petsc4py
+    from mpi4py import MPI  # noqa: F401 - loads libmpi, which PETSc's library needs
+
+    petsc4py.init([sys.argv[0], *petsc_args])
+
+
+# -- commands ------------------------------------------------------------------
+def cmd_mesh(args, petsc_args) -> int:
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    from hapticrom.meshes import generate
+
+    params = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise HapticromError(f"--set expects key=value, got {item!r}")
+        try:
+            params[key] = int(value)
+        except ValueError:
+            try:
+                params[key] = float(value)
+            except ValueError:
+                params[key] = value
+    out = Path(args.out) if args.out else Path("meshes") / f"{args.name}.msh"
+    if _rank() == 0:
+        info = generate(args.name, out, refinement=args.refinement, **params)
+        counts = info["counts"]
+        print(
+            f"wrote {out} ({info['cell_type']}, {counts['nodes']} nodes, {counts['cells']} cells, "
+            f"units mm) and {out.with_suffix('.json')}"
+        )
+    return 0
+
+
+def cmd_solve(args, petsc_args) -> int:
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    from hapticrom.offline.config import ProblemConfig
+
+    config = ProblemConfig.from_toml(args.config)  # fails before MPI/PETSc on a bad file
+    _init_petsc(petsc_args)
+    from hapticrom.offline.fullorder import solve_config
+
+    out = Path(args.out)
+    result = solve_config(config, out_dir=out)
+    if _rank() == 0:
+        print(
+            f"wrote {out / 'curve.csv'}"
+            + (f" and {out / 'fields.xdmf'}" if config.output.xdmf else "")
+        )
+    return 0 if result.records else 1
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="hapticrom",
+        description="Haptic-rate soft-tissue forces by model order reduction (units: mm, N, MPa).",
+    )
+    parser.add_argument("--version", action="version", version=f"hapticrom {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("mesh", help="generate an organ mesh (gmsh .msh + .json sidecar) [offline]")
+    p.add_argument("name", help="cornea, beam, hemisphere or liver")
+    p.add_argument("--out", help="output .msh path (default meshes/NAME.msh)")
+    p.add_argument("--refinement", default="default", help="coarse, default or fine")
+    p.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a generator parameter"
+    )
+    p.set_defaults(func=cmd_mesh)
+
+    p = sub.add_parser(
+        "solve", help="full-order nonlinear solve of a TOML configuration [offline, mpirun]"
+    )
+    p.add_argument("config", help="problem configuration (.toml)")
+    p.add_argument("--out", required=True, help="output directory (curve.csv, fields.xdmf)")
+    p.set_defaults(func=cmd_solve)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ours, petsc_args = _split_petsc_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(ours)
+    try:
+        return args.func(args, petsc_args)
+    except ImportError as exc:
+        if "offline" in str(exc) or getattr(exc, "name", "") in (
+            "dolfinx",
+            "petsc4py",
+            "mpi4py",
+            "gmsh",
+        ):
+            if _rank() == 0:
+                print(f"hapticrom: error: {exc}", file=sys.stderr)
+            return EXIT_MISSING_EXTRA
+        raise
+    except HapticromError as exc:
+        if _rank() == 0:
+            print(f"hapticrom: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE

@@ -1,0 +1,57 @@
+"""Test set-up: caches inside the project, serial/mpi markers, coarse meshes.
+
+`make test` runs ``pytest -m "not mpi"`` serially and ``mpirun -n 2 pytest -m mpi``.
+Tests marked ``serial`` are skipped when more than one rank runs them.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+# Before anything imports dolfinx/numba/gmsh: compiled kernels go to a
+# persistent cache in the project, never under $HOME.
+os.environ.setdefault("XDG_CACHE_HOME", str(ROOT / ".cache"))
+os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
+os.environ.setdefault("MPLCONFIGDIR", str(ROOT / ".cache" / "matplotlib"))
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+try:  # libmpi must be loaded before test modules import dolfinx
+    from mpi4py import MPI  # noqa: F401
+except ImportError:
+    pass
+
+
+def _comm_size() -> int:
+    for var in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_SIZE"):
+        if var in os.environ:
+            return int(os.environ[var])
+    return 1
+
+
+def pytest_collection_modifyitems(config, items):
+    if _comm_size() > 1:
+        skip = pytest.mark.skip(reason="serial test: skipped under mpirun")
+        for item in items:
+            if "serial" in item.keywords:
+                item.add_marker(skip)
+
+
+@pytest.fixture(scope="session")
+def mesh_dir() -> Path:
+    """Coarse test meshes, generated afresh by rank 0 in every session (a second or two)."""
+    d = ROOT / ".cache" / "test-meshes"
+    from mpi4py import MPI
+
+    comm = MPI.COMM_WORLD
+    if comm.rank == 0:
+        from hapticrom.meshes import generate
+
+        d.mkdir(parents=True, exist_ok=True)
+        for name in ("cornea", "beam", "hemisphere", "liver"):
+            generate(name, d / f"{name}-coarse.msh", refinement="coarse")
+    comm.barrier()
+    return d

@@ -1,0 +1,72 @@
+"""Distributed solves equal serial ones to solver tolerance (run under mpirun -n 2).
+
+Each rank also solves the whole problem alone on MPI.COMM_SELF; the
+distributed answer (all ranks cooperating on one DOLFINx mesh) must match.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import ufl
+from dolfinx import fem
+from mpi4py import MPI
+
+from hapticrom.offline.config import ProblemConfig
+from hapticrom.offline.fullorder import FullOrderModel
+
+pytestmark = pytest.mark.mpi
+
+
+def l2_norm(u: fem.Function) -> float:
+    """sqrt(int |u|^2 dX) (mm^2.5), summed over the ranks of u's mesh."""
+    local = fem.assemble_scalar(fem.form(ufl.inner(u, u) * ufl.dx))
+    return float(np.sqrt(u.function_space.mesh.comm.allreduce(local, op=MPI.SUM)))
+
+
+CASES = {
+    "cornea-hgo-Q1P0": (
+        "cornea-coarse",
+        {"law": "hgo"},
+        {"mode": "displacement", "displacement": [0.0, 0.0, -0.4], "contact_radius": 0.8},
+    ),
+    "liver-neo-hookean-P2P0": (
+        "liver-coarse",
+        {"law": "neo-hookean", "E": 0.16, "nu": 0.48},
+        {"mode": "force", "force": [0.0, 1.2, 0.0], "contact_radius": 10.0},
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_distributed_solve_equals_serial_solve(mesh_dir, case):
+    comm = MPI.COMM_WORLD
+    if comm.size < 2:
+        pytest.skip("run under mpirun -n 2")
+    mesh, material, load = CASES[case]
+    config = ProblemConfig.from_dict(
+        {
+            "mesh": {"file": str(mesh_dir / f"{mesh}.msh")},
+            "material": material,
+            "load": {**load, "steps": 3},
+        }
+    )
+    distributed_model = FullOrderModel(config, comm=comm, verbose=False)
+    assert distributed_model.model.V.dofmap.index_map.size_local < (
+        distributed_model.model.V.dofmap.index_map.size_global
+    ), "the mesh should be split over the ranks"
+    distributed = distributed_model.solve()
+    serial_model = FullOrderModel(config, comm=MPI.COMM_SELF, verbose=False)
+    serial = serial_model.solve()
+
+    assert len(distributed.records) == len(serial.records) == 3
+    scale = np.abs(serial.force).max()
+    np.testing.assert_allclose(distributed.force, serial.force, rtol=0, atol=1e-9 * scale)
+    dscale = np.abs(serial.displacement).max()
+    np.testing.assert_allclose(distributed.displacement, serial.displacement, atol=1e-9 * dscale)
+    assert l2_norm(distributed_model.model.u) == pytest.approx(
+        l2_norm(serial_model.model.u), rel=1e-9
+    )
+    # Every rank agrees on the distributed answer.
+    gathered = comm.allgather(distributed.force)
+    assert all(np.array_equal(g, gathered[0]) for g in gathered)
