@@ -8,8 +8,11 @@ PY := $(VENV)/bin/python
 NP ?= 2
 STAMP := $(VENV)/.installed
 
-# Python 3.12 (the DOLFINx wheel needs >= 3.12): on PATH, else under pyenv.
-PYTHON312 ?= $(shell command -v python3.12 2>/dev/null || ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.12*/bin/python3.12 /root/.pyenv/versions/3.12*/bin/python3.12 2>/dev/null | sort -V | tail -n 1)
+# Python 3.12 (the DOLFINx wheel needs >= 3.12): python3.12 on PATH, else under
+# pyenv. Each candidate must really run (a pyenv shim without a selected version
+# does not).
+PYTHON312 ?= $(shell for c in $$(command -v python3.12) $$(ls -d $${PYENV_ROOT:-$$HOME/.pyenv}/versions/3.12*/bin/python3.12 2>/dev/null | sort -V -r); do \
+  "$$c" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' 2>/dev/null && { echo "$$c"; break; }; done)
 
 # Caches inside the project: FFCx/DOLFINx JIT (XDG_CACHE_HOME), numba, and no
 # writes to $HOME from gmsh or matplotlib.
