@@ -81,7 +81,7 @@ def group_nodes(mesh, group: str) -> np.ndarray:
 
 COUNT_RANGES = {
     ("cornea", "coarse"): ((200, 800), (100, 700)),
-    ("cornea", "default"): ((8000, 9000), (6800, 7600)),
+    ("cornea", "default"): ((8000, 9000), (6000, 7600)),
     ("hemisphere", "coarse"): ((100, 600), (50, 448)),
     ("hemisphere", "default"): ((600, 800), (400, 500)),
     ("beam", "coarse"): ((99, 99), (40, 40)),
