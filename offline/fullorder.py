@@ -10,7 +10,7 @@ load-displacement curve, writing ``curve.csv`` and XDMF fields if asked.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +39,6 @@ class SolveResult:
     setup_seconds: float  # mesh, spaces, patch (no compilation)
     jit_seconds: float  # form compilation (FFCx/CFFI, or the JIT cache)
     solve_seconds: float
-    info: dict = field(default_factory=dict)
 
     @property
     def newton_iterations(self) -> int:

@@ -79,21 +79,25 @@ class MaterialLaw:
 
 
 @dataclass(frozen=True)
-class SaintVenantKirchhoff(MaterialLaw):
-    """Saint Venant-Kirchhoff: Psi = lambda/2 (tr E)^2 + mu E:E (thesis eq. 3.9).
-
-    E: Young's modulus (MPa); nu: Poisson's ratio. Volumetric strain theta = tr E,
-    bulk-like modulus kappa = lambda.
-    """
+class IsotropicLaw(MaterialLaw):
+    """An isotropic law given by Young's modulus E (MPa) and Poisson's ratio nu."""
 
     E: float
     nu: float
 
-    name: ClassVar[str] = "svk"
-
     def __post_init__(self):
         self._require(self.E > 0, f"E must be positive (got {self.E} MPa)")
         self._require(-1 < self.nu < 0.5, f"nu must lie in (-1, 0.5) (got {self.nu})")
+
+
+@dataclass(frozen=True)
+class SaintVenantKirchhoff(IsotropicLaw):
+    """Saint Venant-Kirchhoff: Psi = lambda/2 (tr E)^2 + mu E:E (thesis eq. 3.9).
+
+    Volumetric strain theta = tr E, bulk-like modulus kappa = lambda.
+    """
+
+    name: ClassVar[str] = "svk"
 
     def energy_split(self, F, c, fibres=None) -> EnergySplit:
         c = self._constants(c)
@@ -104,21 +108,14 @@ class SaintVenantKirchhoff(MaterialLaw):
 
 
 @dataclass(frozen=True)
-class NeoHookean(MaterialLaw):
+class NeoHookean(IsotropicLaw):
     """Compressible neo-Hookean (thesis eq. 3.30).
 
     Psi = mu/2 (tr C - 3) - mu ln J + lambda/2 (ln J)^2, with the Lame constants
     from E (MPa) and nu. Volumetric strain theta = ln J, kappa = lambda.
     """
 
-    E: float
-    nu: float
-
     name: ClassVar[str] = "neo-hookean"
-
-    def __post_init__(self):
-        self._require(self.E > 0, f"E must be positive (got {self.E} MPa)")
-        self._require(-1 < self.nu < 0.5, f"nu must lie in (-1, 0.5) (got {self.nu})")
 
     def energy_split(self, F, c, fibres=None) -> EnergySplit:
         c = self._constants(c)
