@@ -131,3 +131,12 @@ def test_divergence_is_never_an_answer(mesh_dir):
     )
     with pytest.raises(SolverError, match="Newton diverged at load factor"):
         FullOrderModel(config, verbose=False).solve()
+
+
+def test_iterative_linear_solver_reaches_the_same_equilibria(mesh_dir, indentation):
+    """The memory-lean option (GMRES + block ILU) for meshes too big for LU."""
+    _, direct, _ = indentation
+    config = cornea_config(mesh_dir, solver={"linear_solver": "iterative"})
+    iterative = FullOrderModel(config, verbose=False).solve()
+    scale = np.abs(direct.force).max()
+    np.testing.assert_allclose(iterative.force, direct.force, rtol=0, atol=1e-6 * scale)
