@@ -13,7 +13,9 @@ The physical tags are fixed (:data:`GROUP_TAGS`) and distinct across
 dimensions so a tag alone names its group. Coordinates are in mm.
 
 Besides the writer this module holds the pure-numpy pieces every generator
-shares: :class:`BuiltMesh`, :func:`boundary_faces` and :func:`resolve_params`.
+shares: :class:`BuiltMesh`, :func:`boundary_faces` and :func:`resolve_params`;
+and :func:`read_surface`, which reads one surface group back (nodes, faces,
+outward vertex normals) on one process, for planning tool positions.
 gmsh is imported lazily so the numpy builders work without it.
 """
 
@@ -310,3 +312,159 @@ def read_sidecar(msh_path: str | Path) -> dict[str, Any]:
             f"this hapticrom reads version {SIDECAR_VERSION}"
         )
     return data
+
+
+# --- reading a surface group back -----------------------------------------------------------
+
+GMSH_TYPE_NAMES = {tag: name for name, tag in GMSH_TYPES.items()}
+NODES_OF_TYPE = {"hexahedron": 8, "tetrahedron": 4, "quadrangle": 4, "triangle": 3}
+
+
+@dataclass(frozen=True, eq=False)
+class Surface:
+    """One surface group of a mesh file, as plain arrays (mm).
+
+    ``nodes`` (k, 3): the distinct nodes of the group's faces, sorted by gmsh
+    node tag; ``node_tags`` (k,) their 1-based gmsh tags; ``faces`` (f, 3|4)
+    indices into ``nodes``, oriented outwards; ``normals`` (k, 3) outward unit
+    vertex normals (area-weighted mean of the adjacent faces' normals);
+    ``group`` the physical group's name.
+    """
+
+    nodes: np.ndarray
+    node_tags: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    group: str
+
+
+def face_area_vectors(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area vectors (f, 3) of triangles or quadrangles: normal x area, in mm^2.
+
+    For a quadrangle, half the cross product of its diagonals: exact for a
+    planar one and the mean area vector of a warped one. The right-hand rule
+    of the node order gives the direction.
+    """
+    return corner_area_vectors(nodes[faces])
+
+
+def corner_area_vectors(p: np.ndarray) -> np.ndarray:
+    """Area vectors (f, 3) of faces given by their corner coordinates ``p`` (f, 3|4, 3), mm^2."""
+    if p.shape[1] == 3:
+        return 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return 0.5 * np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+
+
+def vertex_normals(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (k, 3): the area-weighted mean of the adjacent faces' normals.
+
+    Summing area vectors is that weighted mean up to length. InputError for
+    a node that is on no face or whose adjacent normals cancel.
+    """
+    sums = np.zeros_like(nodes, dtype=np.float64)
+    area = face_area_vectors(nodes, faces)
+    for corner in range(faces.shape[1]):
+        np.add.at(sums, faces[:, corner], area)
+    lengths = np.sqrt(np.einsum("ij,ij->i", sums, sums))
+    require(bool(np.all(lengths > 0.0)), "a surface node has no well-defined normal")
+    return sums / lengths[:, None]
+
+
+def read_surface(msh_path: str | Path, group: str = "loadable") -> Surface:
+    """Read surface group ``group`` of a hapticrom .msh file as a :class:`Surface` (mm).
+
+    gmsh reads the file on the calling process only (no MPI); the rest is
+    numpy. The faces are checked to point out of the tissue cell they bound,
+    so the normals are outward. InputError if the file, the group or the
+    tissue is missing, or the group is not a set of outward boundary faces.
+    """
+    path = Path(msh_path)
+    require(path.is_file(), f"mesh file {path} not found (generate it with `hapticrom mesh`)")
+    all_tags, coords, face_tags, cell_tags = _read_msh_group(path, group)
+    node_tags = np.unique(face_tags)
+    # gmsh tags are arbitrary positive integers: map them through a sorted index.
+    order = np.argsort(all_tags)
+    rows = order[np.searchsorted(all_tags, node_tags, sorter=order)]
+    require(bool(np.all(all_tags[rows] == node_tags)), f"{path}: a face refers to a missing node")
+    nodes = coords[rows]
+    faces = np.searchsorted(node_tags, face_tags)
+    _check_outward(path, group, coords, all_tags, order, face_tags, cell_tags)
+    return Surface(
+        nodes=nodes,
+        node_tags=node_tags.astype(np.int64),
+        faces=faces.astype(np.int64),
+        normals=vertex_normals(nodes, faces),
+        group=group,
+    )
+
+
+def _read_msh_group(path: Path, group: str):
+    """Node tags (n,), coordinates (n, 3), the group's faces and the tissue cells as node tags."""
+    import gmsh
+
+    with gmsh_model(f"hapticrom-read-{path.stem}", {"General.Terminal": 0}):
+        try:
+            gmsh.merge(str(path))
+        except Exception as error:  # gmsh raises a bare Exception with its log line
+            raise InputError(f"cannot read mesh file {path}: {error}") from None
+        tags, coords, _ = gmsh.model.mesh.getNodes(returnParametricCoord=False)
+        face_tags = _group_elements(path, group, 2)
+        cell_tags = _group_elements(path, "tissue", 3)
+    return np.asarray(tags, dtype=np.int64), np.reshape(coords, (-1, 3)), face_tags, cell_tags
+
+
+def _group_elements(path: Path, name: str, dim: int) -> np.ndarray:
+    """The elements of physical group ``name`` (of dimension ``dim``) as node tags (e, v)."""
+    import gmsh
+
+    groups = {gmsh.model.getPhysicalName(d, t): (d, t) for d, t in gmsh.model.getPhysicalGroups()}
+    require(
+        name in groups,
+        f"mesh {path} has no physical group {name!r}; it has {', '.join(sorted(groups))}",
+    )
+    group_dim, tag = groups[name]
+    require(group_dim == dim, f"physical group {name!r} of {path} is not {dim}-dimensional")
+    blocks = []
+    for entity in gmsh.model.getEntitiesForPhysicalGroup(group_dim, tag):
+        types, _, node_tags = gmsh.model.mesh.getElements(group_dim, entity)
+        for gmsh_type, tags in zip(types, node_tags, strict=True):
+            kind = GMSH_TYPE_NAMES.get(int(gmsh_type))
+            require(kind is not None, f"{path}: unsupported gmsh element type {gmsh_type}")
+            blocks.append(np.asarray(tags, dtype=np.int64).reshape(-1, NODES_OF_TYPE[kind]))
+    widths = {block.shape[1] for block in blocks if len(block)}
+    require(len(widths) == 1, f"group {name!r} of {path} is empty or mixes element types")
+    return np.vstack([block for block in blocks if len(block)])
+
+
+def _check_outward(path, group, coords, all_tags, order, face_tags, cell_tags) -> None:
+    """InputError unless every face is a face of one tissue cell and points away from it.
+
+    Tested rather than trusted: a flipped face would turn the tool's push
+    direction around without any other sign.
+    """
+    local = CELL_FACES[CELL_TYPE_OF_NODES[cell_tags.shape[1]]]
+    require(local.shape[1] == face_tags.shape[1], f"group {group!r} of {path}: wrong face type")
+    # Only cells with enough nodes on the group can own one of its faces.
+    near = np.count_nonzero(np.isin(cell_tags, face_tags), axis=1) >= face_tags.shape[1]
+    cells = cell_tags[near]
+    cell_faces = np.sort(cells[:, local].reshape(-1, local.shape[1]), axis=1)
+    keys = np.sort(face_tags, axis=1)
+    _, inverse = np.unique(np.vstack([keys, cell_faces]), axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    owner = np.full(inverse.max() + 1, -1, dtype=np.int64)
+    owner[inverse[len(keys) :]] = np.arange(len(cell_faces)) // len(local)
+    face_owner = owner[inverse[: len(keys)]]
+    require(bool(np.all(face_owner >= 0)), f"group {group!r} of {path} has faces of no cell")
+
+    def xyz(tags: np.ndarray) -> np.ndarray:
+        return coords[order[np.searchsorted(all_tags, tags, sorter=order)]]
+
+    face_xyz = xyz(face_tags)
+    cell_centre = xyz(cells[face_owner]).mean(axis=1)
+    # Outward: the face's normal points from its cell's centroid to the face's.
+    area = corner_area_vectors(face_xyz)
+    outward = np.einsum("ij,ij->i", area, face_xyz.mean(axis=1) - cell_centre)
+    require(
+        bool(np.all(outward > 0.0)),
+        f"group {group!r} of {path}: {np.count_nonzero(outward <= 0.0)} face(s) point inwards",
+    )

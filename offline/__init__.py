@@ -12,7 +12,14 @@ Needs the ``offline`` extra (``pip install 'hapticrom[offline]'``). Modules:
 - :mod:`~hapticrom.offline.fullorder` -- the full-order model: all of the above for one problem.
 """
 
-try:  # libmpi must be loaded (by mpi4py) before dolfinx or petsc4py are imported
+# Import order matters with the PyPI wheels:
+# - h5py before dolfinx/petsc4py: h5py's own HDF5 library fails to initialise
+#   ("Not a datatype") once PETSc's HDF5 is loaded, while the other way round
+#   both work (XDMF output checked, serial and parallel);
+# - mpi4py before dolfinx/petsc4py: it loads libmpi, which PETSc needs.
+import h5py  # noqa: F401, E402
+
+try:
     from mpi4py import MPI as _MPI  # noqa: F401
 except ImportError:  # the offline extra is missing: require_offline() says so
     pass

@@ -158,7 +158,13 @@ class FullOrderModel:
         integral = self.patch_displacement.integral
         return f"{where} ({self.patch.num_facets} facets, int w dA {integral:.4g} mm^2)"
 
-    def solve(self, out_dir: str | Path | None = None) -> SolveResult:
+    def solve(self, out_dir: str | Path | None = None, on_step=None) -> SolveResult:
+        """Run the incremental loading; write curve.csv and fields.xdmf into ``out_dir``.
+
+        ``on_step(record, force, disp)`` is called after every converged
+        increment, on every rank. If the solve fails, ``self.history`` still holds
+        the converged increments (records, forces, displacements).
+        """
         comm, load = self.comm, self.config.load
         log = (lambda s: print0(comm, s)) if self.verbose else (lambda s: None)
         log(self.describe())
@@ -174,13 +180,18 @@ class FullOrderModel:
                     out_dir / "fields.xdmf", self.model.u, self.model.p, self.model.fibres
                 )
                 fields.write(0.0)
-        forces, disps = [], []
+        records, forces, disps = [], [], []
+        self.history = (records, forces, disps)
+        user_hook = on_step
 
         def on_step(record: StepRecord) -> None:
             force = self.tool_force(record.load_factor)
             disp = self.patch_displacement()
+            records.append(record)
             forces.append(force)
             disps.append(disp)
+            if user_hook is not None:
+                user_hook(record, force, disp)
             if curve is not None:
                 curve.write(record, force, disp)
             if fields is not None:
@@ -204,7 +215,7 @@ class FullOrderModel:
         )
         t0 = time.perf_counter()
         try:
-            records = stepper.run(on_step)
+            stepper.run(on_step)
         finally:
             if curve is not None:
                 curve.close()

@@ -19,6 +19,8 @@ os.environ.setdefault("NUMBA_CACHE_DIR", str(ROOT / ".cache" / "numba"))
 os.environ.setdefault("MPLCONFIGDIR", str(ROOT / ".cache" / "matplotlib"))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import h5py  # noqa: E402, F401 - before dolfinx: see hapticrom/offline/__init__.py
+
 try:  # libmpi must be loaded before test modules import dolfinx
     from mpi4py import MPI  # noqa: F401
 except ImportError:
@@ -55,3 +57,41 @@ def mesh_dir() -> Path:
             generate(name, d / f"{name}-coarse.msh", refinement="coarse")
     comm.barrier()
     return d
+
+
+def campaign_toml(mesh: Path, steps: int = 4, rings: int = 1, per_ring: int = 4) -> str:
+    return f"""
+[campaign]
+name = "test"
+[mesh]
+file = "{mesh}"
+[material]
+law = "hgo"
+[load]
+mode = "displacement"
+magnitude = 0.3
+contact_radius = 0.6
+steps = {steps}
+[positions]
+points = [[0.0, 0.0, 0.0]]
+[[positions.polar]]
+centre = [0.0, 0.0, 0.0]
+radius = 2.0
+rings = {rings}
+per_ring = {per_ring}
+include_centre = false
+"""
+
+
+@pytest.fixture(scope="session")
+def small_campaign(mesh_dir, tmp_path_factory):
+    """A 5-position, 4-step HGO indentation campaign on the coarse cornea (serial)."""
+    from hapticrom.offline.campaign import CampaignConfig, run_campaign
+    from hapticrom.offline.store import SnapshotStore
+
+    root = tmp_path_factory.mktemp("campaign")
+    path = root / "campaign.toml"
+    path.write_text(campaign_toml(mesh_dir / "cornea-coarse.msh"))
+    config = CampaignConfig.from_toml(path)
+    report = run_campaign(config, root / "store", verbose=False)
+    return config, SnapshotStore(root / "store"), report

@@ -106,6 +106,56 @@ def cmd_solve(args, petsc_args) -> int:
     return 0 if result.records else 1
 
 
+def _offline(petsc_args):
+    """Check the extra, hand PETSc its options, and import the MPI world."""
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    _init_petsc(petsc_args)
+
+
+def cmd_campaign(args, petsc_args) -> int:
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    from hapticrom.offline.campaign import CampaignConfig
+
+    config = CampaignConfig.from_toml(args.campaign)
+    _init_petsc(petsc_args)
+    from hapticrom.offline.campaign import run_campaign
+
+    report = run_campaign(
+        config, args.out, ranks_per_solve=args.ranks_per_solve, restart=args.restart
+    )
+    return 1 if report.failed else 0
+
+
+def cmd_reduce(args, petsc_args) -> int:
+    _offline(petsc_args)
+    from hapticrom.offline.reduction import reduce_campaign
+
+    reduce_campaign(args.campaign_dir, args.out)
+    return 0
+
+
+def cmd_train(args, petsc_args) -> int:
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    from hapticrom.offline.campaign import CampaignConfig
+
+    config = CampaignConfig.from_toml(args.campaign)
+    _init_petsc(petsc_args)
+    from hapticrom.offline.campaign import run_campaign
+    from hapticrom.offline.reduction import reduce_campaign
+
+    out = Path(args.out)
+    work = Path(args.work) if args.work else out.with_suffix(".campaign")
+    report = run_campaign(config, work, ranks_per_solve=args.ranks_per_solve, restart=args.restart)
+    reduce_campaign(work, out)
+    return 1 if report.failed else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hapticrom",
@@ -129,6 +179,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("config", help="problem configuration (.toml)")
     p.add_argument("--out", required=True, help="output directory (curve.csv, fields.xdmf)")
     p.set_defaults(func=cmd_solve)
+
+    def campaign_options(p):
+        p.add_argument("campaign", help="campaign configuration (.toml)")
+        p.add_argument(
+            "--ranks-per-solve",
+            type=int,
+            default=1,
+            metavar="K",
+            help="ranks cooperating on each solve; the N ranks form N/K groups (default 1)",
+        )
+        p.add_argument(
+            "--restart", action="store_true", help="discard what the directory holds and start over"
+        )
+
+    p = sub.add_parser(
+        "campaign", help="solve a training campaign into a snapshot directory [offline, mpirun]"
+    )
+    campaign_options(p)
+    p.add_argument("--out", required=True, help="campaign directory (resumed if it exists)")
+    p.set_defaults(func=cmd_campaign)
+
+    p = sub.add_parser("reduce", help="POD and reduced operators of a campaign [offline, mpirun]")
+    p.add_argument("campaign_dir", help="directory written by `hapticrom campaign`")
+    p.add_argument("--out", required=True, help="reduced model (.h5)")
+    p.set_defaults(func=cmd_reduce)
+
+    p = sub.add_parser("train", help="campaign + reduce in one go [offline, mpirun]")
+    campaign_options(p)
+    p.add_argument("--out", required=True, help="reduced model (.h5)")
+    p.add_argument("--work", help="campaign directory (default: OUT with suffix .campaign)")
+    p.set_defaults(func=cmd_train)
     return parser
 
 

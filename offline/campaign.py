@@ -1,0 +1,480 @@
+"""Training campaigns: many full-order solves over tool positions, stored as snapshots.
+
+A campaign (TOML, see ``examples/cornea-campaign.toml``) names the mesh, the
+material, the control mode and load range, and the tool positions. Running it
+solves the full load path at every position and stores the snapshots in a
+:class:`~hapticrom.offline.store.SnapshotStore` directory.
+
+Two-level parallelism: ``ranks_per_solve = K`` splits the N ranks into N/K
+groups (MPI sub-communicators); each group solves its share of the positions,
+with DOLFINx domain decomposition inside the group. A 25k-DOF solve stops
+scaling at a handful of ranks, while a campaign has dozens of independent
+positions. What is stored does not depend on N or K (canonical DOF order).
+
+Progress is reported by world rank 0: a bar with an ETA, a line per solve
+(Newton iterations, step cuts), a summary at the end.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import io
+import json
+import math
+import time
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mpi4py import MPI
+
+from hapticrom import __version__
+from hapticrom.meshes.msh import read_surface
+from hapticrom.offline.config import LoadConfig, ProblemConfig, _Reader
+from hapticrom.offline.dofs import CanonicalOrder
+from hapticrom.offline.formulation import HyperelasticModel
+from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.mpi import on_rank_zero, print0
+from hapticrom.offline.operators import load_vector, lumped_volumes, reference_tangent
+from hapticrom.offline.organ import load_organ
+from hapticrom.offline.positions import (
+    PositionsSpec,
+    ToolPosition,
+    plan_positions,
+    positions_from_dict,
+    positions_table,
+)
+from hapticrom.offline.progress import ProgressBar
+from hapticrom.offline.store import FORMAT, VERSION, SnapshotStore, csr_datasets
+from hapticrom.shared.checksum import file_digest
+from hapticrom.shared.errors import HapticromError, InputError, SolverError
+
+CONTROL_MODES = ("displacement", "force")
+INNER_PRODUCTS = ("euclidean", "volume")
+POD_METHODS = ("snapshots", "svd")
+_TAG_REPORT, _TAG_DONE = 7301, 7302
+
+
+@dataclass(frozen=True)
+class CampaignLoad:
+    """The tool load of every position, scaled by a load factor from 0 to 1.
+
+    ``magnitude``: mm (displacement control) or N (force control) at load factor 1;
+    ``direction``: "normal" (into the surface, along its inward normal at the
+    position) or a fixed vector (normalised).
+    """
+
+    mode: str
+    magnitude: float
+    direction: str | tuple[float, float, float] = "normal"
+    contact_radius: float = 0.5
+    surface: str = "loadable"
+    steps: int = 10
+    max_step_cuts: int = 8
+    predictor: str = "secant"
+
+    def unit_direction(self, position: ToolPosition) -> np.ndarray:
+        if self.direction == "normal":
+            return -np.asarray(position.normal, dtype=float)
+        d = np.asarray(self.direction, dtype=float)
+        return d / np.linalg.norm(d)
+
+    def at(self, position: ToolPosition) -> LoadConfig:
+        vector = tuple(float(v) for v in self.magnitude * self.unit_direction(position))
+        return LoadConfig(
+            mode=self.mode,
+            contact_point=tuple(position.point),
+            contact_radius=self.contact_radius,
+            surface=self.surface,
+            steps=self.steps,
+            max_step_cuts=self.max_step_cuts,
+            predictor=self.predictor,
+            **{self.mode: vector},
+        )
+
+
+@dataclass(frozen=True)
+class PODConfig:
+    """Truncation and inner product of the POD (thesis §2.2.2: eigenvalue ratio 1e-8)."""
+
+    eigenvalue_ratio: float | None = 1e-8
+    energy: float | None = None
+    max_modes: int | None = None
+    inner_product: str = "euclidean"
+    method: str = "snapshots"
+
+
+@dataclass(frozen=True)
+class CampaignConfig:
+    name: str
+    problem: ProblemConfig  # mesh, material, discretisation, solver (its load is unused)
+    load: CampaignLoad
+    positions: PositionsSpec
+    pod: PODConfig = PODConfig()
+    raw: dict = field(default_factory=dict, compare=False)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> CampaignConfig:
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(f"campaign file {path} not found")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"{path}: not valid TOML ({exc})") from None
+        return cls.from_dict(data, base_dir=path.parent, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: dict, base_dir: str | Path = ".", source: str = "campaign"):
+        r = _Reader(source)
+        known = {"campaign", "mesh", "material", "discretisation", "solver", "load"}
+        r.keys(data, "", known | {"positions", "pod"})
+        problem = ProblemConfig.from_dict(
+            {
+                **{
+                    k: data[k]
+                    for k in ("mesh", "material", "discretisation", "solver")
+                    if k in data
+                },
+                "load": {"mode": "force", "force": [0.0, 0.0, 0.0]},
+                "output": {"xdmf": False},
+            },
+            base_dir=base_dir,
+            source=source,
+        )
+        meta = r.table(data, "campaign")
+        r.keys(meta, "campaign", {"name", "description"})
+        name = meta.get("name", Path(source).stem)
+        return cls(
+            name=str(name),
+            problem=problem,
+            load=_campaign_load(r, r.table(data, "load", required=True)),
+            positions=positions_from_dict(r.table(data, "positions", required=True)),
+            pod=_pod(r, r.table(data, "pod")),
+            raw=data,
+        )
+
+    def campaign_hash(self) -> str:
+        """Identity of the campaign: its configuration and the bytes of its mesh."""
+        h = hashlib.sha256(json.dumps(self.raw, sort_keys=True, default=str).encode())
+        h.update(file_digest(self.problem.mesh.file).encode())
+        return h.hexdigest()
+
+
+def _campaign_load(r: _Reader, t: dict) -> CampaignLoad:
+    allowed = {
+        "mode", "magnitude", "direction", "contact_radius", "surface", "steps",
+        "max_step_cuts", "predictor",
+    }  # fmt: skip
+    r.keys(t, "load", allowed)
+    mode = r.choice(t, "load", "mode", CONTROL_MODES, None)
+    direction = t.get("direction", "normal")
+    if direction != "normal":
+        direction = r.vector(t, "load", "direction")
+        if np.linalg.norm(direction) == 0:
+            r.fail("load", "direction must not be the zero vector")
+    base = LoadConfig(mode=mode, force=(0.0, 0.0, 0.0))
+    return CampaignLoad(
+        mode=mode,
+        magnitude=r.number(t, "load", "magnitude", positive=True),
+        direction=direction,
+        contact_radius=r.number(t, "load", "contact_radius", 0.5, positive=True),
+        surface=str(t.get("surface", "loadable")),
+        steps=r.number(t, "load", "steps", base.steps, positive=True, integer=True),
+        max_step_cuts=r.number(t, "load", "max_step_cuts", base.max_step_cuts, integer=True),
+        predictor=r.choice(t, "load", "predictor", ("secant", "none"), "secant"),
+    )
+
+
+def _pod(r: _Reader, t: dict) -> PODConfig:
+    r.keys(t, "pod", {"eigenvalue_ratio", "energy", "max_modes", "inner_product", "method"})
+    ratio = r.number(t, "pod", "eigenvalue_ratio", 1e-8, positive=True)
+    energy = t.get("energy")
+    if energy is not None and not 0 < r.number(t, "pod", "energy") <= 1:
+        r.fail("pod", f"energy must lie in (0, 1], got {energy}")
+    max_modes = t.get("max_modes")
+    if max_modes is not None:
+        max_modes = r.number(t, "pod", "max_modes", positive=True, integer=True)
+    return PODConfig(
+        eigenvalue_ratio=ratio,
+        energy=energy,
+        max_modes=max_modes,
+        inner_product=r.choice(t, "pod", "inner_product", INNER_PRODUCTS, "euclidean"),
+        method=r.choice(t, "pod", "method", POD_METHODS, "snapshots"),
+    )
+
+
+# -- running -----------------------------------------------------------------------
+@dataclass
+class CampaignReport:
+    positions: int
+    solved_now: int
+    resumed: int
+    failed: list[int]
+    wall_seconds: float
+    ranks: int
+    ranks_per_solve: int
+
+
+def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str, Any]:
+    mesh = config.problem.mesh.file
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "name": config.name,
+        "campaign_hash": config.campaign_hash(),
+        "campaign": json.loads(json.dumps(config.raw, default=str)),
+        "mesh": {"file": str(Path(mesh).resolve()), "sha256": file_digest(mesh)},
+        "positions": [
+            {
+                "index": p.index,
+                "point": list(p.point),
+                "normal": list(p.normal),
+                "node_tag": int(p.node_tag),
+                "source": p.source,
+            }
+            for p in positions
+        ],
+        "units": {"length": "mm", "force": "N", "stress": "MPa"},
+        "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "software": {"hapticrom": __version__},
+    }
+
+
+def _plan(config: CampaignConfig, store: SnapshotStore, restart: bool):
+    surface = read_surface(config.problem.mesh.file, config.load.surface)
+    positions = plan_positions(surface, config.positions)
+    resumed = store.open_or_create(_manifest(config, positions), restart=restart)
+    return positions, resumed, store.completed()
+
+
+def _write_operators(config: CampaignConfig, organ, group: MPI.Comm, store: SnapshotStore):
+    """K0, volumes, coordinates and supports of the campaign's mesh (group 0 only)."""
+    problem = config.problem
+    from hapticrom.offline.formulation import choose_element
+    from hapticrom.offline.materials import make_law
+
+    law = make_law(problem.material.law, **problem.material.params)
+    element = choose_element(organ.cell_type, problem.discretisation.element)
+    model = HyperelasticModel(organ, law, element, problem.discretisation.quadrature_degree)
+    order = CanonicalOrder(model.V)
+    K0 = reference_tangent(model, order)
+    volumes = lumped_volumes(model.V, order, model.quadrature_degree)
+    coords = order.gather(model.V.tabulate_dof_coordinates().reshape(-1))
+    supported = order.gather_blocks(organ.constrained_blocks(model.V))
+    if group.rank == 0:
+        store.write_operators(
+            {
+                **csr_datasets("K0", K0),
+                "volumes": volumes,
+                "node_coordinates": coords.reshape(-1, 3),
+                "supported_nodes": supported,
+            },
+            {
+                "element": element.name,
+                "num_dofs": order.num_dofs,
+                "units": "K0 N/mm, volumes mm^3, coordinates mm",
+                "condensed_pressure": bool(model.p is not None),
+            },
+        )
+
+
+def _solve_position(config, position, organ, group):
+    """One full load path; returns (datasets, attrs) on the group's root, None elsewhere."""
+    problem = replace(config.problem, load=config.load.at(position))
+    t0 = time.perf_counter()
+    model = FullOrderModel(problem, comm=group, organ=organ, verbose=False)
+    order = CanonicalOrder(model.model.V)
+    snapshots = []
+
+    def on_step(record, force, disp):
+        u = order.gather(model.model.u.x.array)
+        if group.rank == 0:
+            snapshots.append(u)
+
+    status, message = "solved", ""
+    try:
+        result = model.solve(on_step=on_step)
+        records, forces, disps = result.records, result.force, result.displacement
+    except SolverError as exc:  # keep what converged; the position is marked failed
+        status, message = "failed", str(exc)
+        records, forces, disps = model.history
+    if config.load.mode == "force":
+        model.set_load(1.0)
+        f = load_vector(model.model, order)
+        contact_local = model.patch.blocks(model.model.V)
+    else:
+        f = None
+        contact_local = model.patch_blocks
+    contact = order.gather_blocks(contact_local)
+    if group.rank != 0:
+        return None
+    n = order.num_dofs
+    datasets = {
+        "displacement": np.array(snapshots).reshape(-1, n),
+        "load_factor": np.array([r.load_factor for r in records]),
+        "force": np.asarray(forces).reshape(-1, 3),
+        "contact_displacement": np.asarray(disps).reshape(-1, 3),
+        "newton_iterations": np.array([r.newton_iterations for r in records], dtype=np.int64),
+        "step_cuts": np.array([r.step_cuts for r in records], dtype=np.int64),
+        "contact_nodes": contact,
+    }
+    if f is not None:
+        datasets["load_vector"] = f
+    direction = config.load.unit_direction(position)
+    attrs = {
+        "status": status,
+        "message": message,
+        "point": np.asarray(position.point),
+        "normal": np.asarray(position.normal),
+        "direction": direction,
+        "mode": config.load.mode,
+        "magnitude": config.load.magnitude,
+        "units": "displacement mm, force N (tool on tissue), load_vector N",
+        "seconds": time.perf_counter() - t0,
+    }
+    return datasets, attrs
+
+
+def run_campaign(
+    config: CampaignConfig,
+    out_dir: str | Path,
+    comm: MPI.Comm = MPI.COMM_WORLD,
+    ranks_per_solve: int = 1,
+    restart: bool = False,
+    verbose: bool = True,
+) -> CampaignReport:
+    """Solve every position of ``config`` not yet stored in ``out_dir``; see the module doc."""
+    t_start = time.perf_counter()
+    if ranks_per_solve < 1 or comm.size % ranks_per_solve:
+        raise InputError(
+            f"--ranks-per-solve {ranks_per_solve} must divide the number of ranks ({comm.size})"
+        )
+    say = (lambda s: print0(comm, s)) if verbose else (lambda s: None)
+    store = SnapshotStore(out_dir)
+    positions, resumed, done = on_rank_zero(comm, _plan, config, store, restart)
+    n_groups = comm.size // ranks_per_solve
+    group_index = comm.rank // ranks_per_solve
+    group = comm.Split(color=group_index, key=comm.rank)
+    todo = [p for p in positions if p.index not in set(done)]
+    say(
+        f"campaign '{config.name}': {len(positions)} tool positions "
+        f"({len(done)} already stored{', resuming' if resumed else ''}), "
+        f"{config.load.mode} control, {config.load.magnitude} "
+        f"{'mm' if config.load.mode == 'displacement' else 'N'} in {config.load.steps} steps; "
+        f"{comm.size} rank(s) in {n_groups} group(s) of {ranks_per_solve}"
+    )
+    if verbose and comm.rank == 0 and not done:
+        print(positions_table(positions), flush=True)
+
+    organ = load_organ(config.problem.mesh.file, group)
+    need_operators = on_rank_zero(comm, lambda: not store.has_operators())
+    if need_operators and group_index == 0:
+        t0 = time.perf_counter()
+        _write_operators(config, organ, group, store)
+        if group.rank == 0:
+            say(f"stored K0 and the volume weights ({time.perf_counter() - t0:.1f} s)")
+
+    mine = todo[group_index::n_groups]
+    bar = ProgressBar(len(positions), already_done=len(done)) if comm.rank == 0 else None
+    if not verbose and bar is not None:
+        bar.stream = io.StringIO()  # quiet runs (tests) keep the log in memory
+    error = None
+    reports = []
+
+    def announce(report: dict) -> None:
+        """World rank 0: log a finished position and move the bar."""
+        cuts = f", {report['cuts']} step cut(s)" if report["cuts"] else ""
+        state = "" if report["status"] == "solved" else f"  FAILED: {report['message']}"
+        point = tuple(round(c, 3) for c in report["point"])
+        line = (
+            f"position {report['index']:3d} {point} group {report['group']}: "
+            f"{report['steps']} steps, {report['its']} Newton its{cuts}, "
+            f"{report['seconds']:.1f} s{state}"
+        )
+        print(line, file=bar.stream, flush=True)
+        bar.advance()
+        reports.append(report)
+
+    def drain(block_until_done: bool) -> None:
+        nonlocal groups_done
+        status = MPI.Status()
+        while True:
+            if not block_until_done and not comm.iprobe(MPI.ANY_SOURCE, MPI.ANY_TAG, status):
+                return
+            if block_until_done and groups_done == n_groups - 1:
+                return
+            message = comm.recv(source=MPI.ANY_SOURCE, tag=MPI.ANY_TAG, status=status)
+            if status.Get_tag() == _TAG_DONE:
+                groups_done += 1
+            else:
+                announce(message)
+
+    groups_done = 0
+    try:
+        for position in mine:
+            record = _solve_position(config, position, organ, group)
+            if group.rank == 0:
+                datasets, attrs = record
+                store.write_position(position.index, datasets, attrs)
+                report = {
+                    "index": position.index,
+                    "point": list(position.point),
+                    "group": group_index,
+                    "steps": len(datasets["load_factor"]),
+                    "its": int(datasets["newton_iterations"].sum()),
+                    "cuts": int(datasets["step_cuts"].sum()),
+                    "seconds": attrs["seconds"],
+                    "status": attrs["status"],
+                    "message": attrs["message"],
+                }
+                if comm.rank == 0:
+                    announce(report)
+                    drain(block_until_done=False)
+                else:
+                    comm.send(report, dest=0, tag=_TAG_REPORT)
+    except HapticromError as exc:
+        error = f"group {group_index}: {exc}"
+    finally:
+        if group.rank == 0 and comm.rank != 0:
+            comm.send(None, dest=0, tag=_TAG_DONE)
+        if comm.rank == 0:
+            drain(block_until_done=True)
+    errors = [e for e in comm.allgather(error) if e]
+    if errors:
+        raise HapticromError("; ".join(errors))
+
+    failed = on_rank_zero(comm, _failed_positions, store)
+    wall = time.perf_counter() - t_start
+    if comm.rank == 0 and verbose:
+        solved = [r for r in reports if r["status"] == "solved"]
+        per_solve = np.mean([r["seconds"] for r in solved]) if solved else math.nan
+        print(
+            f"campaign done: {len(reports)} solve(s) this run ({len(done)} resumed), "
+            f"{len(failed)} failed, {wall:.1f} s wall, {per_solve:.1f} s per solve "
+            f"(one group), {comm.size} rank(s), {ranks_per_solve} per solve",
+            flush=True,
+        )
+    return CampaignReport(
+        positions=len(positions),
+        solved_now=len(todo),
+        resumed=len(done),
+        failed=failed,
+        wall_seconds=wall,
+        ranks=comm.size,
+        ranks_per_solve=ranks_per_solve,
+    )
+
+
+def _failed_positions(store: SnapshotStore) -> list[int]:
+    import h5py
+
+    failed = []
+    for index in store.completed():
+        with h5py.File(store.position_path(index), "r") as f:
+            if f.attrs.get("status") != "solved":
+                failed.append(index)
+    return failed

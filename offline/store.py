@@ -1,0 +1,190 @@
+"""The on-disk snapshot store of a training campaign: crash-safe and rank-independent.
+
+Layout of a campaign directory::
+
+    manifest.json           what this campaign is (its hash), the tool positions
+    operators.h5            K0 (canonical CSR, N/mm), lumped volumes (mm^3), node coordinates
+    solves/position-0007.h5 one file per tool position: the whole load path
+
+Every file is written under a temporary name in the same directory, flushed
+to disk, then renamed: a crash (even SIGKILL) at any moment leaves either the
+complete file or none, never a half-written one that reads as valid. Every
+dataset carries its SHA-256 (``hapticrom.shared.checksum``), verified on read.
+All arrays are in the canonical DOF order of :mod:`hapticrom.offline.dofs`, so
+campaigns run on different numbers of ranks store the same data.
+
+A rerun of the same campaign in the same directory resumes: positions whose
+file exists are not solved again. A directory holding a different campaign
+(another configuration or mesh) is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import scipy.sparse
+
+from hapticrom.shared.checksum import array_digest
+from hapticrom.shared.errors import InputError
+
+FORMAT = "hapticrom-campaign"
+VERSION = 1
+
+
+def _atomic_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.partial-{os.getpid()}")
+
+
+def _fsync_and_rename(tmp: Path, path: Path) -> None:
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def write_h5(path: Path, datasets: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
+    """Write datasets (with checksums) and attributes to ``path`` atomically."""
+    tmp = _atomic_path(path)
+    with h5py.File(tmp, "w") as f:
+        for key, value in attrs.items():
+            f.attrs[key] = value
+        for name, array in datasets.items():
+            array = np.asarray(array)
+            dset = f.create_dataset(name, data=array)
+            dset.attrs["sha256"] = array_digest(array)
+        f.attrs["complete"] = True
+    _fsync_and_rename(tmp, path)
+
+
+def read_h5(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read every dataset of ``path`` and verify its checksum; InputError if damaged."""
+    try:
+        with h5py.File(path, "r") as f:
+            if not f.attrs.get("complete", False):
+                raise InputError(f"{path} is incomplete")
+            attrs = dict(f.attrs)
+            data = {}
+
+            def visit(name, obj):
+                if isinstance(obj, h5py.Dataset):
+                    data[name] = obj[()]
+                    if array_digest(data[name]) != obj.attrs.get("sha256"):
+                        raise InputError(
+                            f"{path}: dataset {name} fails its checksum (damaged file)"
+                        )
+
+            f.visititems(visit)
+    except OSError as exc:
+        raise InputError(f"{path} cannot be read as HDF5 ({exc})") from None
+    return data, attrs
+
+
+def csr_datasets(prefix: str, K: scipy.sparse.csr_matrix) -> dict[str, np.ndarray]:
+    return {
+        f"{prefix}/data": K.data,
+        f"{prefix}/indices": K.indices.astype(np.int64),
+        f"{prefix}/indptr": K.indptr.astype(np.int64),
+        f"{prefix}/shape": np.asarray(K.shape, dtype=np.int64),
+    }
+
+
+def csr_from(data: dict[str, np.ndarray], prefix: str) -> scipy.sparse.csr_matrix:
+    return scipy.sparse.csr_matrix(
+        (data[f"{prefix}/data"], data[f"{prefix}/indices"], data[f"{prefix}/indptr"]),
+        shape=tuple(data[f"{prefix}/shape"]),
+    )
+
+
+class SnapshotStore:
+    """A campaign directory (see the module docstring)."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        self.solves = self.root / "solves"
+
+    # -- manifest --------------------------------------------------------------
+    @property
+    def manifest_path(self) -> Path:
+        return self.root / "manifest.json"
+
+    def manifest(self) -> dict:
+        if not self.manifest_path.is_file():
+            raise InputError(f"{self.root} is not a campaign directory (no manifest.json)")
+        data = json.loads(self.manifest_path.read_text())
+        if data.get("format") != FORMAT:
+            raise InputError(f"{self.manifest_path} is not a {FORMAT} manifest")
+        if data.get("version") != VERSION:
+            raise InputError(
+                f"{self.manifest_path}: campaign format version {data.get('version')} "
+                f"is not supported (this hapticrom reads version {VERSION})"
+            )
+        return data
+
+    def open_or_create(self, manifest: dict, restart: bool = False) -> bool:
+        """Create the directory for ``manifest``, or check it holds the same campaign.
+
+        Returns True when resuming. Call on one rank only.
+        """
+        self.solves.mkdir(parents=True, exist_ok=True)
+        for stale in self.root.rglob(".*.partial-*"):  # left by a killed run
+            stale.unlink()
+        if self.manifest_path.is_file() and not restart:
+            existing = self.manifest()
+            if existing["campaign_hash"] != manifest["campaign_hash"]:
+                raise InputError(
+                    f"{self.root} holds a different campaign (other configuration or mesh); "
+                    "choose another output directory or pass --restart to discard it"
+                )
+            return True
+        if restart:
+            for old in self.solves.glob("position-*.h5"):
+                old.unlink()
+            (self.root / "operators.h5").unlink(missing_ok=True)
+        tmp = _atomic_path(self.manifest_path)
+        tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+        _fsync_and_rename(tmp, self.manifest_path)
+        return False
+
+    # -- records ---------------------------------------------------------------
+    def position_path(self, index: int) -> Path:
+        return self.solves / f"position-{index:04d}.h5"
+
+    def completed(self) -> list[int]:
+        """Indices of the positions with a complete record (solved or failed)."""
+        done = []
+        for path in sorted(self.solves.glob("position-*.h5")):
+            try:
+                with h5py.File(path, "r") as f:
+                    if f.attrs.get("complete", False):
+                        done.append(int(f.attrs["index"]))
+            except OSError:
+                continue  # unreadable: treated as not done, solved again
+        return done
+
+    def write_position(self, index: int, datasets: dict, attrs: dict) -> None:
+        write_h5(self.position_path(index), datasets, {"index": index, **attrs})
+
+    def read_position(self, index: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return read_h5(self.position_path(index))
+
+    @property
+    def operators_path(self) -> Path:
+        return self.root / "operators.h5"
+
+    def has_operators(self) -> bool:
+        return self.operators_path.is_file()
+
+    def write_operators(self, datasets: dict, attrs: dict) -> None:
+        write_h5(self.operators_path, datasets, attrs)
+
+    def read_operators(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return read_h5(self.operators_path)
