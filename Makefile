@@ -1,5 +1,5 @@
 # hapticrom: one venv (.venv, Python 3.12), meshes under meshes/, caches under .cache/.
-#   make demo   set up everything, then solve the default cornea indentation on 2 ranks
+#   make demo   set up everything, train the default cornea model on 2 ranks, play it
 #   make test   set up everything, then run the tests serially and under mpirun -n 2
 
 SHELL := /bin/bash
@@ -52,11 +52,15 @@ test-serial: venv
 test-mpi: venv
 	$(VENV)/bin/mpirun -n $(NP) $(PY) -m pytest -m mpi -q -p no:cacheprovider tests
 
+# The campaign resumes: a second `make demo` reuses the stored solves.
 demo: venv meshes/cornea.msh
-	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom solve examples/cornea-hgo-indent.toml --out out/cornea-hgo-indent
+	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom train examples/cornea-campaign.toml --out out/cornea.h5
+	$(VENV)/bin/hapticrom play out/cornea.h5
+	@echo "reduced model: out/cornea.h5 (snapshots: out/cornea.campaign); try: $(VENV)/bin/hapticrom bench out/cornea.h5"
 
-bench: venv meshes/cornea.msh
+bench: demo
 	$(PY) bench/fullorder.py
+	$(PY) bench/online.py out/cornea.h5
 
 lint: venv
 	$(VENV)/bin/ruff check .

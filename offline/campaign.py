@@ -38,7 +38,12 @@ from hapticrom.offline.dofs import CanonicalOrder
 from hapticrom.offline.formulation import HyperelasticModel
 from hapticrom.offline.fullorder import FullOrderModel
 from hapticrom.offline.mpi import on_rank_zero, print0
-from hapticrom.offline.operators import load_vector, lumped_volumes, reference_tangent
+from hapticrom.offline.operators import (
+    load_vector,
+    lumped_volumes,
+    reference_tangent,
+    tangent_blocks,
+)
 from hapticrom.offline.organ import load_organ
 from hapticrom.offline.positions import (
     PositionsSpec,
@@ -262,13 +267,19 @@ def _write_operators(config: CampaignConfig, organ, group: MPI.Comm, store: Snap
     model = HyperelasticModel(organ, law, element, problem.discretisation.quadrature_degree)
     order = CanonicalOrder(model.V)
     K0 = reference_tangent(model, order)
+    blocks = tangent_blocks(model, order, CanonicalOrder(model.Q)) if model.p is not None else None
     volumes = lumped_volumes(model.V, order, model.quadrature_degree)
     coords = order.gather(model.V.tabulate_dof_coordinates().reshape(-1))
     supported = order.gather_blocks(organ.constrained_blocks(model.V))
     if group.rank == 0:
+        mixed = {}
+        if blocks is not None:  # for reduced models with a reduced pressure space
+            mixed = {**csr_datasets("Kuu", blocks["Kuu"]), **csr_datasets("Kup", blocks["Kup"])}
+            mixed["Kpp_diagonal"] = blocks["Kpp"]
         store.write_operators(
             {
                 **csr_datasets("K0", K0),
+                **mixed,
                 "volumes": volumes,
                 "node_coordinates": coords.reshape(-1, 3),
                 "supported_nodes": supported,
@@ -288,12 +299,16 @@ def _solve_position(config, position, organ, group):
     t0 = time.perf_counter()
     model = FullOrderModel(problem, comm=group, organ=organ, verbose=False)
     order = CanonicalOrder(model.model.V)
-    snapshots = []
+    pressure_order = CanonicalOrder(model.model.Q) if model.model.p is not None else None
+    snapshots, pressures = [], []
 
     def on_step(record, force, disp):
         u = order.gather(model.model.u.x.array)
+        p = pressure_order.gather(model.model.p.x.array) if pressure_order else None
         if group.rank == 0:
             snapshots.append(u)
+            if p is not None:
+                pressures.append(p)
 
     status, message = "solved", ""
     try:
@@ -324,6 +339,8 @@ def _solve_position(config, position, organ, group):
     }
     if f is not None:
         datasets["load_vector"] = f
+    if pressure_order is not None:  # element-wise pressure (MPa), canonical cell order
+        datasets["pressure"] = np.array(pressures).reshape(-1, pressure_order.num_dofs)
     direction = config.load.unit_direction(position)
     attrs = {
         "status": status,

@@ -68,17 +68,19 @@ def _node_keys(V: fem.FunctionSpace) -> np.ndarray:
 
 
 class CanonicalOrder:
-    """Canonical node numbering of a blocked (bs = 3) Lagrange space, on every rank.
+    """Canonical node numbering of a Lagrange space (block size bs = 3 for
+    displacements, 1 for an element-wise pressure), on every rank.
 
     Attributes:
-        num_nodes: global number of nodes (blocks); DOFs are 3 * num_nodes.
+        num_nodes: global number of nodes (blocks); DOFs are bs * num_nodes.
         canonical_of_global: (num_nodes,) canonical index of each DOLFINx global block.
         owned: canonical indices of this rank's owned blocks, in local order.
     """
 
     def __init__(self, V: fem.FunctionSpace):
-        if V.dofmap.index_map_bs != 3:
-            raise ValueError("CanonicalOrder expects a 3-component vector space")
+        self.bs = V.dofmap.index_map_bs
+        if self.bs not in (1, 3):
+            raise ValueError("CanonicalOrder expects a scalar or a 3-component vector space")
         self.V, self.comm = V, V.mesh.comm
         im = V.dofmap.index_map
         self.size_local = im.size_local
@@ -97,13 +99,13 @@ class CanonicalOrder:
         self.canonical_of_global[all_globals[order]] = np.arange(self.num_nodes)
         self.owned = self.canonical_of_global[first : first + im.size_local]
         counts = self.comm.allgather(im.size_local)
-        self._counts = np.asarray(counts) * 3
+        self._counts = np.asarray(counts) * self.bs
         # Where each rank's owned nodes go in canonical order (for gathers to any root).
         self._positions = np.concatenate(self.comm.allgather(self.owned))
 
     @property
     def num_dofs(self) -> int:
-        return 3 * self.num_nodes
+        return self.bs * self.num_nodes
 
     def canonical_dofs(self, local_blocks: np.ndarray) -> np.ndarray:
         """Canonical node indices of local block indices (owned or ghost)."""
@@ -113,19 +115,21 @@ class CanonicalOrder:
 
     def global_dofs_to_canonical(self, dofs: np.ndarray) -> np.ndarray:
         """DOLFINx global (unblocked) DOF numbers -> canonical DOF numbers."""
+        # (for bs = 3: node i's components are canonical DOFs 3 i, 3 i + 1, 3 i + 2)
         dofs = np.asarray(dofs, dtype=np.int64)
-        return 3 * self.canonical_of_global[dofs // 3] + dofs % 3
+        bs = self.bs
+        return bs * self.canonical_of_global[dofs // bs] + dofs % bs
 
     def gather(self, values: np.ndarray, root: int = 0) -> np.ndarray | None:
-        """Owned DOF values (3 * size_local, local order) -> canonical (3 N,) array on root."""
-        local = np.ascontiguousarray(values[: 3 * self.size_local], dtype=np.float64)
+        """Owned DOF values (bs * size_local, local order) -> canonical (bs N,) array on root."""
+        local = np.ascontiguousarray(values[: self.bs * self.size_local], dtype=np.float64)
         if self.comm.rank != root:
             self.comm.Gatherv(local, None, root=root)
             return None
         received = np.empty(self._counts.sum(), dtype=np.float64)
         self.comm.Gatherv(local, (received, self._counts), root=root)
-        out = np.empty((self.num_nodes, 3))
-        out[self._positions] = received.reshape(-1, 3)
+        out = np.empty((self.num_nodes, self.bs))
+        out[self._positions] = received.reshape(-1, self.bs)
         return out.reshape(-1)
 
     def gather_blocks(self, local_blocks: np.ndarray, root: int = 0) -> np.ndarray | None:
@@ -135,8 +139,8 @@ class CanonicalOrder:
         return None if found is None else np.unique(np.concatenate(found))
 
     def scatter_owned(self, canonical: np.ndarray) -> np.ndarray:
-        """This rank's owned values (3 * size_local,) from a full canonical (3 N,) array."""
-        return np.asarray(canonical).reshape(-1, 3)[self.owned].reshape(-1)
+        """This rank's owned values (bs * size_local,) from a full canonical (bs N,) array."""
+        return np.asarray(canonical).reshape(-1, self.bs)[self.owned].reshape(-1)
 
 
 def owned_canonical_rows(comm: MPI.Comm, n: int) -> tuple[int, int]:

@@ -28,22 +28,56 @@ from hapticrom.offline.formulation import HyperelasticModel
 from hapticrom.shared.errors import InputError
 
 
-def _to_canonical_csr(A: PETSc.Mat, order: CanonicalOrder) -> scipy.sparse.csr_matrix | None:
-    """Gather a displacement-by-displacement PETSc matrix to rank 0 in canonical order."""
+def _to_canonical_csr(
+    A: PETSc.Mat, rows_order: CanonicalOrder, cols_order: CanonicalOrder | None = None
+) -> scipy.sparse.csr_matrix | None:
+    """Gather a PETSc matrix to rank 0 with rows and columns in canonical order."""
+    cols_order = cols_order or rows_order
     indptr, cols, vals = A.getValuesCSR()
     rstart, _ = A.getOwnershipRange()
     rows = rstart + np.repeat(np.arange(len(indptr) - 1), np.diff(indptr))
-    rows = order.global_dofs_to_canonical(rows)
-    cols = order.global_dofs_to_canonical(cols)
-    gathered = order.comm.gather((rows, cols, vals), root=0)
+    rows = rows_order.global_dofs_to_canonical(rows)
+    cols = cols_order.global_dofs_to_canonical(cols)
+    gathered = rows_order.comm.gather((rows, cols, vals), root=0)
     if gathered is None:
         return None
     rows, cols, vals = (np.concatenate(part) for part in zip(*gathered, strict=True))
-    n = order.num_dofs
-    K = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(n, n))
+    shape = (rows_order.num_dofs, cols_order.num_dofs)
+    K = scipy.sparse.csr_matrix((vals, (rows, cols)), shape=shape)
     K.sum_duplicates()
     K.sort_indices()
     return K
+
+
+def _require_condensable(model: HyperelasticModel) -> None:
+    if model.p is not None and model.element.pressure != "DG0":
+        raise InputError(
+            f"element {model.element.name}: only an element-wise (DG0) pressure can be "
+            "condensed out of the tangent; use Q1P0/P2P0 or a displacement-only element"
+        )
+
+
+def tangent_blocks(model: HyperelasticModel, order_u: CanonicalOrder, order_p: CanonicalOrder):
+    """The blocks of the mixed tangent at the model's state, canonical, on rank 0.
+
+    Returns ``{"Kuu": CSR (N/mm), "Kup": CSR (mm^2), "Kpp": diagonal (mm^3/MPa)}``
+    (K_pu = K_up^T: the tangent is the Hessian of an energy); None off rank 0.
+    """
+    _require_condensable(model)
+    residuals = model.residual_forms(include_load=False)
+    forms = model.jacobian_forms(residuals)
+    mats = {}
+    for name, (i, j) in {"Kuu": (0, 0), "Kup": (0, 1), "Kpp": (1, 1)}.items():
+        M = assemble_matrix(fem.form(forms[i][j]))
+        M.assemble()
+        if name == "Kpp":
+            d = M.getDiagonal()
+            mats[name] = order_p.gather(d.getArray())
+            d.destroy()
+        else:
+            mats[name] = _to_canonical_csr(M, order_u, order_p if j == 1 else order_u)
+        M.destroy()
+    return mats if order_u.comm.rank == 0 else None
 
 
 def reference_tangent(model: HyperelasticModel, order: CanonicalOrder):
@@ -51,16 +85,12 @@ def reference_tangent(model: HyperelasticModel, order: CanonicalOrder):
 
     Returns the canonical CSR matrix on rank 0 (None elsewhere).
     """
+    _require_condensable(model)
     residuals = model.residual_forms(include_load=False)
     blocks = model.jacobian_forms(residuals)
     Kuu = assemble_matrix(fem.form(blocks[0][0]))
     Kuu.assemble()
     if model.p is not None:
-        if model.element.pressure != "DG0":
-            raise InputError(
-                f"element {model.element.name}: only an element-wise (DG0) pressure can be "
-                "condensed out of the tangent; use Q1P0/P2P0 or a displacement-only element"
-            )
         Kup, Kpu, Kpp = (
             assemble_matrix(fem.form(blocks[i][j])) for i, j in ((0, 1), (1, 0), (1, 1))
         )

@@ -3,8 +3,10 @@
 Layout of a campaign directory::
 
     manifest.json           what this campaign is (its hash), the tool positions
-    operators.h5            K0 (canonical CSR, N/mm), lumped volumes (mm^3), node coordinates
-    solves/position-0007.h5 one file per tool position: the whole load path
+    operators.h5            K0 (canonical CSR, N/mm), the mixed tangent blocks Kuu, Kup,
+                            Kpp_diagonal, lumped volumes (mm^3), node coordinates
+    solves/position-0007.h5 one file per tool position: the whole load path (displacement
+                            and element-wise pressure snapshots, forces, contact nodes)
 
 Every file is written under a temporary name in the same directory, flushed
 to disk, then renamed: a crash (even SIGKILL) at any moment leaves either the
@@ -33,7 +35,7 @@ from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.errors import InputError
 
 FORMAT = "hapticrom-campaign"
-VERSION = 1
+VERSION = 2  # 2: pressure snapshots and the mixed tangent blocks
 
 
 def _atomic_path(path: Path) -> Path:

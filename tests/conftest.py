@@ -95,3 +95,16 @@ def small_campaign(mesh_dir, tmp_path_factory):
     config = CampaignConfig.from_toml(path)
     report = run_campaign(config, root / "store", verbose=False)
     return config, SnapshotStore(root / "store"), report
+
+
+@pytest.fixture(scope="session")
+def small_artifact(small_campaign, tmp_path_factory) -> Path:
+    """The reduced-model artifact of ``small_campaign`` (serial)."""
+    from mpi4py import MPI
+
+    from hapticrom.offline.reduction import reduce_campaign
+
+    _, store, _ = small_campaign
+    out = tmp_path_factory.mktemp("artifact") / "small.h5"
+    reduce_campaign(store.root, out, MPI.COMM_SELF, verbose=False)
+    return out

@@ -122,3 +122,14 @@ def test_online_runtime_imports_without_the_offline_stack():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr
+
+
+def test_play_and_bench_need_only_the_runtime(small_artifact, tmp_path):
+    """The online commands run with the offline stack unimportable."""
+    env_prelude = BLOCK_OFFLINE
+    proc = run_cli("play", small_artifact, "--seconds", "0.2", cwd=tmp_path, prelude=env_prelude)
+    assert proc.returncode == 0, proc.stderr
+    assert "achieved" in proc.stdout and "Hz" in proc.stdout
+    proc = run_cli("bench", small_artifact, "--steps", "2000", cwd=tmp_path, prelude=env_prelude)
+    assert proc.returncode == 0, proc.stderr
+    assert "step_displacement" in proc.stdout and "numpy" in proc.stdout

@@ -156,6 +156,26 @@ def cmd_train(args, petsc_args) -> int:
     return 1 if report.failed else 0
 
 
+def cmd_play(args, petsc_args) -> int:
+    from hapticrom.online.play import play
+
+    play(args.model, rate=args.rate, seconds=args.seconds, interpolation=args.interpolation,
+         realtime=not args.free_running)  # fmt: skip
+    return 0
+
+
+def cmd_bench(args, petsc_args) -> int:
+    import json
+
+    from hapticrom.online.latency import measure, report
+
+    result = measure(args.model, steps=args.steps, interpolation=args.interpolation)
+    print(report(result))
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=2))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hapticrom",
@@ -210,6 +230,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="reduced model (.h5)")
     p.add_argument("--work", help="campaign directory (default: OUT with suffix .campaign)")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("play", help="drive a scripted tool path through the runtime [online]")
+    p.add_argument("model", help="reduced-model artifact (.h5)")
+    p.add_argument("--rate", type=float, default=1000.0, help="servo rate, Hz (default 1000)")
+    p.add_argument("--seconds", type=float, default=3.0)
+    p.add_argument("--interpolation", default="podi", choices=["podi", "grassmann"])
+    p.add_argument("--free-running", action="store_true", help="do not pace in real time")
+    p.set_defaults(func=cmd_play)
+
+    p = sub.add_parser("bench", help="latency of the runtime's calls [online]")
+    p.add_argument("model", help="reduced-model artifact (.h5)")
+    p.add_argument("--steps", type=int, default=100_000)
+    p.add_argument("--interpolation", default="podi", choices=["podi", "grassmann"])
+    p.add_argument("--json", help="also write the figures here")
+    p.set_defaults(func=cmd_bench)
     return parser
 
 

@@ -1,0 +1,37 @@
+"""Latency of the online runtime against the same step in plain numpy, in one run.
+
+    python bench/online.py out/cornea.h5 [--steps 100000] [--json out.json]
+
+p50 / p99 / max of step_displacement over >= 100,000 calls, step_force,
+set_contact (sliding), surface_displacement, and load + warm-up with a warm
+numba cache, for PODI and Grassmann interpolation. Targets (issue "artifact and
+online runtime"): step p99 <= 10 us; >= 20x faster than the numpy step;
+surface_displacement <= 100 us; load + warm-up <= 2 s.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from hapticrom.online.latency import measure, report
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model")
+    parser.add_argument("--steps", type=int, default=100_000)
+    parser.add_argument("--json")
+    args = parser.parse_args()
+    results = {}
+    for interpolation in ("podi", "grassmann"):
+        results[interpolation] = measure(args.model, args.steps, interpolation)
+        print(report(results[interpolation]))
+        print()
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+
+
+if __name__ == "__main__":
+    main()

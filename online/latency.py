@@ -1,0 +1,127 @@
+"""Latency of the online runtime, measured call by call (used by ``hapticrom bench``).
+
+Each call is timed with ``time.perf_counter_ns`` (about 50 ns of its own);
+Python's garbage collector is off during the loops, as in a real-time servo
+thread. The baseline is the same step written in plain numpy
+(:mod:`hapticrom.online.reference`), measured in the same run.
+"""
+
+from __future__ import annotations
+
+import gc
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hapticrom.online.model import ReducedModel, load
+from hapticrom.online.reference import NumpySimulator
+
+
+def _percentiles(ns: np.ndarray) -> dict[str, float]:
+    us = ns / 1e3
+    return {
+        "p50_us": float(np.percentile(us, 50)),
+        "p99_us": float(np.percentile(us, 99)),
+        "max_us": float(us.max()),
+        "calls": int(us.size),
+    }
+
+
+def _time_calls(fn, args_list) -> np.ndarray:
+    times = np.empty(len(args_list), dtype=np.int64)
+    clock = time.perf_counter_ns
+    for i, args in enumerate(args_list):
+        t0 = clock()
+        fn(args)
+        times[i] = clock() - t0
+    return times
+
+
+def measure(
+    path: str | Path,
+    steps: int = 100_000,
+    interpolation: str = "podi",
+    baseline_steps: int = 20_000,
+) -> dict:
+    """Latencies (microseconds) of the runtime's calls on the artifact at ``path``."""
+    t0 = time.perf_counter()
+    model: ReducedModel = load(path)
+    load_seconds = time.perf_counter() - t0
+    sim = model.simulator(interpolation)
+    centre = model.sample_points[int(np.argmin(np.linalg.norm(model.chart_points, axis=1)))]
+    sim.set_contact(centre)
+    n = sim.contact_normal.copy()
+    phase = np.linspace(0, 40 * np.pi, steps)
+    depths = model.trained_depth * 0.5 * (1 - np.cos(phase))  # press and release, 20 times
+    displacements = [np.ascontiguousarray(-dep * n) for dep in depths]
+
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        step = _time_calls(sim.step_displacement, displacements)
+        forces = [np.ascontiguousarray(-f * n) for f in np.linspace(0, model.trained_force, 5000)]
+        step_f = _time_calls(sim.step_force, forces)
+        out = np.zeros_like(model.vertices)
+        sim.step_displacement(-0.5 * model.trained_depth * n)
+        surface = _time_calls(lambda _: sim.surface_displacement(out), range(2000))
+        chart = model.chart_points
+        lo, hi = chart.min(axis=0), chart.max(axis=0)
+        slide = [
+            model.chart_origin + (lo + (hi - lo) * t) @ model.chart_axes
+            for t in np.linspace(0.1, 0.9, 5000)[:, None]
+        ]
+        contact = _time_calls(sim.set_contact, slide)
+        ref = NumpySimulator(model)
+        ref.set_contact(centre)
+        baseline = _time_calls(ref.step_displacement, displacements[:baseline_steps])
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    result = {
+        "artifact": str(path),
+        "interpolation": interpolation,
+        "load_and_warm_up_s": load_seconds,
+        "step_displacement": _percentiles(step),
+        "step_force": _percentiles(step_f),
+        "surface_displacement": _percentiles(surface),
+        "set_contact": _percentiles(contact),
+        "numpy_step_displacement": _percentiles(baseline),
+        "surface_vertices": len(model.vertices),
+    }
+    result["speedup_p50"] = (
+        result["numpy_step_displacement"]["p50_us"] / result["step_displacement"]["p50_us"]
+    )
+    result["speedup_p99"] = (
+        result["numpy_step_displacement"]["p99_us"] / result["step_displacement"]["p99_us"]
+    )
+    return result
+
+
+TARGETS = {
+    "step_displacement p99": ("step_displacement", "p99_us", 10.0),
+    "surface_displacement p99": ("surface_displacement", "p99_us", 100.0),
+}
+
+
+def report(result: dict) -> str:
+    lines = [
+        f"{result['artifact']} ({result['interpolation']}, {result['surface_vertices']} surface "
+        f"vertices): load + warm-up {result['load_and_warm_up_s']:.2f} s (target 2 s)",
+        f"{'call':28s} {'p50 us':>9s} {'p99 us':>9s} {'max us':>9s} {'calls':>8s}",
+    ]
+    for key in ("step_displacement", "step_force", "set_contact", "surface_displacement",
+                "numpy_step_displacement"):  # fmt: skip
+        r = result[key]
+        lines.append(
+            f"{key:28s} {r['p50_us']:9.2f} {r['p99_us']:9.2f} {r['max_us']:9.1f} {r['calls']:8d}"
+        )
+    lines.append(
+        f"numba step vs the numpy step: {result['speedup_p50']:.0f}x faster at p50, "
+        f"{result['speedup_p99']:.0f}x at p99 (target 20x)"
+    )
+    for label, (key, stat, limit) in TARGETS.items():
+        value = result[key][stat]
+        verdict = "met" if value <= limit else "missed"
+        lines.append(f"target {label} <= {limit:g} us: {value:.2f} us, {verdict}")
+    return "\n".join(lines)

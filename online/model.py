@@ -1,0 +1,135 @@
+"""A loaded reduced model: the verified artifact's arrays, laid out for the kernels (mm, N)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hapticrom.shared.artifact import Artifact, ArtifactError, read_artifact
+
+INTERPOLATIONS = ("podi", "grassmann")
+
+
+def _f8(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _f4(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _i8(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int64)
+
+
+@dataclass
+class ReducedModel:
+    """Everything a :class:`~hapticrom.online.simulator.Simulator` needs, read-only.
+
+    Attributes (P samples, K depths, n modes, V surface vertices):
+        vertices (V, 3), triangles (T, 3): the surface to render, mm.
+        sample_points, sample_normals (P, 3); chart_origin (3,), chart_axes (2, 3),
+        chart_points (P, 2), sample_triangles (S, 3): where the samples are.
+        depth_step: the uniform indentation grid spacing (mm); trained_depth, trained_force.
+        force, stiffness (P, K): normal reaction force curves (N) and slopes (N/mm).
+        surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field.
+    """
+
+    path: Path
+    artifact: Artifact
+    vertices: np.ndarray
+    triangles: np.ndarray
+    sample_points: np.ndarray
+    sample_normals: np.ndarray
+    chart_origin: np.ndarray
+    chart_axes: np.ndarray
+    chart_points: np.ndarray
+    sample_triangles: np.ndarray
+    depth_step: float
+    force: np.ndarray
+    stiffness: np.ndarray
+    surface_basis: np.ndarray
+    coefficients: np.ndarray
+    grassmann: dict | None
+
+    @classmethod
+    def from_artifact(cls, artifact: Artifact) -> ReducedModel:
+        surface, samples = artifact["surface"], artifact["samples"]
+        depth = np.asarray(samples["depth"], dtype=np.float64)
+        steps = np.diff(depth)
+        if depth[0] != 0.0 or not np.allclose(steps, steps[0], rtol=1e-9, atol=0):
+            raise ArtifactError(f"{artifact.path}: samples/depth must be uniform from 0")
+        if np.any(np.diff(samples["force"], axis=1) < 0):
+            raise ArtifactError(f"{artifact.path}: samples/force is not increasing with depth")
+        grassmann = None
+        if "grassmann" in artifact.groups:
+            g = artifact["grassmann"]
+            grassmann = {
+                "reference": int(g["reference"]),
+                "tangents": _f4(g["tangent_surface"]),
+                "gtt": _f8(g["gram_tangent_tangent"]),
+                "gtb": _f8(g["gram_tangent_basis"]),
+                "grb": _f8(g["gram_reference_basis"]),
+            }
+        return cls(
+            path=artifact.path,
+            artifact=artifact,
+            vertices=_f8(surface["vertices"]),
+            triangles=_i8(surface["triangles"]),
+            sample_points=_f8(samples["points"]),
+            sample_normals=_f8(samples["normals"]),
+            chart_origin=_f8(samples["chart_origin"]),
+            chart_axes=_f8(samples["chart_axes"]),
+            chart_points=_f8(samples["chart_points"]),
+            sample_triangles=_i8(samples["triangles"]),
+            depth_step=float(steps[0]),
+            force=_f8(samples["force"]),
+            stiffness=_f8(samples["stiffness"]),
+            surface_basis=_f4(samples["surface_basis"]),
+            coefficients=_f8(samples["coefficients"]),
+            grassmann=grassmann,
+        )
+
+    @property
+    def trained_depth(self) -> float:
+        """Largest trained indentation (mm)."""
+        return self.depth_step * (self.force.shape[1] - 1)
+
+    @property
+    def trained_force(self) -> float:
+        """Smallest of the samples' largest trained forces (N)."""
+        return float(self.force[:, -1].min())
+
+    @property
+    def num_modes(self) -> int:
+        return self.surface_basis.shape[2]
+
+    def simulator(self, interpolation: str = "podi", **limits):
+        """A new simulator state on this model (models are shared, simulators are not)."""
+        from hapticrom.online.simulator import Simulator
+
+        return Simulator(self, interpolation, **limits)
+
+    def describe(self) -> str:
+        a = self.artifact
+        return (
+            f"{a.group_attrs['model'].get('name', '?')}: {len(self.sample_points)} samples, "
+            f"{self.num_modes} modes, {len(self.vertices)} surface vertices; trained to "
+            f"{self.trained_depth:.3g} mm / {self.force[:, -1].max():.3g} N "
+            f"(artifact {a.version[0]}.{a.version[1]}, {self.path})"
+        )
+
+
+def load(path: str | Path, warm_up: bool = True) -> ReducedModel:
+    """Load and verify a reduced-model artifact; optionally run every kernel once."""
+    model = ReducedModel.from_artifact(read_artifact(path))
+    if warm_up:
+        for interpolation in ("podi", "grassmann") if model.grassmann else ("podi",):
+            sim = model.simulator(interpolation)
+            sim.set_contact(model.sample_points[0])
+            sim.step_displacement(-0.5 * model.trained_depth * sim.contact_normal)
+            sim.step_force(-0.5 * model.trained_force * sim.contact_normal)
+            sim.surface_displacement(np.empty_like(model.vertices))
+    return model

@@ -1,0 +1,189 @@
+"""The haptic simulator: one tool in contact with one reduced organ model (mm, N).
+
+A haptic servo loop (OpenHaptics, CHAI3D) calls the physics about 1,000
+times a second with a position and expects a force back::
+
+    sim = hapticrom.online.load("cornea.h5").simulator()
+    sim.set_contact(point)                  # where the tool touches (may slide)
+    force = sim.step_displacement(d)        # tool displacement in, reaction force out
+    sim.surface_displacement(vertex_disp)   # for rendering, into a caller-owned (V, 3) array
+
+The model is the PODI contact model of the artifact: the samples' force-depth
+curves and reduced fields, interpolated over the tool position (barycentric in
+the samples' Delaunay chart) and over the depth (monotone cubic for forces). The
+contact is frictionless: the normal component of ``d`` indents the tissue and
+the force is along the surface normal; to follow the tool sideways, move the
+contact point (``set_contact`` every step is fine: it is microseconds).
+
+Work that depends only on the contact point happens in ``set_contact``. The
+steps allocate nothing: they write into buffers owned by the simulator and
+return those (``step_displacement`` returns the same (3,) array every call:
+copy it to keep it). Pass float64 arrays of shape (3,) to avoid conversions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from hapticrom.online import kernels
+from hapticrom.online.model import INTERPOLATIONS, ReducedModel
+
+
+class StepInputError(ValueError):
+    """A step input was NaN, infinite or absurd; the simulator state is unchanged."""
+
+
+_STATUS = {
+    1: "is not finite (NaN or infinite)",
+    2: "is beyond the simulator's input limit",
+}
+
+
+class Simulator:
+    """Mutable contact state on an immutable :class:`ReducedModel`.
+
+    Limits (absurd inputs are rejected): ``max_displacement`` (mm, default 10x
+    the trained depth) and ``max_force`` (N, default 10x the trained force).
+    """
+
+    def __init__(
+        self,
+        model: ReducedModel,
+        interpolation: str = "podi",
+        max_displacement: float | None = None,
+        max_force: float | None = None,
+    ):
+        if interpolation not in INTERPOLATIONS:
+            raise ValueError(
+                f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}"
+            )
+        if interpolation == "grassmann" and model.grassmann is None:
+            raise ValueError("this artifact carries no Grassmann tangents")
+        self.model, self.interpolation = model, interpolation
+        self.max_displacement = float(max_displacement or 10 * model.trained_depth)
+        self.max_force = float(max_force or 10 * model.force[:, -1].max())
+        K, n = model.force.shape[1], model.num_modes
+        k = kernels
+        self._buf = np.zeros(k.buffer_size(K))  # the contact state the steps read and write
+        self._buf[k.STEP] = model.depth_step
+        self._buf[k.MAX_DISPLACEMENT] = self.max_displacement
+        self._buf[k.MAX_FORCE] = self.max_force
+        self._buf[k.KNOTS] = K
+        self._normal = self._buf[k.NORMAL : k.NORMAL + 3]  # views into the buffer
+        self._force = self._buf[k.FORCE : k.FORCE + 3]
+        self._displacement = self._buf[k.DISPLACEMENT : k.DISPLACEMENT + 3]
+        self._curve = self._buf[k.CURVE : k.CURVE + K]
+        self._slope = self._buf[k.CURVE + K : k.CURVE + 2 * K]
+        self._chart = np.zeros(2)
+        self._weights = np.zeros(3)
+        self._vertices = np.zeros(3, dtype=np.int64)
+        self._step_displacement = k.step_displacement  # bound once: no lookups per step
+        self._step_force = k.step_force
+        self._scratch = np.zeros(3 + 3 * n)  # depth weights + three n-vectors
+        self._frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
+        self._contact = False
+
+    # -- contact -----------------------------------------------------------------
+    def set_contact(self, point) -> None:
+        """Put (or slide) the tool's contact at ``point`` (mm, on or near the surface).
+
+        Outside the trained region the contact is clamped to the nearest trained
+        point (``outside_trained_region`` is then True).
+        """
+        m = self.model
+        p = np.asarray(point, dtype=np.float64)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise StepInputError(f"contact point must be 3 finite numbers (mm), got {point!r}")
+        np.dot(m.chart_axes, p - m.chart_origin, out=self._chart)
+        flag = kernels.locate(
+            self._chart, m.chart_points, m.sample_triangles, self._weights, self._vertices
+        )
+        kernels.prepare_curves(
+            self._weights, self._vertices, m.sample_normals, m.force, m.stiffness,
+            self._normal, self._curve, self._slope,
+        )  # fmt: skip
+        if self.interpolation == "grassmann":
+            g = m.grassmann
+            kernels.prepare_grassmann(
+                self._weights, self._vertices, g["gtt"], g["gtb"], g["grb"], self._frames
+            )
+        self._buf[kernels.FLAGS] = flag
+        self._contact = True
+
+    # -- steps -------------------------------------------------------------------
+    def _check(self, status: int, what: str, value) -> None:
+        if status == -1:
+            raise RuntimeError("call set_contact(point) before stepping")
+        raise StepInputError(f"{what} {value!r} {_STATUS[status]}; state unchanged")
+
+    def step_displacement(self, d) -> np.ndarray:
+        """Tool displacement ``d`` (mm, from the contact point) -> reaction force on the tool (N).
+
+        The force points out of the tissue (along the outward normal). The
+        returned array is reused by the next call.
+        """
+        status = self._step_displacement(d, self._buf) if self._contact else -1
+        if status:
+            self._check(status, "displacement", d)
+        return self._force
+
+    def step_force(self, f) -> np.ndarray:
+        """Force the tool applies to the tissue ``f`` (N) -> tool displacement (mm)."""
+        status = self._step_force(f, self._buf) if self._contact else -1
+        if status:
+            self._check(status, "force", f)
+        return self._displacement
+
+    def surface_displacement(self, out: np.ndarray) -> np.ndarray:
+        """Fill ``out`` (V, 3) float64 with the surface vertices' displacement (mm)."""
+        m = self.model
+        if self.interpolation == "grassmann":
+            g = m.grassmann
+            kernels.surface_grassmann(
+                self.depth, m.depth_step, self._weights, self._vertices, g["reference"],
+                m.surface_basis, g["tangents"], self._frames, m.coefficients, self._scratch, out,
+            )  # fmt: skip
+        else:
+            kernels.surface_podi(
+                self.depth, m.depth_step, self._weights, self._vertices, m.surface_basis,
+                m.coefficients, self._scratch, out,
+            )  # fmt: skip
+        return out
+
+    # -- what the simulator can read ---------------------------------------------
+    @property
+    def contact_normal(self) -> np.ndarray:
+        """Outward unit surface normal at the contact (interpolated)."""
+        return self._normal
+
+    @property
+    def depth(self) -> float:
+        """Current indentation depth (mm)."""
+        return float(self._buf[kernels.DEPTH])
+
+    @property
+    def contact_stiffness(self) -> float:
+        """d force / d depth at the current depth (N/mm): for the haptic loop's stability."""
+        m = self.model
+        step = m.depth_step
+        x = self.depth / step
+        k = min(int(x), len(self._slope) - 2)
+        t = min(x - k, 1.0)
+        return float((1 - t) * self._slope[k] + t * self._slope[k + 1])
+
+    @property
+    def outside_trained_region(self) -> bool:
+        return bool(int(self._buf[kernels.FLAGS]) & kernels.FLAG_OUTSIDE_REGION)
+
+    @property
+    def beyond_trained_depth(self) -> bool:
+        return bool(int(self._buf[kernels.FLAGS]) & kernels.FLAG_BEYOND_DEPTH)
+
+    @property
+    def in_contact(self) -> bool:
+        return not (int(self._buf[kernels.FLAGS]) & kernels.FLAG_NO_CONTACT)
+
+    @property
+    def weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """(sample indices, barycentric weights) of the current contact."""
+        return self._vertices.copy(), self._weights.copy()

@@ -1,0 +1,133 @@
+"""The artifact: what the trainer writes is what the runtime reads; damage is named."""
+
+from __future__ import annotations
+
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from hapticrom.shared.artifact import FORMAT_VERSION, SCHEMA, ArtifactError, read_artifact
+
+pytestmark = pytest.mark.serial
+
+
+def copy(src, tmp_path, name="model.h5"):
+    dst = tmp_path / name
+    shutil.copyfile(src, dst)
+    return dst
+
+
+def test_artifact_has_every_schema_field(small_artifact):
+    a = read_artifact(small_artifact)
+    assert a.attrs["format"] == "hapticrom" and a.version == FORMAT_VERSION
+    for group in SCHEMA:
+        if group.required:
+            assert group.name in a.groups
+        for spec in group.fields if group.name in a.groups else ():
+            assert spec.name in a[group.name]
+    with h5py.File(small_artifact) as f:
+        for group in SCHEMA:
+            if group.name in f:
+                assert f[group.name].attrs["type"] == group.type
+                for spec in group.fields:
+                    assert f[group.name][spec.name].attrs["units"] == spec.units
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ArtifactError, match="not found"):
+        read_artifact(tmp_path / "nope.h5")
+
+
+def test_truncated_file(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ArtifactError, match="truncated or damaged|cannot be read|checksum"):
+        read_artifact(path)
+
+
+def test_bit_flip_is_caught_by_the_checksum(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    with h5py.File(path, "r+") as f:
+        force = f["samples/force"]
+        values = force[()]
+        values[1, 2] = np.nextafter(values[1, 2], np.inf)  # one bit
+        force[...] = values
+    with pytest.raises(ArtifactError, match="samples/force fails its checksum"):
+        read_artifact(path)
+
+
+def test_raw_byte_flip_anywhere_never_loads_silently(small_artifact, tmp_path):
+    """Flip single bytes across the file: every flip is either harmless metadata or named."""
+    original = read_artifact(small_artifact)
+    data = bytearray(small_artifact.read_bytes())
+    rng = np.random.default_rng(7)
+    for position in rng.integers(0, len(data), 40):
+        path = tmp_path / "flip.h5"
+        damaged = bytearray(data)
+        damaged[position] ^= 0x10
+        path.write_bytes(bytes(damaged))
+        try:
+            a = read_artifact(path)
+        except ArtifactError:
+            continue
+        for name, group in original.groups.items():  # if it loads, its data is intact
+            for key, value in group.items():
+                np.testing.assert_array_equal(a[name][key], value)
+
+
+def test_unknown_major_version_is_refused(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = np.array([FORMAT_VERSION[0] + 1, 0])
+    with pytest.raises(ArtifactError, match=f"version {FORMAT_VERSION[0] + 1}.0 is not supported"):
+        read_artifact(path)
+
+
+def test_newer_minor_version_loads(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["format_version"] = np.array([FORMAT_VERSION[0], FORMAT_VERSION[1] + 3])
+        f["samples"].create_dataset("something_new", data=np.zeros(3))
+    assert read_artifact(path).version[1] == FORMAT_VERSION[1] + 3
+
+
+def test_missing_required_dataset_is_named(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    with h5py.File(path, "r+") as f:
+        del f["samples/coefficients"]
+    with pytest.raises(ArtifactError, match="samples/coefficients is missing"):
+        read_artifact(path)
+
+
+def test_wrong_shape_is_named(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    with h5py.File(path, "r+") as f:
+        bad = f["samples/stiffness"][()][:, :-1]
+        del f["samples/stiffness"]
+        d = f["samples"].create_dataset("stiffness", data=bad)
+        from hapticrom.shared.checksum import array_digest
+
+        d.attrs["sha256"] = array_digest(bad)
+    with pytest.raises(ArtifactError, match="samples/stiffness has shape"):
+        read_artifact(path)
+
+
+def test_not_an_artifact(tmp_path):
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        f["x"] = 1
+    with pytest.raises(ArtifactError, match="not a hapticrom artifact"):
+        read_artifact(path)
+
+
+def test_the_written_spec_names_every_dataset():
+    from pathlib import Path
+
+    spec = (Path(__file__).parents[1] / "shared" / "ARTIFACT.md").read_text()
+    for group in SCHEMA:
+        assert f"`/{group.name}` (type `{group.type}`, version {group.version[0]}." in spec
+        for field in group.fields:
+            assert f"| `{field.name}` |" in spec, f"{group.name}/{field.name} is not documented"

@@ -1,0 +1,169 @@
+"""The online runtime: kernels against the plain-numpy reference, contact behaviour, bad input."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+import hapticrom.online as online
+from hapticrom.online.reference import NumpySimulator
+from hapticrom.online.simulator import StepInputError
+
+pytestmark = pytest.mark.serial
+RNG = np.random.default_rng(11)
+
+
+@pytest.fixture(scope="module")
+def model(small_artifact):
+    return online.load(small_artifact)
+
+
+def points_in_region(model, count):
+    """Random points inside the samples' chart hull, lifted to the nearest sample's height."""
+    chart = model.chart_points
+    out = []
+    for _ in range(count):
+        tri = model.sample_triangles[RNG.integers(len(model.sample_triangles))]
+        w = RNG.dirichlet(np.ones(3))
+        x2 = w @ chart[tri]
+        out.append(model.chart_origin + x2 @ model.chart_axes)
+    return out
+
+
+@pytest.mark.parametrize("interpolation", ["podi", "grassmann"])
+def test_kernels_match_the_numpy_reference(model, interpolation):
+    sim = model.simulator(interpolation)
+    ref = NumpySimulator(model)
+    out = np.zeros_like(model.vertices)
+    for point in points_in_region(model, 25):
+        sim.set_contact(point)
+        ref.set_contact(point)
+        np.testing.assert_allclose(sim.contact_normal, ref.normal, atol=1e-14)
+        for depth in RNG.uniform(-0.1, 1.3 * model.trained_depth, 6):
+            d = -depth * sim.contact_normal + RNG.normal(0, 0.05, 3) * np.cross(
+                sim.contact_normal, [1, 0, 0]
+            )
+            force = sim.step_displacement(d).copy()
+            np.testing.assert_allclose(force, ref.step_displacement(d), rtol=1e-12, atol=1e-15)
+            sim.surface_displacement(out)
+            if interpolation == "podi":
+                np.testing.assert_allclose(out, ref.surface_displacement(), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("interpolation", ["podi", "grassmann"])
+def test_reproduces_the_training_curves_at_the_samples(model, small_campaign, interpolation):
+    """At a sample, force and surface field are those of the full-order solve.
+
+    For Grassmann this checks the log and exp maps: Exp(Log(A_i)) must span A_i.
+    """
+    _, store, _ = small_campaign
+    sim = model.simulator(interpolation)
+    out = np.zeros_like(model.vertices)
+    nodes = model.artifact["surface"]["nodes"]
+    for i, point in enumerate(model.sample_points):
+        data, attrs = store.read_position(i)
+        sim.set_contact(point)
+        for k in range(len(data["force"])):
+            depth = data["contact_displacement"][k] @ attrs["direction"]
+            force = sim.step_displacement(-depth * sim.contact_normal)
+            np.testing.assert_allclose(
+                force @ sim.contact_normal, data["force"][k] @ attrs["direction"], rtol=1e-10
+            )
+            sim.surface_displacement(out)
+            u = data["displacement"][k].reshape(-1, 3)[nodes]
+            assert np.abs(out - u).max() <= 1e-3 * np.abs(u).max() + 1e-12
+
+
+def test_step_force_inverts_step_displacement(model):
+    sim = model.simulator()
+    for point in points_in_region(model, 10):
+        sim.set_contact(point)
+        n = sim.contact_normal.copy()
+        for depth in RNG.uniform(0.01, 1.2 * model.trained_depth, 5):
+            force = sim.step_displacement(-depth * n).copy()
+            d = sim.step_force(-force)  # push with the force the tissue resisted with
+            assert -d @ n == pytest.approx(depth, rel=1e-10)
+
+
+def test_sliding_contact_is_continuous(model):
+    """A contact sliding across the sample triangles: no jumps in force or field."""
+    sim = model.simulator()
+    a, b = model.sample_points[1], model.sample_points[3]  # across the apex
+    path = [a + t * (b - a) for t in np.linspace(0, 1, 2001)]
+    forces, fields = [], []
+    out = np.zeros_like(model.vertices)
+    for p in path:
+        sim.set_contact(p)
+        forces.append(sim.step_displacement(-0.2 * sim.contact_normal).copy())
+        fields.append(sim.surface_displacement(out).copy())
+    jumps = np.linalg.norm(np.diff(forces, axis=0), axis=1)
+    assert jumps.max() < 5 * np.median(jumps) + 1e-12  # no step bigger than the smooth change
+    field_jumps = np.abs(np.diff(fields, axis=0)).max(axis=(1, 2))
+    assert field_jumps.max() < 5 * np.median(field_jumps) + 1e-12
+
+
+def test_outside_the_trained_region_is_clamped_and_flagged(model):
+    sim = model.simulator()
+    sim.set_contact(model.sample_points[0])
+    assert not sim.outside_trained_region
+    far = model.chart_origin + 50.0 * model.chart_axes[0]
+    sim.set_contact(far)
+    assert sim.outside_trained_region
+    nodes, weights = sim.weights
+    assert np.all(weights >= -1e-12) and weights.sum() == pytest.approx(1.0)
+    force = sim.step_displacement(-0.1 * sim.contact_normal)
+    assert np.all(np.isfinite(force)) and force @ sim.contact_normal > 0
+
+
+def test_depth_flags(model):
+    sim = model.simulator()
+    sim.set_contact(model.sample_points[0])
+    n = sim.contact_normal
+    assert np.all(sim.step_displacement(+0.1 * n) == 0) and not sim.in_contact  # pulling away
+    sim.step_displacement(-2 * model.trained_depth * n)
+    assert sim.beyond_trained_depth and sim.in_contact
+    sim.step_displacement(-0.5 * model.trained_depth * n)
+    assert not sim.beyond_trained_depth
+
+
+@pytest.mark.parametrize(
+    "bad", [[np.nan, 0, 0], [0, np.inf, 0], [0, 0, -1e6]], ids=["nan", "inf", "absurd"]
+)
+def test_bad_step_input_is_rejected_and_state_kept(model, bad):
+    sim = model.simulator()
+    sim.set_contact(model.sample_points[0])
+    good = sim.step_displacement(-0.1 * sim.contact_normal).copy()
+    depth = sim.depth
+    with pytest.raises(StepInputError, match="state unchanged"):
+        sim.step_displacement(np.array(bad, dtype=float))
+    with pytest.raises(StepInputError):
+        sim.step_force(np.array(bad, dtype=float) * 1e6)
+    assert sim.depth == depth
+    np.testing.assert_array_equal(sim.step_displacement(-0.1 * sim.contact_normal), good)
+    with pytest.raises(StepInputError):
+        sim.set_contact([np.nan, 0, 0])
+
+
+def test_steps_allocate_nothing(model):
+    sim = model.simulator()
+    sim.set_contact(model.sample_points[0])
+    d = -0.1 * sim.contact_normal
+    out = np.zeros_like(model.vertices)
+    for _ in range(100):
+        sim.step_displacement(d)
+        sim.surface_displacement(out)
+    before = sys.getallocatedblocks()
+    for _ in range(10000):
+        first = sim.step_displacement(d)
+        sim.surface_displacement(out)
+    assert first is sim.step_displacement(d)  # the same buffer every call
+    assert sys.getallocatedblocks() - before < 50
+
+
+def test_simulator_needs_a_contact(model):
+    with pytest.raises(RuntimeError, match="set_contact"):
+        model.simulator().step_displacement(np.zeros(3))
+    with pytest.raises(ValueError, match="interpolation"):
+        model.simulator("nearest")
