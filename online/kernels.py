@@ -238,27 +238,29 @@ def depth_weights(depth, step, last, out):
     f"void(float64, float64, {f8_1d}, {i8_1d}, {f4_3d}, {f8_3d}, {f8_1d}, {f8_2d})",
     cache=True,
     nogil=True,
+    fastmath=True,
 )
-def surface_podi(depth, step, weights, vertices, basis, coefficients, scratch, out):
-    """PODI surface displacement: sum_i w_i A_i c_i(depth), into out (V, 3), mm."""
-    n = basis.shape[2]
+def surface_podi(depth, step, weights, vertices, basis_t, coefficients, scratch, out):
+    """PODI surface displacement: sum_i w_i A_i c_i(depth), into out (V, 3), mm.
+
+    ``basis_t`` is the surface basis transposed, (P, n, 3V): the inner loops run
+    over contiguous rows (vectorised axpys).
+    """
+    n = basis_t.shape[1]
     last = coefficients.shape[1] - 1
     depth_weights(depth, step, last, scratch)
     k, a, b = int(scratch[0]), scratch[1], scratch[2]
-    c = scratch[3 : 3 + 3 * n]  # the three samples' coordinates at this depth, weighted
+    flat = out.reshape(out.size)
+    flat[:] = 0.0
     for j in range(3):
         i = vertices[j]
+        if weights[j] == 0.0:
+            continue
         for m in range(n):
-            c[j * n + m] = weights[j] * (a * coefficients[i, k, m] + b * coefficients[i, k + 1, m])
-    flat = out.reshape(out.size)
-    i0, i1, i2 = vertices[0], vertices[1], vertices[2]
-    for r in range(flat.shape[0]):
-        acc = 0.0
-        for m in range(n):
-            acc += (
-                c[m] * basis[i0, r, m] + c[n + m] * basis[i1, r, m] + c[2 * n + m] * basis[i2, r, m]
-            )
-        flat[r] = acc
+            c = weights[j] * (a * coefficients[i, k, m] + b * coefficients[i, k + 1, m])
+            row = basis_t[i, m]
+            for r in range(flat.shape[0]):
+                flat[r] += c * row[r]
 
 
 @njit(
@@ -266,16 +268,18 @@ def surface_podi(depth, step, weights, vertices, basis, coefficients, scratch, o
     f"{f8_1d}, {f8_2d})",
     cache=True,
     nogil=True,
+    fastmath=True,
 )
-def surface_grassmann(depth, step, weights, vertices, reference, basis, tangents, frames,
+def surface_grassmann(depth, step, weights, vertices, reference, basis_t, tangents_t, frames,
                       coefficients, scratch, out):  # fmt: skip
     """Grassmann surface displacement A(x) c(x, depth) into out (V, 3), mm.
 
     ``frames`` (from :func:`prepare_grassmann`): [V cos S, V S^-1 sin S, R_0, R_1, R_2].
     c = sum_i w_i R_i c_i(depth); A(x) c = A0 (V cos S c) + Gamma(x) (V S^-1 sin S c),
-    Gamma(x) = sum_i w_i Gamma_i: only n-vectors are formed before the row loop.
+    Gamma(x) = sum_i w_i Gamma_i: only n-vectors are formed before the row loops, which
+    run over contiguous rows of the transposed (P, n, 3V) bases and tangents.
     """
-    n = basis.shape[2]
+    n = basis_t.shape[1]
     last = coefficients.shape[1] - 1
     depth_weights(depth, step, last, scratch)
     k, a, b = int(scratch[0]), scratch[1], scratch[2]
@@ -299,14 +303,18 @@ def surface_grassmann(depth, step, weights, vertices, reference, basis, tangents
             ca[p] += frames[0, p, q] * c[q]
             cb[p] += frames[1, p, q] * c[q]
     flat = out.reshape(out.size)
-    ref = basis[reference]
-    t0, t1, t2 = tangents[vertices[0]], tangents[vertices[1]], tangents[vertices[2]]
-    w0, w1, w2 = weights[0], weights[1], weights[2]
-    for r in range(flat.shape[0]):
-        acc = 0.0
-        for m in range(n):
-            acc += ref[r, m] * ca[m] + (w0 * t0[r, m] + w1 * t1[r, m] + w2 * t2[r, m]) * cb[m]
-        flat[r] = acc
+    flat[:] = 0.0
+    for m in range(n):
+        row = basis_t[reference, m]
+        for r in range(flat.shape[0]):
+            flat[r] += ca[m] * row[r]
+        for j in range(3):
+            w = weights[j] * cb[m]
+            if w == 0.0:
+                continue
+            row = tangents_t[vertices[j], m]
+            for r in range(flat.shape[0]):
+                flat[r] += w * row[r]
 
 
 @njit(f"void({f8_1d}, {i8_1d}, {f8_4d}, {f8_4d}, {f8_3d}, {f8_3d})", cache=True)

@@ -34,7 +34,8 @@ class ReducedModel:
         chart_points (P, 2), sample_triangles (S, 3): where the samples are.
         depth_step: the uniform indentation grid spacing (mm); trained_depth, trained_force.
         force, stiffness (P, K): normal reaction force curves (N) and slopes (N/mm).
-        surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field.
+        surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field;
+        surface_basis_t (P, n, 3V): the same transposed, for the PODI kernel.
     """
 
     path: Path
@@ -53,6 +54,12 @@ class ReducedModel:
     surface_basis: np.ndarray
     coefficients: np.ndarray
     grassmann: dict | None
+
+    def __post_init__(self):
+        self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
+        if self.grassmann is not None:
+            tangents = self.grassmann["tangents"]
+            self.grassmann["tangents_t"] = np.ascontiguousarray(tangents.transpose(0, 2, 1))
 
     @classmethod
     def from_artifact(cls, artifact: Artifact) -> ReducedModel:

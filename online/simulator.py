@@ -141,11 +141,12 @@ class Simulator:
             g = m.grassmann
             kernels.surface_grassmann(
                 self.depth, m.depth_step, self._weights, self._vertices, g["reference"],
-                m.surface_basis, g["tangents"], self._frames, m.coefficients, self._scratch, out,
+                m.surface_basis_t, g["tangents_t"], self._frames, m.coefficients, self._scratch,
+                out,
             )  # fmt: skip
         else:
             kernels.surface_podi(
-                self.depth, m.depth_step, self._weights, self._vertices, m.surface_basis,
+                self.depth, m.depth_step, self._weights, self._vertices, m.surface_basis_t,
                 m.coefficients, self._scratch, out,
             )  # fmt: skip
         return out
