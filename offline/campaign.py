@@ -23,7 +23,6 @@ import io
 import json
 import math
 import time
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,7 @@ from mpi4py import MPI
 
 from hapticrom import __version__
 from hapticrom.meshes.msh import read_surface
-from hapticrom.offline.config import LoadConfig, ProblemConfig, _Reader
+from hapticrom.offline.config import LoadConfig, ProblemConfig, _Reader, read_toml
 from hapticrom.offline.dofs import CanonicalOrder
 from hapticrom.offline.formulation import HyperelasticModel
 from hapticrom.offline.fullorder import FullOrderModel
@@ -124,12 +123,7 @@ class CampaignConfig:
     @classmethod
     def from_toml(cls, path: str | Path) -> CampaignConfig:
         path = Path(path)
-        if not path.is_file():
-            raise InputError(f"campaign file {path} not found")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"{path}: not valid TOML ({exc})") from None
+        data = read_toml(path, "campaign file")
         return cls.from_dict(data, base_dir=path.parent, source=str(path))
 
     @classmethod

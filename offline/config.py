@@ -122,13 +122,7 @@ class ProblemConfig:
     @classmethod
     def from_toml(cls, path: str | Path) -> ProblemConfig:
         path = Path(path)
-        if not path.is_file():
-            raise InputError(f"configuration file {path} not found")
-        try:
-            data = tomllib.loads(path.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"{path}: not valid TOML ({exc})") from None
-        return cls.from_dict(data, base_dir=path.parent, source=str(path))
+        return cls.from_dict(read_toml(path), base_dir=path.parent, source=str(path))
 
     @classmethod
     def from_dict(
@@ -145,6 +139,16 @@ class ProblemConfig:
         reader.keys(out, "output", {"xdmf"})
         output = OutputConfig(xdmf=reader.boolean(out, "output", "xdmf", True))
         return cls(mesh, material, load, disc, solver, output)
+
+
+def read_toml(path: Path, what: str = "configuration file") -> dict[str, Any]:
+    """Parse a TOML file; InputError if it is missing or not TOML."""
+    if not path.is_file():
+        raise InputError(f"{what} {path} not found")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{path}: not valid TOML ({exc})") from None
 
 
 class _Reader:
