@@ -134,6 +134,22 @@ def buffer_size(knots: int) -> int:
     return CURVE + 2 * knots
 
 
+@njit(f"int64({f8_1d}, float64)", cache=True, nogil=True)
+def check_input(v, limit):
+    """0 if v (3,) is finite and |v| <= limit; else the step's status code (1 or 2)."""
+    if not (math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(v[2])):
+        return 1
+    if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > limit * limit:
+        return 2
+    return 0
+
+
+@njit(f"float64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+def inward(v, buf):
+    """-v . normal: the component of v into the tissue."""
+    return -(v[0] * buf[NORMAL] + v[1] * buf[NORMAL + 1] + v[2] * buf[NORMAL + 2])
+
+
 @njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
 def step_displacement(d, buf):
     """Prescribed tool displacement d (mm) in, reaction force on the tool (N) into buf.
@@ -141,16 +157,14 @@ def step_displacement(d, buf):
     Depth = -d . normal (into the tissue). The contact is frictionless: only the
     normal component of d loads the tissue, and the force is along the normal.
     """
-    if not (math.isfinite(d[0]) and math.isfinite(d[1]) and math.isfinite(d[2])):
-        return 1
-    limit = buf[MAX_DISPLACEMENT]
-    if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] > limit * limit:
-        return 2
+    status = check_input(d, buf[MAX_DISPLACEMENT])
+    if status:
+        return status
     knots = int(buf[KNOTS])
     force = buf[CURVE : CURVE + knots]
     slope = buf[CURVE + knots : CURVE + 2 * knots]
     step = buf[STEP]
-    depth = -(d[0] * buf[NORMAL] + d[1] * buf[NORMAL + 1] + d[2] * buf[NORMAL + 2])
+    depth = inward(d, buf)
     flags = int(buf[FLAGS]) & FLAG_OUTSIDE_REGION
     if depth <= 0.0:
         magnitude = 0.0
@@ -170,16 +184,14 @@ def step_displacement(d, buf):
 @njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
 def step_force(f, buf):
     """Force the tool applies (N) in, tool displacement (mm) into buf (inverse of the curve)."""
-    if not (math.isfinite(f[0]) and math.isfinite(f[1]) and math.isfinite(f[2])):
-        return 1
-    limit = buf[MAX_FORCE]
-    if f[0] * f[0] + f[1] * f[1] + f[2] * f[2] > limit * limit:
-        return 2
+    status = check_input(f, buf[MAX_FORCE])
+    if status:
+        return status
     knots = int(buf[KNOTS])
     force = buf[CURVE : CURVE + knots]
     slope = buf[CURVE + knots : CURVE + 2 * knots]
     step = buf[STEP]
-    push = -(f[0] * buf[NORMAL] + f[1] * buf[NORMAL + 1] + f[2] * buf[NORMAL + 2])
+    push = inward(f, buf)
     flags = int(buf[FLAGS]) & FLAG_OUTSIDE_REGION
     last = knots - 1
     if push <= 0.0:
