@@ -137,6 +137,11 @@ class Simulator:
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:
         """Fill ``out`` (V, 3) float64 with the surface vertices' displacement (mm)."""
         m = self.model
+        if out.shape != m.vertices.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+            raise ValueError(
+                f"out must be a C-contiguous float64 array of shape {m.vertices.shape}, "
+                f"got {out.dtype} {out.shape}"
+            )
         if self.interpolation == "grassmann":
             g = m.grassmann
             kernels.surface_grassmann(

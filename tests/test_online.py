@@ -162,6 +162,15 @@ def test_steps_allocate_nothing(model):
     assert sys.getallocatedblocks() - before < 50
 
 
+def test_surface_output_must_fit(model):
+    sim = model.simulator()
+    sim.set_contact(model.sample_points[0])
+    with pytest.raises(ValueError, match="C-contiguous float64"):
+        sim.surface_displacement(np.zeros((len(model.vertices), 3), dtype=np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        sim.surface_displacement(np.zeros((3, len(model.vertices))))
+
+
 def test_simulator_needs_a_contact(model):
     with pytest.raises(RuntimeError, match="set_contact"):
         model.simulator().step_displacement(np.zeros(3))
