@@ -86,6 +86,18 @@ def choose_element(cell_type: str, name: str) -> Element:
     return ELEMENTS[cell_type][name]
 
 
+def mixed_energy_density(law: MaterialLaw, F, p, constants, fibres):
+    """Psi_mix(F, p) = rest + p theta - p^2/(2 kappa) (MPa); Psi(F) itself when p is None.
+
+    Shared by the real forms of :class:`HyperelasticModel` and the complex forms
+    of the ANM (:mod:`hapticrom.offline.anm`), so both differentiate one energy.
+    """
+    split = law.energy_split(F, constants, fibres)
+    if p is None:
+        return split.rest + split.kappa / 2 * split.theta**2
+    return split.rest + p * split.theta - p**2 / (2 * split.kappa)
+
+
 class HyperelasticModel:
     """Unknowns, constants and UFL forms of one organ + one material law + one element.
 
@@ -158,10 +170,9 @@ class HyperelasticModel:
 
     def strain_energy_density(self):
         """Psi_mix(F, p) of the element (Psi itself for displacement-only elements), MPa."""
-        split = self.law.energy_split(self.deformation_gradient(), self.constants, self.fibres)
-        if self.p is None:
-            return split.rest + split.kappa / 2 * split.theta**2
-        return split.rest + self.p * split.theta - self.p**2 / (2 * split.kappa)
+        return mixed_energy_density(
+            self.law, self.deformation_gradient(), self.p, self.constants, self.fibres
+        )
 
     def internal_energy(self):
         return self.strain_energy_density() * self.dx

@@ -3,7 +3,9 @@
 Each law is a small frozen dataclass holding its parameters (validated on
 construction) and returning a UFL strain-energy density ``Psi(F)``. Stresses
 and tangents are never written by hand: the solver differentiates ``Psi`` with
-``ufl.derivative`` and tests with ``ufl.diff``.
+``ufl.derivative`` and tests with ``ufl.diff``. Energies are analytic
+expressions (no ``ufl.inner``, ``abs`` or conjugates): the ANM evaluates them
+at complex deformations (:mod:`hapticrom.offline.anm`).
 
 Parameters enter the UFL expressions through a mapping ``c`` (name -> UFL
 value). The solver passes ``dolfinx.fem.Constant`` objects so that a new
@@ -104,7 +106,9 @@ class SaintVenantKirchhoff(IsotropicLaw):
         lmbda, mu = _lame(c["E"], c["nu"])
         C, _ = _kinematics(F)
         Egl = (C - ufl.Identity(3)) / 2
-        return EnergySplit(rest=mu * ufl.inner(Egl, Egl), theta=ufl.tr(Egl), kappa=lmbda)
+        # E:E as tr(E E) (E is symmetric): ufl.inner conjugates its second argument in complex
+        # mode, which would break the analytic continuation the ANM relies on.
+        return EnergySplit(rest=mu * ufl.tr(Egl * Egl), theta=ufl.tr(Egl), kappa=lmbda)
 
 
 @dataclass(frozen=True)

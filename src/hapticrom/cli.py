@@ -156,6 +156,25 @@ def cmd_train(args, petsc_args) -> int:
     return 1 if report.failed else 0
 
 
+def cmd_anm(args, petsc_args) -> int:
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    from hapticrom.offline.config import ProblemConfig
+
+    config = ProblemConfig.from_toml(args.config)
+    _init_petsc(petsc_args)
+    from hapticrom.offline.anm import ANMOptions
+    from hapticrom.offline.anm_study import run_study
+    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.pod import Truncation
+
+    options = ANMOptions(order=args.order, tolerance=args.tolerance)
+    fom = FullOrderModel(config, verbose=not args.quiet)
+    run_study(fom, options, Truncation(eigenvalue_ratio=args.eigenvalue_ratio), out_dir=args.out)
+    return 0
+
+
 def cmd_play(args, petsc_args) -> int:
     from hapticrom.online.play import play
 
@@ -230,6 +249,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="reduced model (.h5)")
     p.add_argument("--work", help="campaign directory (default: OUT with suffix .campaign)")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser(
+        "anm", help="POD-ANM of one problem against full Newton: curves, tables [offline, mpirun]"
+    )
+    p.add_argument("config", help="problem configuration (.toml)")
+    p.add_argument("--out", required=True, help="output directory (anm-*.csv, anm-curves.png)")
+    p.add_argument("--order", type=int, default=6, help="order N of the series (default 6)")
+    p.add_argument(
+        "--tolerance", type=float, default=1e-4, help="validity tolerance of a section (1e-4)"
+    )
+    p.add_argument(
+        "--eigenvalue-ratio", type=float, default=1e-8, help="POD truncation (default 1e-8)"
+    )
+    p.add_argument("--quiet", action="store_true", help="do not print the Newton steps")
+    p.set_defaults(func=cmd_anm)
 
     p = sub.add_parser("play", help="drive a scripted tool path through the runtime [online]")
     p.add_argument("model", help="reduced-model artifact (.h5)")
