@@ -58,6 +58,10 @@ from hapticrom.offline.formulation import HyperelasticModel, mixed_energy_densit
 from hapticrom.shared.errors import InputError, SolverError
 
 COMPLEX = np.complex128
+# Complex kernels: without -fcx-limited-range every complex product and quotient is a call
+# to libgcc's __muldc3/__divdc3 (C99 Annex G inf/nan recovery, which finite residuals
+# never need).
+JIT_OPTIONS = {"cffi_extra_compile_args": ["-O2", "-g0", "-fcx-limited-range"]}
 # Radius of the Cauchy integrals as a fraction of the estimated radius of convergence R:
 # along the truncated path r(a) = a^k (r_k + r_(k+1) a + ...), so with M points the
 # coefficient r_k is polluted by r_(k+M) rho^M ~ 3^-16 = 2e-8 relative (M = 16), while
@@ -105,7 +109,7 @@ class ComplexResidual:
         forms = [ufl.inner(ufl.diff(psi, F), ufl.grad(ufl.TestFunction(model.V))) * model.dx]
         if p is not None:
             forms.append(ufl.inner(ufl.diff(psi, p), ufl.TestFunction(model.Q)) * model.dx)
-        self.forms = [fem.form(f, dtype=COMPLEX) for f in forms]
+        self.forms = [fem.form(f, dtype=COMPLEX, jit_options=JIT_OPTIONS) for f in forms]
         spaces = [model.V] + ([model.Q] if model.Q is not None else [])
         self._vectors = [
             dolfinx.la.vector(V.dofmap.index_map, V.dofmap.index_map_bs, dtype=COMPLEX)
@@ -162,6 +166,57 @@ class ReducedSpace:
     @property
     def n_p(self) -> int:
         return 0 if self.B is None else self.B.shape[1]
+
+
+def snapshot_space(
+    comm: MPI.Comm,
+    load_factor: np.ndarray,
+    U: np.ndarray,
+    P: np.ndarray | None,
+    mode: str,
+    f: np.ndarray,
+    load_size: float | None = None,
+    truncation=None,
+) -> tuple[ReducedSpace, np.ndarray]:
+    """The reduced space of one load path's snapshots, and the arclength scale.
+
+    ``U`` (owned rows x K) and ``P`` (owned cells x K): converged states at load
+    factors ``load_factor`` (K,), in DOLFINx owned order. Displacement control:
+    the lifting g is the first state per unit load factor (exactly the tool's
+    displacement on the patch), and the modes are the POD of ``u_k - lam_k g``
+    (zero on the patch). Force control: g = 0, the modes are the POD of the
+    states. Pressure modes: at most ceil(n_u / 2) (see :mod:`.reduction`).
+    Scale: alpha by the size of the last state's coordinates, lam by 1.
+    """
+    from hapticrom.offline.pod import Truncation, pod
+
+    truncation = truncation or Truncation()
+    lam = np.asarray(load_factor, dtype=float)
+    if mode == "displacement":
+        g = U[:, 0] / lam[0]
+        Q = U[:, 1:] - np.outer(g, lam[1:])
+        if load_size is None:
+            raise ValueError("displacement control needs the tool displacement's size")
+    else:
+        g = np.zeros(U.shape[0])
+        Q = U
+        total = comm.allreduce(f.reshape(-1, 3).sum(axis=0), op=MPI.SUM)
+        load_size = float(np.linalg.norm(total))  # N
+    if Q.shape[1] == 0:
+        raise InputError("POD-ANM needs at least two load increments")
+    A = pod(Q, comm, None, truncation).basis_local
+    if A.shape[1] == 0:
+        raise InputError("the snapshots have no displacement mode beyond the lifting")
+    B = None
+    if P is not None:
+        pr = pod(P, comm, None, Truncation(eigenvalue_ratio=1e-8))
+        n_u = A.shape[1] + (1 if mode == "displacement" else 0)
+        B = pr.basis_local[:, : max(1, min(pr.n_modes, math.ceil(n_u / 2)))]
+    space = ReducedSpace(A=A, g=g, f=f, B=B, load_size=float(load_size), mode=mode)
+    alpha_last = comm.allreduce(A.T @ Q[:, -1], op=MPI.SUM)
+    s_alpha = max(float(np.linalg.norm(alpha_last)), 1e-30)
+    scale = np.r_[np.full(A.shape[1], 1.0 / s_alpha**2), np.zeros(space.n_p), 1.0]
+    return space, scale
 
 
 class ReducedResidual:

@@ -24,7 +24,6 @@ import numpy as np
 import ufl
 from dolfinx import fem
 from dolfinx.la import InsertMode
-from mpi4py import MPI
 
 from hapticrom.offline.anm import (
     ANMOptions,
@@ -34,12 +33,12 @@ from hapticrom.offline.anm import (
     ReducedSpace,
     continuation,
     root,
+    snapshot_space,
     validity_radius,
 )
 from hapticrom.offline.fullorder import FullOrderModel
 from hapticrom.offline.mpi import print0
-from hapticrom.offline.pod import Truncation, pod
-from hapticrom.shared.errors import InputError
+from hapticrom.offline.pod import Truncation
 
 
 @dataclass
@@ -99,39 +98,14 @@ def _owned_array(array, V):
 def reduced_space(
     fom: FullOrderModel, snaps: Snapshots, truncation: Truncation | None = None
 ) -> tuple[ReducedSpace, np.ndarray]:
-    """Modes of the snapshots (minus the lifting), pressure modes; and the arclength scale."""
-    truncation = truncation or Truncation()
-    comm = fom.comm
-    mode = "displacement" if fom.config.load.mode == "displacement" else "force"
-    lam = snaps.load_factor
-    f = external_load(fom)
-    if mode == "displacement":
-        g = snaps.u[:, 0] / lam[0]  # the first state per unit load factor: d on the patch
-        Q = snaps.u[:, 1:] - np.outer(g, lam[1:])  # zero on the patch and the supports
-        load_size = float(np.linalg.norm(fom.load_vector))  # mm
+    """The reduced space of a full-order problem's snapshots; see :func:`snapshot_space`."""
+    if fom.config.load.mode == "displacement":
+        mode, size = "displacement", float(np.linalg.norm(fom.load_vector))
     else:
-        g = np.zeros_like(f)
-        Q = snaps.u
-        total = comm.allreduce(f.reshape(-1, 3).sum(axis=0), op=MPI.SUM)
-        load_size = float(np.linalg.norm(total))  # N
-    if Q.shape[1] == 0:
-        raise InputError("POD-ANM needs at least two load increments in the full solve")
-    modes = pod(Q, comm, None, truncation)
-    A = modes.basis_local
-    if A.shape[1] == 0:
-        raise InputError("the snapshots have no displacement mode beyond the lifting")
-    B = None
-    if snaps.p is not None:
-        pr = pod(snaps.p, comm, None, Truncation(eigenvalue_ratio=1e-8))
-        n_disp = A.shape[1] + (1 if mode == "displacement" else 0)
-        n_p = max(1, min(pr.n_modes, math.ceil(n_disp / 2)))
-        B = pr.basis_local[:, :n_p]
-    space = ReducedSpace(A=A, g=g, f=f, B=B, load_size=load_size, mode=mode)
-    # Arclength scale: alpha by the size of the last state's coordinates, lam by 1.
-    alpha_last = comm.allreduce(A.T @ Q[:, -1], op=MPI.SUM)
-    s_alpha = max(float(np.linalg.norm(alpha_last)), 1e-30)
-    scale = np.r_[np.full(A.shape[1], 1.0 / s_alpha**2), np.zeros(space.n_p), 1.0]
-    return space, scale
+        mode, size = "force", None
+    return snapshot_space(
+        fom.comm, snaps.load_factor, snaps.u, snaps.p, mode, external_load(fom), size, truncation
+    )
 
 
 @dataclass

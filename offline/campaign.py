@@ -112,12 +112,22 @@ class PODConfig:
 
 
 @dataclass(frozen=True)
+class ANMConfig:
+    """POD-ANM series per sample (thesis ch. 3), computed by the reduction step."""
+
+    enabled: bool = True
+    order: int = 6
+    tolerance: float = 1e-4
+
+
+@dataclass(frozen=True)
 class CampaignConfig:
     name: str
     problem: ProblemConfig  # mesh, material, discretisation, solver (its load is unused)
     load: CampaignLoad
     positions: PositionsSpec
     pod: PODConfig = PODConfig()
+    anm: ANMConfig = ANMConfig()
     raw: dict = field(default_factory=dict, compare=False)
 
     @classmethod
@@ -130,7 +140,7 @@ class CampaignConfig:
     def from_dict(cls, data: dict, base_dir: str | Path = ".", source: str = "campaign"):
         r = _Reader(source)
         known = {"campaign", "mesh", "material", "discretisation", "solver", "load"}
-        r.keys(data, "", known | {"positions", "pod"})
+        r.keys(data, "", known | {"positions", "pod", "anm"})
         problem = ProblemConfig.from_dict(
             {
                 **{
@@ -153,12 +163,17 @@ class CampaignConfig:
             load=_campaign_load(r, r.table(data, "load", required=True)),
             positions=positions_from_dict(r.table(data, "positions", required=True)),
             pod=_pod(r, r.table(data, "pod")),
+            anm=_anm(r, r.table(data, "anm")),
             raw=data,
         )
 
     def campaign_hash(self) -> str:
-        """Identity of the campaign: its configuration and the bytes of its mesh."""
-        h = hashlib.sha256(json.dumps(self.raw, sort_keys=True, default=str).encode())
+        """Identity of the campaign: its configuration and the bytes of its mesh.
+
+        The ``[anm]`` table is left out: it only changes the reduction, not the solves.
+        """
+        solves = {k: v for k, v in self.raw.items() if k != "anm"}
+        h = hashlib.sha256(json.dumps(solves, sort_keys=True, default=str).encode())
         h.update(file_digest(self.problem.mesh.file).encode())
         return h.hexdigest()
 
@@ -204,6 +219,20 @@ def _pod(r: _Reader, t: dict) -> PODConfig:
         inner_product=r.choice(t, "pod", "inner_product", INNER_PRODUCTS, "euclidean"),
         method=r.choice(t, "pod", "method", POD_METHODS, "snapshots"),
     )
+
+
+def _anm(r: _Reader, t: dict) -> ANMConfig:
+    r.keys(t, "anm", {"enabled", "order", "tolerance"})
+    enabled = t.get("enabled", True)
+    if not isinstance(enabled, bool):
+        r.fail("anm", f"enabled must be true or false, got {enabled!r}")
+    order = r.number(t, "anm", "order", 6, positive=True, integer=True)
+    if not 1 <= order <= 15:
+        r.fail("anm", f"order must be between 1 and 15, got {order}")
+    tolerance = r.number(t, "anm", "tolerance", 1e-4, positive=True)
+    if not tolerance < 1:
+        r.fail("anm", f"tolerance must be below 1, got {tolerance}")
+    return ANMConfig(enabled=enabled, order=order, tolerance=tolerance)
 
 
 # -- running -----------------------------------------------------------------------

@@ -337,6 +337,13 @@ def reduce_campaign(
         global_P = gp.basis_local[:, : max(1, min(gp.n_modes, math.ceil(global_pod.n_modes / 2)))]
     global_K = reduced_stiffness(comm, ops, global_pod.basis_local, global_P)
 
+    series = None
+    if config.anm.enabled and config.load.mode == "displacement":
+        from hapticrom.offline.anm_reduction import sample_series
+
+        anm = config.anm
+        say(f"POD-ANM series per sample (order {anm.order}, tolerance {anm.tolerance:g})")
+        series = sample_series(config, samples, reduced, comm, say)
     points = np.array([s.point for s in samples])
     normals = -np.array([s.direction for s in samples])  # outward: against the push
     origin, axes, chart, triangles = chart_and_triangulation(points, normals)
@@ -412,6 +419,10 @@ def reduce_campaign(
                 "reduced_stiffness": global_K,
             },
         }
+        if series is not None:
+            from hapticrom.offline.anm_reduction import artifact_group
+
+            content["anm"] = artifact_group(series, config)
         root = {
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "software": json.dumps(_software()),

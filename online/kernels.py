@@ -127,11 +127,27 @@ def hermite(force, slope, step, depth):
 # Layout of the simulator's packed contact buffer (one float64 array, so a step
 # call unboxes two arrays instead of eight: the dispatch dominates a step).
 NORMAL, FORCE, DISPLACEMENT, DEPTH, FLAGS = 0, 3, 6, 9, 10
-STEP, MAX_DISPLACEMENT, MAX_FORCE, KNOTS, CURVE = 11, 12, 13, 14, 15
+STEP, MAX_DISPLACEMENT, MAX_FORCE, KNOTS = 11, 12, 13, 14
+ANM_BASE, ANM_N1, ANM_SMAX, ANM_SLOPE, ANM_BEYOND = 15, 16, 17, 18, 19  # POD-ANM (below)
+CURVE = 20
+
+# POD-ANM region, at buf[ANM_BASE]: three neighbour blocks of 4 + SMAX * stride floats,
+# [weight, section count, section found (artifact row), a found, records...], one record
+# per section: [a_max, depth at 0, depth at a_max, force at a_max, dF/ddepth at a_max,
+# depth coefficients (N1), force coefficients (N1)]: stride = 5 + 2 N1.
+REC_AMAX, REC_DEPTH0, REC_DEPTH_END, REC_FORCE_END, REC_SLOPE_END, REC_COEFFS = 0, 1, 2, 3, 4, 5
 
 
-def buffer_size(knots: int) -> int:
-    return CURVE + 2 * knots
+def record_stride(n1: int) -> int:
+    return REC_COEFFS + 2 * n1
+
+
+def anm_block_size(n1: int, smax: int) -> int:
+    return 4 + smax * record_stride(n1)
+
+
+def buffer_size(knots: int, n1: int = 0, smax: int = 0) -> int:
+    return CURVE + 2 * knots + (3 * anm_block_size(n1, smax) if n1 else 0)
 
 
 @njit(f"int64({f8_1d}, float64)", cache=True, nogil=True)
@@ -365,3 +381,232 @@ def prepare_grassmann(weights, vertices, gtt, gtb, grb, frames):
                         ga += weights[a] * gtb[vertices[a], i, m, q]
                     acc += frames[0, m, p] * grb[i, m, q] + frames[1, m, p] * ga
                 frames[2 + j, p, q] = acc
+
+
+# -- POD-ANM series ---------------------------------------------------------------------
+@njit(f"float64({f8_1d}, int64, int64, float64)", cache=True, nogil=True)
+def horner(c, start, n, a):
+    """sum_k c[start + k] a^k, k < n."""
+    acc = 0.0
+    for k in range(n - 1, -1, -1):
+        acc = acc * a + c[start + k]
+    return acc
+
+
+@njit(f"float64({f8_1d}, int64, int64, float64)", cache=True, nogil=True)
+def horner_derivative(c, start, n, a):
+    """d/da sum_k c[start + k] a^k."""
+    acc = 0.0
+    for k in range(n - 1, 0, -1):
+        acc = acc * a + k * c[start + k]
+    return acc
+
+
+@njit(f"float64({f8_1d}, int64, int64, float64)", cache=True, nogil=True)
+def section_root(buf, rec, n1, depth):
+    """a in [0, a_max] with depth(a) = depth on the section at buf[rec]: bracketed Newton."""
+    c = rec + REC_COEFFS
+    lo, hi = 0.0, buf[rec + REC_AMAX]
+    d0, d1 = buf[rec + REC_DEPTH0], buf[rec + REC_DEPTH_END]
+    a = lo + (hi - lo) * (depth - d0) / (d1 - d0) if d1 > d0 else 0.5 * (lo + hi)
+    tol = 1e-14 * (1.0 + abs(depth))
+    for _ in range(60):
+        r = horner(buf, c, n1, a) - depth
+        if abs(r) <= tol:
+            break
+        if r > 0.0:
+            hi = a
+        else:
+            lo = a
+        slope = horner_derivative(buf, c, n1, a)
+        trial = a - r / slope if slope > 0.0 else 0.5 * (lo + hi)
+        a = trial if lo < trial < hi else 0.5 * (lo + hi)
+        if hi - lo <= 1e-15 * buf[rec + REC_AMAX]:
+            break
+    return a
+
+
+@njit(f"float64({f8_1d}, float64)", cache=True, nogil=True)
+def anm_force(buf, depth):
+    """Blended normal force (N) of the three neighbours' series at ``depth`` (mm).
+
+    Writes each neighbour's section and path parameter (for the surface), the
+    blended dF/ddepth into buf[ANM_SLOPE] and 1 into buf[ANM_BEYOND] if a
+    neighbour's last section ends before ``depth`` (its force then continues
+    linearly with the end slope).
+    """
+    base = int(buf[ANM_BASE])
+    n1 = int(buf[ANM_N1])
+    stride = REC_COEFFS + 2 * n1
+    block = 4 + int(buf[ANM_SMAX]) * stride
+    total = 0.0
+    slope_total = 0.0
+    beyond = 0
+    for j in range(3):
+        b = base + j * block
+        w = buf[b]
+        count = int(buf[b + 1])
+        s = 0
+        while s < count - 1 and buf[b + 4 + s * stride + REC_DEPTH_END] < depth:
+            s += 1
+        rec = b + 4 + s * stride
+        if depth > buf[rec + REC_DEPTH_END]:
+            beyond = 1
+            a = buf[rec + REC_AMAX]
+            force = buf[rec + REC_FORCE_END] + buf[rec + REC_SLOPE_END] * (
+                depth - buf[rec + REC_DEPTH_END]
+            )
+            slope = buf[rec + REC_SLOPE_END]
+        else:
+            a = section_root(buf, rec, n1, depth)
+            c = rec + REC_COEFFS
+            force = horner(buf, c + n1, n1, a)
+            dd = horner_derivative(buf, c, n1, a)
+            slope = horner_derivative(buf, c + n1, n1, a) / dd if dd > 0.0 else 0.0
+        buf[b + 2] = s  # section index within the sample
+        buf[b + 3] = a
+        total += w * force
+        slope_total += w * slope
+    buf[ANM_SLOPE] = slope_total
+    buf[ANM_BEYOND] = beyond
+    return total
+
+
+@njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+def step_displacement_anm(d, buf):
+    """As :func:`step_displacement`, the force from the POD-ANM series of the neighbours."""
+    status = check_input(d, buf[MAX_DISPLACEMENT])
+    if status:
+        return status
+    depth = inward(d, buf)
+    flags = int(buf[FLAGS]) & FLAG_OUTSIDE_REGION
+    if depth <= 0.0:
+        magnitude = 0.0
+        depth = 0.0
+        flags |= FLAG_NO_CONTACT
+        anm_force(buf, 0.0)
+    else:
+        magnitude = anm_force(buf, depth)
+        if buf[ANM_BEYOND] != 0.0:
+            flags |= FLAG_BEYOND_DEPTH
+    for c in range(3):
+        buf[FORCE + c] = magnitude * buf[NORMAL + c]
+    buf[DEPTH] = depth
+    buf[FLAGS] = flags
+    return 0
+
+
+@njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+def step_force_anm(f, buf):
+    """As :func:`step_force`: the depth whose blended series force equals the push."""
+    status = check_input(f, buf[MAX_FORCE])
+    if status:
+        return status
+    push = inward(f, buf)
+    flags = int(buf[FLAGS]) & FLAG_OUTSIDE_REGION
+    if push <= 0.0:
+        depth = 0.0
+        flags |= FLAG_NO_CONTACT
+        anm_force(buf, 0.0)
+    else:
+        # Bracket [0, hi]: hi the smallest trained depth of the three neighbours.
+        base = int(buf[ANM_BASE])
+        n1 = int(buf[ANM_N1])
+        stride = REC_COEFFS + 2 * n1
+        block = 4 + int(buf[ANM_SMAX]) * stride
+        hi = np.inf
+        for j in range(3):
+            b = base + j * block
+            last = b + 4 + (int(buf[b + 1]) - 1) * stride
+            hi = min(hi, buf[last + REC_DEPTH_END])
+        f_hi = anm_force(buf, hi)
+        lo = 0.0
+        if push > f_hi:
+            # Beyond the first end: bracket by steps along the end slope, doubling.
+            width = (push - f_hi) / buf[ANM_SLOPE] if buf[ANM_SLOPE] > 0.0 else hi
+            for _ in range(60):
+                lo = hi
+                hi = lo + 1.5 * width
+                if anm_force(buf, hi) >= push:
+                    break
+                width *= 2.0
+        depth = 0.5 * (lo + hi)
+        for _ in range(100):
+            r = anm_force(buf, depth) - push
+            if abs(r) <= 1e-13 * push:
+                break
+            if r > 0.0:
+                hi = depth
+            else:
+                lo = depth
+            slope = buf[ANM_SLOPE]
+            trial = depth - r / slope if slope > 0.0 else 0.5 * (lo + hi)
+            depth = trial if lo < trial < hi else 0.5 * (lo + hi)
+            if hi - lo <= 1e-15 * hi:
+                break
+        anm_force(buf, depth)  # leave the sections of the returned depth in the buffer
+        if buf[ANM_BEYOND] != 0.0:
+            flags |= FLAG_BEYOND_DEPTH
+    for c in range(3):
+        buf[DISPLACEMENT + c] = -depth * buf[NORMAL + c]
+    buf[DEPTH] = depth
+    buf[FLAGS] = flags
+    return 0
+
+
+@njit(f"void({f8_1d}, {i8_1d}, {i8_1d}, {f8_2d}, {f8_1d})", cache=True, nogil=True)
+def prepare_anm(weights, vertices, offsets, records, buf):
+    """Copy the three neighbours' section records and weights into the buffer (set_contact)."""
+    base = int(buf[ANM_BASE])
+    stride = records.shape[1]
+    block = 4 + int(buf[ANM_SMAX]) * stride
+    for j in range(3):
+        b = base + j * block
+        i = vertices[j]
+        first, count = offsets[i], offsets[i + 1] - offsets[i]
+        buf[b] = weights[j]
+        buf[b + 1] = count
+        buf[b + 2] = 0.0
+        buf[b + 3] = 0.0
+        for s in range(count):
+            r = b + 4 + s * stride
+            for k in range(stride):
+                buf[r + k] = records[first + s, k]
+
+
+@njit(
+    f"void({i8_1d}, {i8_1d}, {f8_1d}, {f8_3d}, {f4_3d}, {f8_1d}, {f8_2d})",
+    cache=True,
+    nogil=True,
+    fastmath=True,
+)
+def surface_anm(vertices, offsets, buf, coefficients, basis_t, scratch, out):
+    """Surface displacement sum_j w_j A_j c_j(a_j) (mm) from the series' coordinates.
+
+    ``coefficients`` (Z, N1, n): the artifact's series of the reduced coordinates;
+    the section and a of each neighbour are those of the last step.
+    """
+    base = int(buf[ANM_BASE])
+    n1 = int(buf[ANM_N1])
+    block = 4 + int(buf[ANM_SMAX]) * (REC_COEFFS + 2 * n1)
+    n = basis_t.shape[1]
+    flat = out.reshape(out.size)
+    flat[:] = 0.0
+    for j in range(3):
+        b = base + j * block
+        w = buf[b]
+        if w == 0.0:
+            continue
+        i = vertices[j]
+        row_index = offsets[i] + int(buf[b + 2])
+        a = buf[b + 3]
+        for m in range(n):
+            acc = 0.0
+            for k in range(n1 - 1, -1, -1):
+                acc = acc * a + coefficients[row_index, k, m]
+            scratch[m] = w * acc
+        for m in range(n):
+            row = basis_t[i, m]
+            c = scratch[m]
+            for r in range(flat.shape[0]):
+                flat[r] += c * row[r]

@@ -10,6 +10,7 @@ import numpy as np
 from hapticrom.shared.artifact import Artifact, ArtifactError, read_artifact
 
 INTERPOLATIONS = ("podi", "grassmann")
+RESPONSES = ("anm", "curves")
 
 
 def _f8(a) -> np.ndarray:
@@ -36,6 +37,7 @@ class ReducedModel:
         force, stiffness (P, K): normal reaction force curves (N) and slopes (N/mm).
         surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field;
         surface_basis_t (P, n, 3V): the same transposed, for the PODI kernel.
+        anm: the POD-ANM sections (artifact 1.1) as kernel records, or None.
     """
 
     path: Path
@@ -54,6 +56,7 @@ class ReducedModel:
     surface_basis: np.ndarray
     coefficients: np.ndarray
     grassmann: dict | None
+    anm: dict | None = None  # POD-ANM series: offsets, records, coefficients, n1, smax
 
     def __post_init__(self):
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
@@ -80,6 +83,7 @@ class ReducedModel:
                 "gtb": _f8(g["gram_tangent_basis"]),
                 "grb": _f8(g["gram_reference_basis"]),
             }
+        anm = _anm_records(artifact) if "anm" in artifact.groups else None
         return cls(
             path=artifact.path,
             artifact=artifact,
@@ -97,6 +101,7 @@ class ReducedModel:
             surface_basis=_f4(samples["surface_basis"]),
             coefficients=_f8(samples["coefficients"]),
             grassmann=grassmann,
+            anm=anm,
         )
 
     @property
@@ -113,11 +118,15 @@ class ReducedModel:
     def num_modes(self) -> int:
         return self.surface_basis.shape[2]
 
-    def simulator(self, interpolation: str = "podi", **limits):
-        """A new simulator state on this model (models are shared, simulators are not)."""
+    def simulator(self, interpolation: str = "podi", response: str | None = None, **limits):
+        """A new simulator state on this model (models are shared, simulators are not).
+
+        ``response``: "anm" (the POD-ANM series; the default when the artifact has
+        them) or "curves" (the stored full-order force curves).
+        """
         from hapticrom.online.simulator import Simulator
 
-        return Simulator(self, interpolation, **limits)
+        return Simulator(self, interpolation, response=response, **limits)
 
     def describe(self) -> str:
         a = self.artifact
@@ -129,12 +138,54 @@ class ReducedModel:
         )
 
 
+def _anm_records(artifact: Artifact) -> dict:
+    """The kernels' per-section records (see online/kernels.py) from the artifact's series."""
+    from numpy.polynomial import polynomial as poly
+
+    from hapticrom.online.kernels import record_stride
+
+    a = artifact["anm"]
+    P = len(artifact["samples"]["points"])
+    offsets = _i8(a["section_offsets"])
+    depth, force, a_max = _f8(a["depth"]), _f8(a["force"]), _f8(a["a_max"])
+    Z, n1 = depth.shape
+    where = f"{artifact.path}: anm"
+    if offsets.shape != (P + 1,) or offsets[0] != 0 or offsets[-1] != Z:
+        raise ArtifactError(f"{where}/section_offsets must run from 0 to {Z} over {P} samples")
+    counts = np.diff(offsets)
+    if np.any(counts < 1):
+        raise ArtifactError(f"{where}: every sample needs at least one section")
+    if not np.all(a_max > 0):
+        raise ArtifactError(f"{where}/a_max must be positive")
+    depth_end = np.array([poly.polyval(a_max[z], depth[z]) for z in range(Z)])
+    force_end = np.array([poly.polyval(a_max[z], force[z]) for z in range(Z)])
+    dd = np.array([poly.polyval(a_max[z], poly.polyder(depth[z])) for z in range(Z)])
+    df = np.array([poly.polyval(a_max[z], poly.polyder(force[z])) for z in range(Z)])
+    if np.any(depth_end <= depth[:, 0]) or np.any(dd <= 0):
+        raise ArtifactError(f"{where}: the depth must increase along every section")
+    records = np.column_stack([a_max, depth[:, 0], depth_end, force_end, df / dd, depth, force])
+    assert records.shape[1] == record_stride(n1)
+    return {
+        "offsets": offsets,
+        "records": _f8(records),
+        "coefficients": _f8(a["coefficients"]),
+        "n1": int(n1),
+        "smax": int(counts.max()),
+        "order": int(artifact.group_attrs["anm"]["order"]),
+    }
+
+
 def load(path: str | Path, warm_up: bool = True) -> ReducedModel:
     """Load and verify a reduced-model artifact; optionally run every kernel once."""
     model = ReducedModel.from_artifact(read_artifact(path))
     if warm_up:
-        for interpolation in ("podi", "grassmann") if model.grassmann else ("podi",):
-            sim = model.simulator(interpolation)
+        combos = [("podi", "curves")]
+        if model.grassmann:
+            combos.append(("grassmann", "curves"))
+        if model.anm:
+            combos.append(("podi", "anm"))
+        for interpolation, response in combos:
+            sim = model.simulator(interpolation, response)
             sim.set_contact(model.sample_points[0])
             sim.step_displacement(-0.5 * model.trained_depth * sim.contact_normal)
             sim.step_force(-0.5 * model.trained_force * sim.contact_normal)

@@ -43,10 +43,20 @@ def hermite(force: np.ndarray, slope: np.ndarray, step: float, depth: float) -> 
 
 
 class NumpySimulator:
-    """Same contract as :class:`~hapticrom.online.simulator.Simulator` (PODI only)."""
+    """Same contract as :class:`~hapticrom.online.simulator.Simulator` (PODI only).
 
-    def __init__(self, model: ReducedModel):
-        self.model = model
+    ``response="anm"`` evaluates the artifact's POD-ANM series with numpy's
+    polynomial roots (eigenvalues of the companion matrix), an algorithm
+    independent of the kernels' bracketed Newton iteration.
+    """
+
+    def __init__(self, model: ReducedModel, response: str = "curves"):
+        self.model, self.response = model, response
+        if response == "anm":
+            a = model.artifact["anm"]
+            self.offsets, self.a_max = a["section_offsets"], a["a_max"]
+            self.depth_series, self.force_series = a["depth"], a["force"]
+            self.coefficient_series = a["coefficients"]
 
     def set_contact(self, point) -> None:
         m = self.model
@@ -62,14 +72,56 @@ class NumpySimulator:
         if not np.all(np.isfinite(d)):
             raise ValueError("displacement is not finite")
         depth = -float(np.dot(d, self.normal))
-        magnitude = (
-            0.0 if depth <= 0 else hermite(self.curve, self.slope, self.model.depth_step, depth)
-        )
         self.depth = max(depth, 0.0)
+        if self.response == "anm":
+            magnitude = 0.0 if depth <= 0 else self._anm(depth)[0]
+        else:
+            magnitude = (
+                0.0 if depth <= 0 else hermite(self.curve, self.slope, self.model.depth_step, depth)
+            )
         return magnitude * self.normal
+
+    def _section(self, i: int, depth: float) -> tuple[int, float, bool]:
+        """(artifact row, a, beyond) for sample i at a depth: roots of depth(a) - depth."""
+        P = np.polynomial.polynomial
+        rows = range(self.offsets[i], self.offsets[i + 1])
+        for z in rows:
+            end = P.polyval(self.a_max[z], self.depth_series[z])
+            if depth <= end:
+                c = self.depth_series[z].copy()
+                c[0] -= depth
+                roots = P.polyroots(c)
+                real = roots[np.abs(roots.imag) <= 1e-9 * self.a_max[z]].real
+                inside = real[(real >= -1e-9) & (real <= self.a_max[z] * (1 + 1e-9))]
+                return z, float(inside.min()), False
+        return rows[-1], float(self.a_max[rows[-1]]), True
+
+    def _anm(self, depth: float) -> tuple[float, list]:
+        P = np.polynomial.polynomial
+        total, found = 0.0, []
+        for w, i in zip(self.weights, self.vertices, strict=True):
+            z, a, beyond = self._section(i, depth)
+            force = P.polyval(a, self.force_series[z])
+            if beyond:
+                end = P.polyval(a, self.depth_series[z])
+                slope = P.polyval(a, P.polyder(self.force_series[z])) / P.polyval(
+                    a, P.polyder(self.depth_series[z])
+                )
+                force += slope * (depth - end)
+            total += w * force
+            found.append((z, a))
+        return total, found
 
     def surface_displacement(self) -> np.ndarray:
         m = self.model
+        if self.response == "anm":
+            _, found = self._anm(self.depth)
+            P = np.polynomial.polynomial
+            fields = [
+                m.surface_basis[i].astype(float) @ P.polyval(a, self.coefficient_series[z])
+                for i, (z, a) in zip(self.vertices, found, strict=True)
+            ]
+            return (self.weights @ np.array(fields)).reshape(-1, 3)
         x = min(self.depth / m.depth_step, m.coefficients.shape[1] - 1)
         k = min(int(x), m.coefficients.shape[1] - 2)
         t = x - k

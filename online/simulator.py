@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from hapticrom.online import kernels
-from hapticrom.online.model import INTERPOLATIONS, ReducedModel
+from hapticrom.online.model import INTERPOLATIONS, RESPONSES, ReducedModel
 
 
 class StepInputError(ValueError):
@@ -52,19 +52,34 @@ class Simulator:
         interpolation: str = "podi",
         max_displacement: float | None = None,
         max_force: float | None = None,
+        response: str | None = None,
     ):
+        if response is None:
+            response = "anm" if model.anm is not None else "curves"
+        if response not in RESPONSES:
+            raise ValueError(f"response must be one of {RESPONSES}, got {response!r}")
+        if response == "anm" and model.anm is None:
+            raise ValueError("this artifact carries no POD-ANM series (format 1.1 'anm' group)")
+        if response == "anm" and interpolation == "grassmann":
+            raise ValueError("the POD-ANM response blends fields by PODI; use interpolation='podi'")
         if interpolation not in INTERPOLATIONS:
             raise ValueError(
                 f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}"
             )
         if interpolation == "grassmann" and model.grassmann is None:
             raise ValueError("this artifact carries no Grassmann tangents")
-        self.model, self.interpolation = model, interpolation
+        self.model, self.interpolation, self.response = model, interpolation, response
         self.max_displacement = float(max_displacement or 10 * model.trained_depth)
         self.max_force = float(max_force or 10 * model.force[:, -1].max())
         K, n = model.force.shape[1], model.num_modes
         k = kernels
-        self._buf = np.zeros(k.buffer_size(K))  # the contact state the steps read and write
+        anm = model.anm if response == "anm" else None
+        n1, smax = (anm["n1"], anm["smax"]) if anm else (0, 0)
+        self._buf = np.zeros(k.buffer_size(K, n1, smax))  # the state the steps read and write
+        if anm:
+            self._buf[k.ANM_BASE] = k.CURVE + 2 * K
+            self._buf[k.ANM_N1] = n1
+            self._buf[k.ANM_SMAX] = smax
         self._buf[k.STEP] = model.depth_step
         self._buf[k.MAX_DISPLACEMENT] = self.max_displacement
         self._buf[k.MAX_FORCE] = self.max_force
@@ -77,8 +92,9 @@ class Simulator:
         self._chart = np.zeros(2)
         self._weights = np.zeros(3)
         self._vertices = np.zeros(3, dtype=np.int64)
-        self._step_displacement = k.step_displacement  # bound once: no lookups per step
-        self._step_force = k.step_force
+        # bound once: no lookups per step
+        self._step_displacement = k.step_displacement_anm if anm else k.step_displacement
+        self._step_force = k.step_force_anm if anm else k.step_force
         self._scratch = np.zeros(3 + 3 * n)  # depth weights + three n-vectors
         self._frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
         self._contact = False
@@ -102,6 +118,12 @@ class Simulator:
             self._weights, self._vertices, m.sample_normals, m.force, m.stiffness,
             self._normal, self._curve, self._slope,
         )  # fmt: skip
+        if self.response == "anm":
+            a = m.anm
+            kernels.prepare_anm(
+                self._weights, self._vertices, a["offsets"], a["records"], self._buf
+            )
+            kernels.anm_force(self._buf, self.depth)  # sections for the surface at this depth
         if self.interpolation == "grassmann":
             g = m.grassmann
             kernels.prepare_grassmann(
@@ -142,7 +164,13 @@ class Simulator:
                 f"out must be a C-contiguous float64 array of shape {m.vertices.shape}, "
                 f"got {out.dtype} {out.shape}"
             )
-        if self.interpolation == "grassmann":
+        if self.response == "anm":
+            a = m.anm
+            kernels.surface_anm(
+                self._vertices, a["offsets"], self._buf, a["coefficients"], m.surface_basis_t,
+                self._scratch, out,
+            )  # fmt: skip
+        elif self.interpolation == "grassmann":
             g = m.grassmann
             kernels.surface_grassmann(
                 self.depth, m.depth_step, self._weights, self._vertices, g["reference"],
@@ -170,6 +198,8 @@ class Simulator:
     @property
     def contact_stiffness(self) -> float:
         """d force / d depth at the current depth (N/mm): for the haptic loop's stability."""
+        if self.response == "anm":
+            return float(self._buf[kernels.ANM_SLOPE])
         m = self.model
         step = m.depth_step
         x = self.depth / step

@@ -29,7 +29,7 @@ from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.errors import HapticromError
 
 FORMAT = "hapticrom"
-FORMAT_VERSION = (1, 0)
+FORMAT_VERSION = (1, 1)  # 1.1: the optional anm group
 
 
 class ArtifactError(HapticromError):
@@ -38,7 +38,7 @@ class ArtifactError(HapticromError):
 
 @dataclass(frozen=True)
 class Field:
-    """One dataset of the schema. ``shape`` uses symbols resolved per file (P, K, n, V, T, S)."""
+    """One dataset of the schema. ``shape`` uses symbols resolved per file (P, K, n, V, T, S...)."""
 
     name: str
     dtype: str  # numpy kind: "f" float, "i" integer
@@ -110,6 +110,20 @@ SCHEMA: tuple[Group, ...] = (
             Field("gram_reference_basis", "f", ("P", "n", "n"), "1", "A_ref^T A_j"),
         ),
         required=False,
+    ),
+    Group(
+        "anm",
+        "anm-series",
+        (1, 0),
+        (
+            Field("section_offsets", "i", ("P1",), "1", "sample i's sections: offsets[i]:[i+1]"),
+            Field("a_max", "f", ("Z",), "1", "validity radius of each section (path parameter)"),
+            Field("depth", "f", ("Z", "N1"), "mm", "series of the depth in a, order 0..N"),
+            Field("force", "f", ("Z", "N1"), "N", "series of the normal force on the tool"),
+            Field("coefficients", "f", ("Z", "N1", "n"), "mm", "series of the reduced coordinates"),
+        ),
+        required=False,
+        attrs=("order", "tolerance"),
     ),
     Group(
         "global",

@@ -174,3 +174,21 @@ def test_tension_only_fibres_are_refused(mesh_dir):
     fom = FullOrderModel(cornea_config(mesh_dir, fibre_tension_only=True, steps=2), verbose=False)
     with pytest.raises(InputError, match="analytic"):
         ComplexResidual(fom.model)
+
+
+def test_campaign_anm_table_is_validated_and_not_part_of_the_campaign_identity(mesh_dir):
+    import tomllib as toml
+
+    from conftest import campaign_toml
+
+    from hapticrom.offline.campaign import CampaignConfig
+
+    base = toml.loads(campaign_toml(mesh_dir / "cornea-coarse.msh"))
+    config = CampaignConfig.from_dict(base)
+    assert config.anm.enabled and config.anm.order == 6
+    tuned = CampaignConfig.from_dict({**base, "anm": {"order": 10, "tolerance": 1e-5}})
+    assert tuned.anm.order == 10
+    assert tuned.campaign_hash() == config.campaign_hash()  # the solves are the same
+    for bad in ({"order": 0}, {"order": 3.5}, {"tolerance": 2.0}, {"enabled": "yes"}, {"x": 1}):
+        with pytest.raises(InputError, match="anm"):
+            CampaignConfig.from_dict({**base, "anm": bad})

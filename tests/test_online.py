@@ -32,10 +32,13 @@ def points_in_region(model, count):
     return out
 
 
-@pytest.mark.parametrize("interpolation", ["podi", "grassmann"])
-def test_kernels_match_the_numpy_reference(model, interpolation):
-    sim = model.simulator(interpolation)
-    ref = NumpySimulator(model)
+COMBINATIONS = [("podi", "curves"), ("grassmann", "curves"), ("podi", "anm")]
+
+
+@pytest.mark.parametrize("interpolation,response", COMBINATIONS)
+def test_kernels_match_the_numpy_reference(model, interpolation, response):
+    sim = model.simulator(interpolation, response)
+    ref = NumpySimulator(model, response)
     out = np.zeros_like(model.vertices)
     for point in points_in_region(model, 25):
         sim.set_contact(point)
@@ -52,14 +55,19 @@ def test_kernels_match_the_numpy_reference(model, interpolation):
                 np.testing.assert_allclose(out, ref.surface_displacement(), rtol=1e-5, atol=1e-7)
 
 
-@pytest.mark.parametrize("interpolation", ["podi", "grassmann"])
-def test_reproduces_the_training_curves_at_the_samples(model, small_campaign, interpolation):
+@pytest.mark.parametrize("interpolation,response", COMBINATIONS)
+def test_reproduces_the_training_curves_at_the_samples(
+    model, small_campaign, interpolation, response
+):
     """At a sample, force and surface field are those of the full-order solve.
 
     For Grassmann this checks the log and exp maps: Exp(Log(A_i)) must span A_i.
+    The POD-ANM series are the reduced model's own solution, not the stored
+    curves: they must agree with full Newton to a small fraction of a percent.
     """
     _, store, _ = small_campaign
-    sim = model.simulator(interpolation)
+    sim = model.simulator(interpolation, response)
+    rtol = 1e-10 if response == "curves" else 1e-3
     out = np.zeros_like(model.vertices)
     nodes = model.artifact["surface"]["nodes"]
     for i, point in enumerate(model.sample_points):
@@ -69,7 +77,7 @@ def test_reproduces_the_training_curves_at_the_samples(model, small_campaign, in
             depth = data["contact_displacement"][k] @ attrs["direction"]
             force = sim.step_displacement(-depth * sim.contact_normal)
             np.testing.assert_allclose(
-                force @ sim.contact_normal, data["force"][k] @ attrs["direction"], rtol=1e-10
+                force @ sim.contact_normal, data["force"][k] @ attrs["direction"], rtol=rtol
             )
             sim.surface_displacement(out)
             u = data["displacement"][k].reshape(-1, 3)[nodes]
