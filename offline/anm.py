@@ -62,11 +62,12 @@ COMPLEX = np.complex128
 # to libgcc's __muldc3/__divdc3 (C99 Annex G inf/nan recovery, which finite residuals
 # never need).
 JIT_OPTIONS = {"cffi_extra_compile_args": ["-O2", "-g0", "-fcx-limited-range"]}
-# Radius of the Cauchy integrals as a fraction of the estimated radius of convergence R:
-# along the truncated path r(a) = a^k (r_k + r_(k+1) a + ...), so with M points the
-# coefficient r_k is polluted by r_(k+M) rho^M ~ 3^-16 = 2e-8 relative (M = 16), while
-# rounding grows like eps 3^k (1e-11 at k = 10).
-RHO_FRACTION = 1.0 / 3.0
+# Radius of the Cauchy integrals as a fraction of the estimated radius of convergence R.
+# Along the truncated path r(a) = a^k (r_k + r_(k+1) a + ...), so with M points the
+# coefficient r_k is polluted only by r_(k+M) rho^M ~ 4^-M relative (1e-6 for M = 10),
+# while rounding grows like eps 4^k (1e-12 at k = 6, 2e-10 at k = 10). The FFT of a
+# real path's values is real, and M > k points resolve the coefficient k.
+RHO_FRACTION = 1.0 / 4.0
 # Imaginary step of the tangent, relative to the state's size. No subtraction, so the
 # step can be small; but not 1e-30: the compiled HGO residual carries imaginary noise of
 # ~1e-25 N even at real arguments (measured on the cornea; from the complex power
@@ -270,8 +271,8 @@ class ReducedResidual:
         Cauchy integral on the circle |a| = rho by an FFT of ``points`` values; the
         path is real, so r(conj a) = conj r(a) and half the circle suffices.
         """
-        if orders >= points // 2:
-            raise ValueError(f"{points} points give Taylor coefficients below {points // 2}")
+        if orders >= points or points % 2:
+            raise ValueError(f"an even number of points above {orders} is needed, got {points}")
         half = points // 2
         a = rho * np.exp(2j * np.pi * np.arange(half + 1) / points)
         powers = a[:, None] ** np.arange(len(Y))[None, :]  # (half+1, m)
@@ -320,7 +321,7 @@ class ANMOptions:
     tolerance: float = 1e-4  # validity: ||y_N|| a^N <= tol ||y_1|| a (module docstring)
     load_max: float = 1.0  # continue until this load factor is covered
     max_sections: int = 60
-    points: int | None = None  # FFT points of the Cauchy integrals (None: max(16, 2 N + 4))
+    points: int | None = None  # FFT points of the Cauchy integrals (None: max(10, N + 4))
     correction_tolerance: float = 1e-10  # reduced Newton at a section start, relative
 
     def __post_init__(self):
@@ -329,9 +330,10 @@ class ANMOptions:
         if not (0 < self.tolerance < 1):
             raise InputError(f"ANM tolerance must be in (0, 1), got {self.tolerance!r}")
         if self.points is None:
-            self.points = max(16, 2 * (self.order + 2))
-        if self.points < 2 * (self.order + 2):
-            raise InputError(f"ANM needs at least {2 * (self.order + 2)} FFT points")
+            self.points = max(10, self.order + 4)
+            self.points += self.points % 2
+        if self.points < self.order + 2 or self.points % 2:
+            raise InputError(f"ANM needs an even number of FFT points, at least {self.order + 2}")
 
 
 @dataclass

@@ -6,9 +6,12 @@ canonical rows). Here they are moved to the DOLFINx layout of one
 organ and material (the residual does not depend on the tool: the lifting of
 the tool's displacement carries the position), the reduced space of the
 sample is built (:func:`~hapticrom.offline.anm.snapshot_space`) and the
-continuation covers the trained depth range. What the runtime needs per
-section: the series of the depth (mm), of the normal force (N) and of the
-reduced coordinates in the sample's artifact basis A_i (mm),
+continuation covers the trained load range. Displacement control: the load is
+the depth and the response the force; force control (a smooth pressure under
+the tool): the load is the force and the response the work-conjugate mean
+displacement under the tool, its depth. What the runtime needs per section:
+the series of the depth (mm), of the normal force (N) and of the reduced
+coordinates in the sample's artifact basis A_i (mm),
 
     c(a) = A_i^T u(a) = lam(a) A_i^T g + (A_i^T A_0) alpha(a),
 
@@ -60,8 +63,6 @@ def _to_owned(order: CanonicalOrder, canonical: np.ndarray) -> np.ndarray:
 
 def sample_series(config, samples, reduced, comm: MPI.Comm, say=lambda s: None):
     """SampleSeries for every sample (collective over ``comm``)."""
-    if config.load.mode != "displacement":
-        raise InputError("POD-ANM series are built for displacement-controlled campaigns only")
     from hapticrom.offline.reduction import _allgather_rows
 
     problem = config.problem
@@ -73,6 +74,8 @@ def sample_series(config, samples, reduced, comm: MPI.Comm, say=lambda s: None):
     order_u = CanonicalOrder(model.V)
     order_p = CanonicalOrder(model.Q) if model.Q is not None else None
     options = ANMOptions(order=config.anm.order, tolerance=config.anm.tolerance)
+    displacement_control = config.load.mode == "displacement"
+    space_mode = "displacement" if displacement_control else "force"
     steps = config.load.steps
     load_factor = np.arange(1, steps + 1) / steps
     out = []
@@ -82,9 +85,15 @@ def sample_series(config, samples, reduced, comm: MPI.Comm, say=lambda s: None):
         P = None
         if order_p is not None and s.p_local is not None:
             P = _to_owned(order_p, _allgather_rows(comm, s.p_local))
+        truncation = Truncation(eigenvalue_ratio=config.pod.eigenvalue_ratio)
+        if displacement_control:
+            f, size = np.zeros(U.shape[0]), config.load.magnitude
+        else:
+            if s.load_local is None:
+                raise InputError(f"sample {s.index}: the campaign stored no load vector")
+            f, size = _to_owned(order_u, _allgather_rows(comm, s.load_local[:, None]))[:, 0], None
         space, scale = snapshot_space(
-            comm, load_factor, U, P, "displacement", np.zeros(U.shape[0]),
-            config.load.magnitude, Truncation(eigenvalue_ratio=config.pod.eigenvalue_ratio),
+            comm, load_factor, U, P, space_mode, f, size, truncation
         )  # fmt: skip
         rr = ReducedResidual(residual, space, comm)
         branch = continuation(rr, scale, options)
@@ -94,11 +103,15 @@ def sample_series(config, samples, reduced, comm: MPI.Comm, say=lambda s: None):
         Y = np.array([sec.Y for sec in branch.sections])  # (S, N + 1, n0 + n_p + 1)
         lam = Y[:, :, -1]
         coefficients = lam[:, :, None] * M[:, 0] + Y[:, :, :n0] @ M[:, 1:].T
+        load = lam * config.load.magnitude  # mm (displacement control) or N (force control)
+        response = np.array([sec.response for sec in branch.sections])  # N or mm
+        depth, force = (load, response) if displacement_control else (response, load)
+        end = float(np.polynomial.polynomial.polyval(branch.sections[-1].a_max, depth[-1]))
         out.append(
             SampleSeries(
                 a_max=np.array([sec.a_max for sec in branch.sections]),
-                depth=lam * config.load.magnitude,
-                force=np.array([sec.response for sec in branch.sections]),
+                depth=depth,
+                force=force,
                 coefficients=coefficients,
                 evaluations=rr.evaluations,
                 seconds=time.perf_counter() - t0,
@@ -106,7 +119,7 @@ def sample_series(config, samples, reduced, comm: MPI.Comm, say=lambda s: None):
         )
         say(
             f"  sample {s.index:3d}: ANM {len(branch.sections)} section(s) of order "
-            f"{options.order} to depth {branch.load_range[1] * config.load.magnitude:.4g} mm, "
+            f"{options.order} to depth {end:.4g} mm, "
             f"{rr.evaluations} residual evaluations, {out[-1].seconds:.1f} s"
         )
     return out

@@ -65,6 +65,7 @@ class Sample:
     force: np.ndarray  # (K,) normal reaction on the tool, N, force[0] = 0
     point: np.ndarray
     direction: np.ndarray  # unit push direction (into the tissue)
+    load_local: np.ndarray | None = None  # force control: this rank's rows of the load, N
 
 
 def _verify_all(store: SnapshotStore, indices: list[int]) -> list[int]:
@@ -117,9 +118,10 @@ def read_samples(store: SnapshotStore, config: CampaignConfig, comm: MPI.Comm):
             direction = np.asarray(f.attrs["direction"], dtype=float)
             depth = np.r_[0.0, f["contact_displacement"][()][take] @ direction]
             force = np.r_[0.0, f["force"][()][take] @ direction]
+            load = f["load_vector"][rows[0] : rows[1]] if "load_vector" in f else None
             samples.append(
                 Sample(index, u, p, f["contact_nodes"][()], depth, force,
-                       np.asarray(f.attrs["point"]), direction)
+                       np.asarray(f.attrs["point"]), direction, load)
             )  # fmt: skip
     return samples, rows, cell_rows, num_dofs
 
@@ -338,7 +340,7 @@ def reduce_campaign(
     global_K = reduced_stiffness(comm, ops, global_pod.basis_local, global_P)
 
     series = None
-    if config.anm.enabled and config.load.mode == "displacement":
+    if config.anm.enabled:
         from hapticrom.offline.anm_reduction import sample_series
 
         anm = config.anm

@@ -192,3 +192,38 @@ def test_campaign_anm_table_is_validated_and_not_part_of_the_campaign_identity(m
     for bad in ({"order": 0}, {"order": 3.5}, {"tolerance": 2.0}, {"enabled": "yes"}, {"x": 1}):
         with pytest.raises(InputError, match="anm"):
             CampaignConfig.from_dict({**base, "anm": bad})
+
+
+def test_force_controlled_campaign_gets_series_the_runtime_follows(mesh_dir, tmp_path):
+    """A soft tip (force control): the artifact's series reproduce the full-order curves."""
+    from conftest import campaign_toml
+
+    import hapticrom.online as online
+    from hapticrom.offline.campaign import CampaignConfig, run_campaign
+    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.store import SnapshotStore
+
+    text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=4, per_ring=3)
+    text = text.replace('mode = "displacement"', 'mode = "force"').replace(
+        "magnitude = 0.3", "magnitude = 0.01"
+    )
+    (tmp_path / "c.toml").write_text(text)
+    config = CampaignConfig.from_toml(tmp_path / "c.toml")
+    from mpi4py import MPI
+
+    run_campaign(config, tmp_path / "store", MPI.COMM_SELF, verbose=False)
+    reduce_campaign(tmp_path / "store", tmp_path / "m.h5", MPI.COMM_SELF, verbose=False)
+    model = online.load(tmp_path / "m.h5")
+    assert model.anm is not None
+    sim = model.simulator(response="anm")
+    store = SnapshotStore(tmp_path / "store")
+    for i, point in enumerate(model.sample_points):
+        data, attrs = store.read_position(i)
+        sim.set_contact(point)
+        direction = attrs["direction"]
+        for k in range(len(data["force"])):
+            depth = data["contact_displacement"][k] @ direction
+            force = sim.step_displacement(-depth * sim.contact_normal) @ sim.contact_normal
+            assert force == pytest.approx(data["force"][k] @ direction, rel=1e-3)
+            push = sim.step_force(-(data["force"][k] @ direction) * sim.contact_normal)
+            assert -push @ sim.contact_normal == pytest.approx(depth, rel=1e-3)
