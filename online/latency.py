@@ -43,12 +43,17 @@ def measure(
     steps: int = 100_000,
     interpolation: str = "podi",
     baseline_steps: int = 20_000,
+    response: str | None = None,
 ) -> dict:
-    """Latencies (microseconds) of the runtime's calls on the artifact at ``path``."""
+    """Latencies (microseconds) of the runtime's calls on the artifact at ``path``.
+
+    ``response``: "anm" or "curves" (None: the model's default, "anm" if present).
+    """
     t0 = time.perf_counter()
     model: ReducedModel = load(path)
     load_seconds = time.perf_counter() - t0
-    sim = model.simulator(interpolation)
+    sim = model.simulator(interpolation, response)
+    response = sim.response
     centre = model.sample_points[int(np.argmin(np.linalg.norm(model.chart_points, axis=1)))]
     sim.set_contact(centre)
     n = sim.contact_normal.copy()
@@ -72,7 +77,7 @@ def measure(
             for t in np.linspace(0.1, 0.9, 5000)[:, None]
         ]
         contact = _time_calls(sim.set_contact, slide)
-        ref = NumpySimulator(model)
+        ref = NumpySimulator(model, response)
         ref.set_contact(centre)
         baseline = _time_calls(ref.step_displacement, displacements[:baseline_steps])
     finally:
@@ -81,6 +86,7 @@ def measure(
     result = {
         "artifact": str(path),
         "interpolation": interpolation,
+        "response": response,
         "load_and_warm_up_s": load_seconds,
         "step_displacement": _percentiles(step),
         "step_force": _percentiles(step_f),
@@ -106,7 +112,8 @@ TARGETS = {
 
 def report(result: dict) -> str:
     lines = [
-        f"{result['artifact']} ({result['interpolation']}, {result['surface_vertices']} surface "
+        f"{result['artifact']} ({result['interpolation']}, {result.get('response', 'curves')}, "
+        f"{result['surface_vertices']} surface "
         f"vertices): load + warm-up {result['load_and_warm_up_s']:.2f} s (target 2 s)",
         f"{'call':28s} {'p50 us':>9s} {'p99 us':>9s} {'max us':>9s} {'calls':>8s}",
     ]

@@ -51,7 +51,10 @@ def play(
     clock = time.perf_counter
     say(f"playing {model.describe()}")
     pacing = "real time" if realtime else "free running"
-    say(f"press - slide - release, {ticks} ticks at {rate:g} Hz ({pacing})")
+    say(
+        f"press - slide - release, {ticks} ticks at {rate:g} Hz ({pacing}); force from "
+        + ("the POD-ANM series" if sim.response == "anm" else "the stored full-order curves")
+    )
     start = clock()
     for i in range(ticks):
         if realtime:

@@ -188,7 +188,9 @@ def cmd_bench(args, petsc_args) -> int:
 
     from hapticrom.online.latency import measure, report
 
-    result = measure(args.model, steps=args.steps, interpolation=args.interpolation)
+    result = measure(
+        args.model, steps=args.steps, interpolation=args.interpolation, response=args.response
+    )
     print(report(result))
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=2))
@@ -277,6 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("model", help="reduced-model artifact (.h5)")
     p.add_argument("--steps", type=int, default=100_000)
     p.add_argument("--interpolation", default="podi", choices=["podi", "grassmann"])
+    p.add_argument(
+        "--response",
+        choices=["anm", "curves"],
+        help="POD-ANM series (default if present) or curves",
+    )
     p.add_argument("--json", help="also write the figures here")
     p.set_defaults(func=cmd_bench)
     return parser
