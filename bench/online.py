@@ -26,10 +26,11 @@ def main() -> None:
     parser.add_argument("--json")
     args = parser.parse_args()
     results = {}
-    from hapticrom.online import load
+    from hapticrom.shared.artifact import read_artifact
 
+    # Not hapticrom.online.load: importing the kernels here would hide their load time.
     combos = [("podi", "curves"), ("grassmann", "curves")]
-    if load(args.model, warm_up=False).anm is not None:
+    if "anm" in read_artifact(args.model).groups:
         combos.append(("podi", "anm"))
     for interpolation, response in combos:
         key = f"{interpolation}+{response}"
