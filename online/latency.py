@@ -77,7 +77,7 @@ def measure(
             for t in np.linspace(0.1, 0.9, 5000)[:, None]
         ]
         contact = _time_calls(sim.set_contact, slide)
-        ref = NumpySimulator(model, response)
+        ref = NumpySimulator(model, response, root="newton")  # the kernels' algorithm
         ref.set_contact(centre)
         baseline = _time_calls(ref.step_displacement, displacements[:baseline_steps])
     finally:

@@ -50,8 +50,10 @@ class NumpySimulator:
     independent of the kernels' bracketed Newton iteration.
     """
 
-    def __init__(self, model: ReducedModel, response: str = "curves"):
-        self.model, self.response = model, response
+    def __init__(self, model: ReducedModel, response: str = "curves", root: str = "eigen"):
+        """``root``: "eigen" (polynomial roots, for tests) or "newton" (the kernels'
+        algorithm in numpy: the fair baseline for the latency benchmark)."""
+        self.model, self.response, self.root = model, response, root
         if response == "anm":
             a = model.artifact["anm"]
             self.offsets, self.a_max = a["section_offsets"], a["a_max"]
@@ -87,6 +89,8 @@ class NumpySimulator:
         rows = range(self.offsets[i], self.offsets[i + 1])
         for z in rows:
             end = P.polyval(self.a_max[z], self.depth_series[z])
+            if depth <= end and self.root == "newton":
+                return z, self._newton(z, depth, end), False
             if depth <= end:
                 c = self.depth_series[z].copy()
                 c[0] -= depth
@@ -95,6 +99,22 @@ class NumpySimulator:
                 inside = real[(real >= -1e-9) & (real <= self.a_max[z] * (1 + 1e-9))]
                 return z, float(inside.min()), False
         return rows[-1], float(self.a_max[rows[-1]]), True
+
+    def _newton(self, z: int, depth: float, end: float) -> float:
+        """Bracketed Newton for depth(a) = depth on [0, a_max], as the kernel does."""
+        c = self.depth_series[z]
+        dc = np.polynomial.polynomial.polyder(c)
+        lo, hi = 0.0, float(self.a_max[z])
+        a = hi * (depth - c[0]) / (end - c[0])
+        for _ in range(60):
+            r = np.polynomial.polynomial.polyval(a, c) - depth
+            if abs(r) <= 1e-14 * (1 + abs(depth)):
+                break
+            lo, hi = (lo, a) if r > 0 else (a, hi)
+            slope = np.polynomial.polynomial.polyval(a, dc)
+            trial = a - r / slope if slope > 0 else 0.5 * (lo + hi)
+            a = trial if lo < trial < hi else 0.5 * (lo + hi)
+        return float(a)
 
     def _anm(self, depth: float) -> tuple[float, list]:
         P = np.polynomial.polynomial
