@@ -166,6 +166,24 @@ def inward(v, buf):
     return -(v[0] * buf[NORMAL] + v[1] * buf[NORMAL + 1] + v[2] * buf[NORMAL + 2])
 
 
+@njit(f"void({f8_1d}, float64, float64, int64)", cache=True, nogil=True)
+def write_force(buf, magnitude, depth, flags):
+    """A displacement step's outputs: the force along the normal (N), depth, flags."""
+    for c in range(3):
+        buf[FORCE + c] = magnitude * buf[NORMAL + c]
+    buf[DEPTH] = depth
+    buf[FLAGS] = flags
+
+
+@njit(f"void({f8_1d}, float64, int64)", cache=True, nogil=True)
+def write_displacement(buf, depth, flags):
+    """A force step's outputs: the tool displacement against the normal (mm), depth, flags."""
+    for c in range(3):
+        buf[DISPLACEMENT + c] = -depth * buf[NORMAL + c]
+    buf[DEPTH] = depth
+    buf[FLAGS] = flags
+
+
 @njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
 def step_displacement(d, buf):
     """Prescribed tool displacement d (mm) in, reaction force on the tool (N) into buf.
@@ -190,10 +208,7 @@ def step_displacement(d, buf):
         if depth > (knots - 1) * step:
             flags |= FLAG_BEYOND_DEPTH
         magnitude = hermite(force, slope, step, depth)
-    for c in range(3):
-        buf[FORCE + c] = magnitude * buf[NORMAL + c]
-    buf[DEPTH] = depth
-    buf[FLAGS] = flags
+    write_force(buf, magnitude, depth, flags)
     return 0
 
 
@@ -245,10 +260,7 @@ def step_force(f, buf):
             )
             trial = depth - r / dF if dF > 0 else 0.5 * (a + b)
             depth = trial if a < trial < b else 0.5 * (a + b)
-    for c in range(3):
-        buf[DISPLACEMENT + c] = -depth * buf[NORMAL + c]
-    buf[DEPTH] = depth
-    buf[FLAGS] = flags
+    write_displacement(buf, depth, flags)
     return 0
 
 
@@ -489,10 +501,7 @@ def step_displacement_anm(d, buf):
         magnitude = anm_force(buf, depth)
         if buf[ANM_BEYOND] != 0.0:
             flags |= FLAG_BEYOND_DEPTH
-    for c in range(3):
-        buf[FORCE + c] = magnitude * buf[NORMAL + c]
-    buf[DEPTH] = depth
-    buf[FLAGS] = flags
+    write_force(buf, magnitude, depth, flags)
     return 0
 
 
@@ -547,10 +556,7 @@ def step_force_anm(f, buf):
         anm_force(buf, depth)  # leave the sections of the returned depth in the buffer
         if buf[ANM_BEYOND] != 0.0:
             flags |= FLAG_BEYOND_DEPTH
-    for c in range(3):
-        buf[DISPLACEMENT + c] = -depth * buf[NORMAL + c]
-    buf[DEPTH] = depth
-    buf[FLAGS] = flags
+    write_displacement(buf, depth, flags)
     return 0
 
 
