@@ -56,16 +56,25 @@ def build(name: str, refinement: str = "default", **params: Any) -> BuiltMesh:
 
 
 def generate(
-    name: str, out: str | Path, refinement: str = "default", **params: Any
+    name: str, out: str | Path, refinement: str = "default", incision=None, **params: Any
 ) -> dict[str, Any]:
     """Write mesh ``name`` to ``out`` (.msh) and its sidecar (.json); return the sidecar.
 
     ``params`` override the generator's parameters (e.g. ``layers=4``).
+    ``incision``: a :class:`~hapticrom.meshes.cut.LimbalArc` meshed explicitly
+    (duplicated nodes along the cut faces; the sidecar records it).
     """
     out = Path(out)
     if out.suffix != ".msh":
         raise InputError(f"mesh output must be a .msh file, got {str(out)!r}")
     mesh = build(name, refinement, **params)
+    if incision is not None:
+        from dataclasses import asdict, replace
+
+        from hapticrom.meshes.cut import cut_mesh, limbal_arc
+
+        mesh, _ = cut_mesh(mesh, limbal_arc(mesh, incision))
+        mesh = replace(mesh, params={**mesh.params, "limbal_incision": asdict(incision)})
     sidecar = mesh.sidecar()
     write_msh(out, mesh.nodes, mesh.cells, mesh.facet_groups, sidecar)
     return sidecar

@@ -44,8 +44,18 @@ def _split_petsc_args(argv: list[str]) -> tuple[list[str], list[str]]:
         return argv[:i], argv[i + 1 :]
     for i, token in enumerate(argv):
         if token.startswith("-") and not token.startswith("--") and len(token) > 2:
+            if _is_number(token):  # a negative value (an angle, a coordinate), not an option
+                continue
             return argv[:i], argv[i:]
     return argv, []
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
 
 
 def _init_petsc(petsc_args: list[str]) -> None:
@@ -75,9 +85,14 @@ def cmd_mesh(args, petsc_args) -> int:
                 params[key] = float(value)
             except ValueError:
                 params[key] = value
+    incision = None
+    if args.limbal_incision:
+        from hapticrom.meshes.cut import LimbalArc
+
+        incision = LimbalArc(*args.limbal_incision)
     out = Path(args.out) if args.out else Path("meshes") / f"{args.name}.msh"
     if _rank() == 0:
-        info = generate(args.name, out, refinement=args.refinement, **params)
+        info = generate(args.name, out, refinement=args.refinement, incision=incision, **params)
         counts = info["counts"]
         print(
             f"wrote {out} ({info['cell_type']}, {counts['nodes']} nodes, {counts['cells']} cells, "
@@ -211,6 +226,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refinement", default="default", help="coarse, default or fine")
     p.add_argument(
         "--set", action="append", metavar="KEY=VALUE", help="override a generator parameter"
+    )
+    p.add_argument(
+        "--limbal-incision",
+        nargs=4,
+        type=float,
+        metavar=("RADIUS", "START", "END", "DEPTH"),
+        help="cornea: mesh a limbal relaxing incision explicitly (mm, degrees, thickness fraction)",
     )
     p.set_defaults(func=cmd_mesh)
 

@@ -1,0 +1,179 @@
+"""Surgical cuts meshed explicitly: duplicate the nodes of a set of interior faces (mm).
+
+The full-order reference of a cut (issue "surgical cutting"): the faces of the
+cut surface become two boundary faces, one per lip, and the nodes inside the
+cut get one copy per side. Nodes on the cut's front (its edges inside the
+tissue, where the material still holds together) are not duplicated, which is
+what stops the cut there. Nodes on the outer surface are duplicated, so the
+cut opens to the surface. The new lip faces join the ``free`` surface group.
+
+:func:`cut_faces` selects interior faces; :func:`limbal_arc` is the selection
+of a limbal relaxing incision (thesis §4.5.1) on the cornea: the radial-facing
+faces nearest a given distance from the optical axis, over an angular range,
+from the anterior surface down to a fraction of the thickness.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from hapticrom.meshes.msh import CELL_FACES, CELL_TYPE_OF_NODES, BuiltMesh, boundary_faces
+from hapticrom.shared.errors import InputError
+
+
+def _all_faces(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Faces (m * f, k) of every cell, outward for their cell, and the owning cell of each."""
+    local = CELL_FACES[CELL_TYPE_OF_NODES[cells.shape[1]]]
+    faces = cells[:, local].reshape(-1, local.shape[1])
+    owner = np.repeat(np.arange(len(cells)), len(local))
+    return faces, owner
+
+
+def interior_faces(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each interior face once (as seen from its first cell) and its two cells (k, 2)."""
+    faces, owner = _all_faces(cells)
+    keys = np.sort(faces, axis=1)
+    order = np.lexsort(keys.T[::-1])
+    sk = keys[order]
+    same = np.all(sk[1:] == sk[:-1], axis=1)
+    first = order[:-1][same]
+    second = order[1:][same]
+    return faces[first], np.column_stack([owner[first], owner[second]])
+
+
+@dataclass(frozen=True)
+class LimbalArc:
+    """A limbal relaxing incision on the cornea (mm, degrees).
+
+    ``radius``: distance of the incision from the optical (z) axis; the faces
+    between the cells inside and outside that cylinder are cut (near the limbus
+    the O-grid's rings are circles, so this is one ring of faces). ``start`` /
+    ``end``: its angular extent about z (degrees, counter-clockwise from +x).
+    ``depth``: the fraction of the local thickness it reaches from the anterior
+    surface (0 < depth <= 1).
+    """
+
+    radius: float
+    start: float
+    end: float
+    depth: float = 0.7
+
+    def __post_init__(self):
+        if not self.radius > 0:
+            raise InputError(f"incision radius must be positive, got {self.radius} mm")
+        if not 0 < self.end - self.start < 360:
+            raise InputError(f"incision angles must satisfy 0 < end - start < 360, got "
+                             f"{self.start}..{self.end}")  # fmt: skip
+        if not 0 < self.depth <= 1:
+            raise InputError(f"incision depth must be a fraction in (0, 1], got {self.depth}")
+
+
+def limbal_arc(mesh: BuiltMesh, arc: LimbalArc) -> np.ndarray:
+    """Indices (into :func:`interior_faces`) of the faces of a limbal arc incision."""
+    if mesh.name != "cornea":
+        raise InputError(f"a limbal incision needs the cornea mesh, got {mesh.name!r}")
+    faces, pair = interior_faces(mesh.cells)
+    x = mesh.nodes[faces]  # (k, 4, 3)
+    centroid = x.mean(axis=1)
+    normal = np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    rho = np.hypot(centroid[:, 0], centroid[:, 1])
+    radial = np.column_stack([centroid[:, 0], centroid[:, 1], np.zeros(len(faces))])
+    radial /= np.maximum(rho, 1e-12)[:, None]
+    facing = np.abs(np.sum(normal * radial, axis=1)) > 0.7  # a surface of about constant radius
+    # The face separates a cell inside the cylinder rho = radius from one outside it.
+    cell_rho = np.hypot(*mesh.nodes[mesh.cells].mean(axis=1)[:, :2].T)
+    inside = cell_rho[pair]
+    straddles = (np.minimum(inside[:, 0], inside[:, 1]) < arc.radius) & (
+        np.maximum(inside[:, 0], inside[:, 1]) >= arc.radius
+    )
+    angle = np.degrees(np.arctan2(centroid[:, 1], centroid[:, 0]))
+    within = (angle - arc.start) % 360.0 <= (arc.end - arc.start)
+    # Depth below the anterior sphere (centre (0, 0, -R)) relative to the local thickness.
+    R = mesh.params["radius"]
+    below = R - np.linalg.norm(centroid - np.array([0.0, 0.0, -R]), axis=1)
+    t0, t1 = mesh.params["central_thickness"], mesh.params["limbus_thickness"]
+    rim = np.arcsin(min(1.0, mesh.params["limbus_diameter"] / (2 * R)))
+    polar = np.arcsin(np.clip(rho / R, 0, 1))
+    thickness = t0 + (t1 - t0) * (polar / rim) ** 2
+    shallow = below <= arc.depth * thickness
+    chosen = np.flatnonzero(facing & straddles & within & shallow)
+    if chosen.size == 0:
+        raise InputError(f"no faces of the cornea mesh lie on the incision {arc}")
+    return chosen
+
+
+def cut_mesh(mesh: BuiltMesh, face_indices: np.ndarray) -> tuple[BuiltMesh, np.ndarray]:
+    """The mesh with the given interior faces (indices into :func:`interior_faces`) cut.
+
+    Returns the new mesh and ``origin`` (new node -> original node). Cells keep
+    their order; new nodes are appended after the original ones.
+    """
+    faces, pair = interior_faces(mesh.cells)
+    face_indices = np.unique(np.asarray(face_indices, dtype=np.int64))
+    if face_indices.size == 0:
+        raise InputError("nothing to cut: no face selected")
+    cut_keys = {tuple(sorted(f)) for f in faces[face_indices]}
+    cut_nodes = np.unique(faces[face_indices])
+    cells = mesh.cells.copy()
+    local = CELL_FACES[CELL_TYPE_OF_NODES[cells.shape[1]]]
+    new_nodes = [mesh.nodes]
+    origin = [np.arange(len(mesh.nodes))]
+    next_id = len(mesh.nodes)
+    for node in cut_nodes:
+        around = np.flatnonzero(np.any(mesh.cells == node, axis=1))
+        groups = _components(mesh.cells, around, node, local, cut_keys)
+        for component in groups[1:]:  # the first side keeps the original node
+            for c in component:
+                cells[c][cells[c] == node] = next_id
+            new_nodes.append(mesh.nodes[node][None, :])
+            origin.append(np.array([node]))
+            next_id += 1
+    origin = np.concatenate(origin)
+    nodes = np.vstack(new_nodes)
+    groups = _regroup_boundary(mesh, cells, origin)
+    return replace(mesh, nodes=nodes, cells=cells, facet_groups=groups), origin
+
+
+def _components(cells, around, node, local, cut_keys) -> list[list[int]]:
+    """The cells around ``node`` split into sides: linked through uncut faces at the node."""
+    parent = {int(c): int(c) for c in around}
+
+    def find(c):
+        while parent[c] != c:
+            parent[c] = parent[parent[c]]
+            c = parent[c]
+        return c
+
+    shared: dict[tuple, int] = {}
+    for c in around:
+        for f in cells[c][local]:
+            if node not in f:
+                continue
+            key = tuple(sorted(f))
+            if key in cut_keys:
+                continue
+            if key in shared:
+                parent[find(int(c))] = find(shared[key])
+            else:
+                shared[key] = int(c)
+    sides: dict[int, list[int]] = {}
+    for c in around:
+        sides.setdefault(find(int(c)), []).append(int(c))
+    return sorted(sides.values(), key=min)
+
+
+def _regroup_boundary(mesh: BuiltMesh, cells: np.ndarray, origin: np.ndarray) -> dict:
+    """Boundary faces of the cut mesh in their old groups; the new lip faces in ``free``."""
+    old = {}
+    for name, faces in mesh.facet_groups.items():
+        for f in faces:
+            old[tuple(sorted(f))] = name
+    groups: dict[str, list] = {name: [] for name in mesh.facet_groups}
+    groups.setdefault("free", [])
+    for f in boundary_faces(cells):
+        groups[old.get(tuple(sorted(origin[f])), "free")].append(f)
+    k = cells.shape[1] // 2 if cells.shape[1] == 8 else 3
+    return {name: np.array(f, dtype=np.int64).reshape(-1, k) for name, f in groups.items()}
