@@ -44,7 +44,7 @@ meshes/%.msh: $(STAMP)
 
 meshes: $(DEFAULT_MESHES)
 
-test: test-serial test-mpi
+test: lint test-serial test-mpi
 
 test-serial: venv
 	$(PY) -m pytest -m "not mpi" -q tests
@@ -66,8 +66,12 @@ bench: demo
 	$(PY) bench/fullorder.py
 	$(PY) bench/online.py $(DEMO_MODEL)
 
+# Static checks, seconds (part of `make test`): ruff lint and format, and hadolint on the
+# Dockerfiles (no Docker engine needed; rules in .hadolint.yaml).
 lint: venv
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/hadolint --no-color --config .hadolint.yaml docker/Dockerfile.offline docker/Dockerfile.runtime
 
 clean:
 	rm -rf out .pytest_cache

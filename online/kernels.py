@@ -357,6 +357,55 @@ def surface_grassmann(depth, step, weights, vertices, reference, basis_t, tangen
                 flat[r] += w * row[r]
 
 
+@njit(f"Tuple((float64[::1], float64[:, ::1]))({f8_2d})", cache=True)
+def symmetric_eigen(G):
+    """Eigenvalues and orthonormal eigenvectors (columns) of a small symmetric matrix.
+
+    Cyclic Jacobi rotations: a few sweeps for the n <= 20 matrices here, exact
+    to rounding, and no LAPACK: numba's np.linalg.eigh needs scipy, which the
+    runtime does not depend on.
+    """
+    n = G.shape[0]
+    A = G.copy()
+    V = np.eye(n)
+    for _ in range(100):
+        off = 0.0
+        scale = 0.0
+        for p in range(n):
+            scale += A[p, p] * A[p, p]
+            for q in range(p + 1, n):
+                off += A[p, q] * A[p, q]
+        if off <= 1e-32 * scale or off == 0.0:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                t = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    t = -t
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):  # A <- A J (columns p, q)
+                    akp, akq = A[k, p], A[k, q]
+                    A[k, p] = c * akp - s * akq
+                    A[k, q] = s * akp + c * akq
+                for k in range(n):  # A <- J^T A (rows p, q)
+                    apk, aqk = A[p, k], A[q, k]
+                    A[p, k] = c * apk - s * aqk
+                    A[q, k] = s * apk + c * aqk
+                for k in range(n):  # V <- V J
+                    vkp, vkq = V[k, p], V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    values = np.empty(n)
+    for p in range(n):
+        values[p] = A[p, p]
+    return values, V
+
+
 @njit(f"void({f8_1d}, {i8_1d}, {f8_4d}, {f8_4d}, {f8_3d}, {f8_3d})", cache=True)
 def prepare_grassmann(weights, vertices, gtt, gtb, grb, frames):
     """Grassmann interpolation (Amsallem-Farhat; thesis §2.3.1) at the contact, in n x n.
@@ -374,7 +423,7 @@ def prepare_grassmann(weights, vertices, gtt, gtb, grb, frames):
     for a in range(3):
         for b in range(3):
             G += weights[a] * weights[b] * gtt[vertices[a], vertices[b]]
-    lam, V = np.linalg.eigh(G)  # Gamma^T Gamma = V S^2 V^T
+    lam, V = symmetric_eigen(G)  # Gamma^T Gamma = V S^2 V^T
     for m in range(n):
         s = math.sqrt(max(lam[m], 0.0))
         sinc = math.sin(s) / s if s > 1e-12 else 1.0

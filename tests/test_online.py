@@ -198,3 +198,56 @@ def test_numpy_baseline_of_the_anm_step_computes_the_same_force(model):
             np.testing.assert_allclose(
                 newton.step_displacement(d), eigen.step_displacement(d), rtol=1e-10, atol=1e-15
             )
+
+
+def test_symmetric_eigen_matches_lapack():
+    from hapticrom.online.kernels import symmetric_eigen
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 6, 12):
+        X = rng.standard_normal((n, n))
+        for G in (X @ X.T, X + X.T, np.diag(np.r_[np.ones(n - n // 2), 2 * np.ones(n // 2)])):
+            values, V = symmetric_eigen(np.ascontiguousarray(G))
+            np.testing.assert_allclose(
+                np.sort(values), np.linalg.eigvalsh(G), atol=1e-12 * (1 + np.abs(G).max())
+            )
+            np.testing.assert_allclose(V.T @ V, np.eye(n), atol=1e-13)
+            np.testing.assert_allclose(
+                V @ np.diag(values) @ V.T, G, atol=1e-12 * (1 + np.abs(G).max())
+            )
+
+
+def test_kernels_compile_with_numpy_numba_h5py_only(small_artifact, tmp_path):
+    """`pip install hapticrom` brings numpy, numba and h5py: no scipy, no offline stack.
+
+    A fresh numba cache makes every kernel compile here (numba's LAPACK-backed
+    np.linalg needs scipy: the kernels must not use it).
+    """
+    import os
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import sys, importlib.abc
+        class _Block(importlib.abc.MetaPathFinder):
+            BLOCKED = ("scipy", "dolfinx", "petsc4py", "slepc4py", "mpi4py", "ufl", "gmsh",
+                       "matplotlib")
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in self.BLOCKED:
+                    raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+        sys.meta_path.insert(0, _Block())
+        import numpy as np
+        import hapticrom.online as online
+        model = online.load({str(small_artifact)!r})
+        for interpolation, response in (("podi", "anm"), ("grassmann", "curves")):
+            sim = model.simulator(interpolation, response)
+            sim.set_contact(model.sample_points[0])
+            f = sim.step_displacement(-0.5 * model.trained_depth * sim.contact_normal)
+            assert f @ sim.contact_normal > 0
+        print("ok")
+    """)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba")}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          timeout=600)  # fmt: skip
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]

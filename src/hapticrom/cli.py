@@ -212,6 +212,16 @@ def cmd_bench(args, petsc_args) -> int:
     return 0
 
 
+def cmd_report(args, petsc_args) -> int:
+    from hapticrom.report import write_report
+
+    path = write_report(
+        args.model, args.out, accuracy=args.accuracy, latency_steps=args.latency_steps
+    )
+    print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hapticrom",
@@ -308,6 +318,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--json", help="also write the figures here")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("report", help="HTML report on a reduced model: spectra, curves, latency")
+    p.add_argument("model", help="reduced-model artifact (.h5)")
+    p.add_argument("--out", required=True, help="output directory (report.html and its PNGs)")
+    p.add_argument("--accuracy", metavar="JSON", help="held-out errors: bench/accuracy.py --json")
+    p.add_argument(
+        "--latency-steps", type=int, default=20_000, metavar="N", help="timed steps (20,000)"
+    )
+    p.set_defaults(func=cmd_report)
     return parser
 
 

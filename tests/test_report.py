@@ -1,0 +1,167 @@
+"""``hapticrom report``: the self-contained HTML report on a reduced model."""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from hapticrom.cli import main
+from hapticrom.report import SECTION_HEADINGS, write_report
+from hapticrom.shared.artifact import read_artifact
+from hapticrom.shared.errors import HapticromError
+
+pytestmark = pytest.mark.serial
+
+LATENCY_STEPS = 2000  # enough for a histogram; the default 20,000 is for real models
+FIGURES_WITHOUT_ACCURACY = 5  # eigenvalues, load-displacement, latency, two surface views
+EMBEDDED_PNG = re.compile(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"')
+
+
+@pytest.fixture(scope="module")
+def report(small_artifact, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("report")
+    return write_report(small_artifact, out, latency_steps=LATENCY_STEPS)
+
+
+def embedded_pngs(report: Path) -> list[bytes]:
+    return [base64.b64decode(data) for data in EMBEDDED_PNG.findall(report.read_text())]
+
+
+def assert_readable_figure(data: bytes) -> None:
+    from matplotlib.image import imread
+
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(data) > 10_000, f"a {len(data)}-byte PNG is too small to hold a figure"
+    pixels = imread(io.BytesIO(data), format="png")
+    assert pixels.ndim == 3 and min(pixels.shape[:2]) >= 300, pixels.shape
+    assert pixels.std() > 0.05, "the figure is (nearly) blank"
+
+
+def accuracy_json(path: Path, error_anm: float = 0.03) -> Path:
+    """A small file in the layout of ``bench/accuracy.py --json``: two positions, three depths.
+
+    The POD-ANM column is off by ``error_anm`` (above its 2 % target); the curves by 1 %.
+    """
+    rows = []
+    for position, point in enumerate([[0.5, -0.2, -0.02], [-0.9, 1.1, -0.15]]):
+        for k, depth in enumerate([0.1, 0.2, 0.3]):
+            f_fem = 0.01 * (k + 1)
+            rows.append([position, point, depth, f_fem, 1.01 * f_fem, (1 + error_anm) * f_fem])
+    summary = {
+        "podi+curves": {"max_force_error": 0.01, "max_field_error": 0.05},
+        "grassmann+curves": {"max_force_error": 0.012, "max_field_error": 0.07},
+        "podi+anm": {"max_force_error": error_anm, "max_field_error": 0.04},
+    }
+    path.write_text(json.dumps({"summary": summary, "rows": rows}))
+    return path
+
+
+def test_every_section_is_there(report):
+    html = report.read_text()
+    for heading in SECTION_HEADINGS:
+        assert f"<h2>{heading}</h2>" in html, heading
+    assert "bench/accuracy.py" in html and "--json" in html  # how to get the held-out errors
+
+
+def test_figures_are_embedded_saved_and_readable(report):
+    pngs = embedded_pngs(report)
+    assert len(pngs) == FIGURES_WITHOUT_ACCURACY
+    saved = {p.read_bytes() for p in report.parent.glob("*.png")}
+    assert saved == set(pngs)
+    for data in pngs:
+        assert_readable_figure(data)
+
+
+def test_dataset_table_lists_every_dataset(report, small_artifact):
+    html = report.read_text()
+    artifact = read_artifact(small_artifact)
+    for group, arrays in artifact.groups.items():
+        for name, array in arrays.items():
+            row = f"<td>{group}</td><td>{name}</td><td>{array.shape}</td><td>{array.dtype}</td>"
+            assert row in html, row
+            assert f'<td class="num">{array.nbytes:,}</td>' in html
+
+
+def test_held_out_errors_from_an_accuracy_file(small_artifact, tmp_path):
+    accuracy = accuracy_json(tmp_path / "accuracy.json")
+    report = write_report(small_artifact, tmp_path / "out", accuracy, latency_steps=500)
+    html = report.read_text()
+    assert len(embedded_pngs(report)) == FIGURES_WITHOUT_ACCURACY + 1
+    assert_readable_figure((tmp_path / "out" / "held-out-error.png").read_bytes())
+    # summary: the curves meet their 5 % target, the series miss their 2 % one
+    assert '<td>podi+curves</td><td class="num">1.00</td>' in html
+    assert '<td>podi+anm</td><td class="num">3.00</td><td class="num">2</td><td>missed' in html
+    # one row per held-out position, with the worst error of each response
+    assert html.count('<td class="num">1.00</td><td class="num">3.00</td></tr>') == 2
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [("{not json", "is not JSON"), ('{"summary": {}}', "has no 'rows'")],
+)
+def test_bad_accuracy_file_is_named(small_artifact, tmp_path, content, message):
+    bad = tmp_path / "bad.json"
+    bad.write_text(content)
+    with pytest.raises(HapticromError, match=message):
+        write_report(small_artifact, tmp_path / "out", bad)
+
+
+def test_missing_artifact_is_a_clear_error(tmp_path, capsys):
+    missing = tmp_path / "nope.h5"
+    with pytest.raises(HapticromError, match="not found"):
+        write_report(missing, tmp_path / "out")
+    assert main(["report", str(missing), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("hapticrom: error: ") and "not found" in err[0]
+    assert not (tmp_path / "out").exists()
+
+
+def test_without_matplotlib_says_what_to_install(small_artifact, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` now fails
+    with pytest.raises(HapticromError, match="pip install matplotlib"):
+        write_report(small_artifact, tmp_path / "out")
+
+
+def test_command_runs_without_the_offline_stack(small_artifact, tmp_path):
+    """Like the other online commands, the report never imports the finite-element stack."""
+    code = textwrap.dedent(
+        """
+        import sys, importlib.abc
+        BLOCKED = ("dolfinx", "petsc4py", "slepc4py", "mpi4py", "ufl", "basix", "ffcx", "gmsh")
+        class Block(importlib.abc.MetaPathFinder):
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in BLOCKED or name.startswith("hapticrom.offline"):
+                    raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        sys.meta_path.insert(0, Block())
+        from hapticrom.cli import main
+        sys.exit(main(sys.argv[1:]))
+        """
+    )
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            code,
+            "report",
+            str(small_artifact),
+            "--out",
+            str(out),
+            "--latency-steps",
+            "500",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == f"wrote {out / 'report.html'}"
+    assert (out / "report.html").is_file()
