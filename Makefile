@@ -1,5 +1,6 @@
 # hapticrom: one venv (.venv, Python 3.12), meshes under meshes/, caches under .cache/.
-#   make demo   set up everything, train the default cornea model on 2 ranks, play it
+#   make demo   set up everything, train the default cornea model on 2 ranks, play it,
+#               check it at held-out positions, write the report (out/report/report.html)
 #   make test   set up everything, then run the tests serially and under mpirun -n 2
 
 SHELL := /bin/bash
@@ -60,7 +61,9 @@ DEMO_MODEL ?= out/cornea-soft.h5
 demo: venv meshes/cornea.msh
 	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom train $(DEMO_CAMPAIGN) --out $(DEMO_MODEL)
 	$(VENV)/bin/hapticrom play $(DEMO_MODEL)
-	@echo "reduced model: $(DEMO_MODEL) (snapshots: $(DEMO_MODEL:.h5=.campaign)); try: $(VENV)/bin/hapticrom bench $(DEMO_MODEL)"
+	$(VENV)/bin/mpirun -n $(NP) $(PY) bench/accuracy.py $(DEMO_MODEL) --json out/accuracy.json
+	$(VENV)/bin/hapticrom report $(DEMO_MODEL) --out out/report --accuracy out/accuracy.json
+	@echo "reduced model: $(DEMO_MODEL) (snapshots: $(DEMO_MODEL:.h5=.campaign)); report: out/report/report.html; try: $(VENV)/bin/hapticrom bench $(DEMO_MODEL)"
 
 bench: demo
 	$(PY) bench/fullorder.py

@@ -129,7 +129,12 @@ def main() -> None:
     if args.json:
         Path(args.json).write_text(
             json.dumps(
-                {"summary": summary, "rows": list(rows.values())},
+                {
+                    "columns": ["position", "point_mm", "depth_mm", "force_fem_n"]
+                    + [f"force_{name}_n" for name in summary if name.startswith("podi+")],
+                    "summary": summary,
+                    "rows": list(rows.values()),
+                },
                 default=lambda o: o.tolist() if hasattr(o, "tolist") else float(o),
             )
         )

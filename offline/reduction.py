@@ -368,10 +368,7 @@ def reduce_campaign(
                     "mode": config.load.mode,
                     "contact_radius": config.load.contact_radius,
                     "surface_group": config.load.surface,
-                    "material": {
-                        "law": config.problem.material.law,
-                        **config.problem.material.params,
-                    },
+                    "material": _material(config),
                     "campaign_hash": manifest["campaign_hash"],
                     "mesh_file": manifest["mesh"]["file"],
                     "mesh_sha256": manifest["mesh"]["sha256"],
@@ -474,6 +471,16 @@ def _common_grid(samples: list[Sample], reduced: list[ReducedSample]):
         ]
     )
     return grid, forces, slopes, coefficients
+
+
+def _material(config) -> dict:
+    """The law and every parameter it used, defaults included (MPa or dimensionless)."""
+    from hapticrom.offline.materials import make_law
+
+    material = config.problem.material
+    law = make_law(material.law, **material.params)
+    extra = {k: v for k, v in material.params.items() if isinstance(v, bool)}
+    return {"law": law.name, **law.parameters(), **extra}
 
 
 def _software() -> dict:
