@@ -1,0 +1,104 @@
+"""The runtime's cut topology and patch (numpy) against the offline coupling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hapticrom.offline  # noqa: F401 - h5py and MPI first
+from hapticrom.meshes.cut import interior_faces, limbal_arc
+from hapticrom.offline.cutting import couple, patch_around
+from hapticrom.offline.cutting_study import (
+    CuttingStudy,
+    linear_solve,
+    lip_nodes,
+    meshes,
+    supported_nodes,
+    surface_point,
+    tangent_and_load,
+)
+from hapticrom.online.cutting import CutPatch, CutRegion, CutTopology
+
+pytestmark = pytest.mark.serial
+STUDY = CuttingStudy(refinement="coarse", test_point=(3.4, 0.0))  # load away from the lips
+
+
+@pytest.fixture(scope="module")
+def setting(tmp_path_factory):
+    from mpi4py import MPI
+
+    from hapticrom.offline.element_matrices import element_stiffness
+    from hapticrom.offline.formulation import HyperelasticModel, choose_element
+    from hapticrom.offline.materials import make_law
+    from hapticrom.offline.organ import load_organ
+
+    intact, cut, origin, files = meshes(STUDY, tmp_path_factory.mktemp("online-cut"))
+    point = surface_point(*STUDY.test_point)
+    K_intact, f_intact = tangent_and_load(files["intact"], point, STUDY, MPI.COMM_SELF)
+    K_cut, f_cut = tangent_and_load(files["cut"], point, STUDY, MPI.COMM_SELF)
+    organ = load_organ(files["intact"], MPI.COMM_SELF)
+    model = HyperelasticModel(organ, make_law("svk", E=0.5, nu=0.45),
+                              choose_element("hexahedron", "Q1P0"))  # fmt: skip
+    Ke = element_stiffness(model, np.arange(len(intact.cells)), intact.cells)
+    supported = supported_nodes(intact, np.arange(len(intact.nodes)))
+    rng = np.random.default_rng(0)
+    modes = [
+        linear_solve(K_intact, f, supported) for f in rng.standard_normal((6, K_intact.shape[0]))
+    ]
+    A, _ = np.linalg.qr(np.column_stack([linear_solve(K_intact, f_intact, supported), *modes]))
+    fixed = np.zeros(len(intact.nodes), dtype=bool)
+    fixed[sorted(supported)] = True
+    region = CutRegion(intact.nodes, intact.cells, Ke, A, fixed, A.T @ (K_intact @ A))
+    return intact, cut, origin, K_intact, K_cut, f_intact, f_cut, A, region, supported
+
+
+def test_online_cut_topology_matches_the_explicit_cut_mesh(setting):
+    intact, cut, origin, *_, region, supported = setting
+    faces, _ = interior_faces(intact.cells)
+    selected = faces[limbal_arc(intact, STUDY.incision)]
+    topology = CutTopology(region)
+    # Cut in two events (as a scalpel would), which must end as the one-shot cut.
+    half = len(selected) // 2
+    topology.cut(selected[:half])
+    topology.cut(selected[half:])
+    assert len(topology.origin) == len(origin)
+    # The same connectivity up to the numbering of the copies (made in another order).
+    np.testing.assert_array_equal(_first_seen(topology.cells), _first_seen(cut.cells))
+    np.testing.assert_array_equal(topology.origin[topology.cells], origin[cut.cells])
+    # In one event, the numbering is the explicit cut's too.
+    once = CutTopology(region)
+    once.cut(selected)
+    np.testing.assert_array_equal(once.cells, cut.cells)
+    np.testing.assert_array_equal(once.origin, origin)
+
+
+def _first_seen(cells: np.ndarray) -> np.ndarray:
+    """Cells relabelled by the order in which their nodes first appear."""
+    _, first, inverse = np.unique(cells.ravel(), return_index=True, return_inverse=True)
+    rank = np.argsort(np.argsort(first))
+    return rank[inverse].reshape(cells.shape)
+
+
+@pytest.mark.parametrize("layers", [1, 2])
+def test_online_patch_solves_the_offline_coupled_system(setting, layers):
+    intact, cut, origin, K_intact, K_cut, f_intact, f_cut, A, region, supported = setting
+    faces, _ = interior_faces(intact.cells)
+    topology = CutTopology(region)
+    topology.cut(faces[limbal_arc(intact, STUDY.incision)])
+    patch = CutPatch(topology, layers)
+    cut_supported = supported | {i for i in range(len(origin)) if origin[i] in supported}
+    offline = couple(K_intact, K_cut, A, origin, patch_around(cut.cells, lip_nodes(origin),
+                                                               layers, cut_supported))  # fmt: skip
+    np.testing.assert_array_equal(np.sort(patch.nodes), offline.patch.nodes)
+    assert not f_cut[(3 * lip_nodes(origin)[:, None] + np.arange(3)).ravel()].any()
+    load_patch = np.where(np.repeat(patch.nodes < len(intact.nodes), 3),
+                          f_intact[(3 * topology.origin[patch.nodes][:, None]
+                                    + np.arange(3)).ravel()], 0.0)  # fmt: skip
+    x = patch.solve(A.T @ f_intact, load_patch)
+    u_online = patch.region_displacement(x)
+    u_offline = offline.solve(f_cut).reshape(-1, 3)
+    scale = np.abs(u_offline).max()
+    np.testing.assert_allclose(u_online[topology.cells], u_offline[cut.cells], atol=1e-10 * scale)
+    # and the lips open
+    lips = lip_nodes(origin)
+    assert np.ptp(u_online[lips], axis=0).max() > 1e-4 * scale
