@@ -128,6 +128,7 @@ class CampaignConfig:
     positions: PositionsSpec
     pod: PODConfig = PODConfig()
     anm: ANMConfig = ANMConfig()
+    cutting: object = None  # CuttingConfig or None: the artifact's cuttable region
     raw: dict = field(default_factory=dict, compare=False)
 
     @classmethod
@@ -140,7 +141,7 @@ class CampaignConfig:
     def from_dict(cls, data: dict, base_dir: str | Path = ".", source: str = "campaign"):
         r = _Reader(source)
         known = {"campaign", "mesh", "material", "discretisation", "solver", "load"}
-        r.keys(data, "", known | {"positions", "pod", "anm"})
+        r.keys(data, "", known | {"positions", "pod", "anm", "cutting"})
         problem = ProblemConfig.from_dict(
             {
                 **{
@@ -164,15 +165,17 @@ class CampaignConfig:
             positions=positions_from_dict(r.table(data, "positions", required=True)),
             pod=_pod(r, r.table(data, "pod")),
             anm=_anm(r, r.table(data, "anm")),
+            cutting=_cutting(r, data["cutting"]) if "cutting" in data else None,
             raw=data,
         )
 
     def campaign_hash(self) -> str:
         """Identity of the campaign: its configuration and the bytes of its mesh.
 
-        The ``[anm]`` table is left out: it only changes the reduction, not the solves.
+        The ``[anm]`` and ``[cutting]`` tables are left out: they only change the
+        reduction, not the solves.
         """
-        solves = {k: v for k, v in self.raw.items() if k != "anm"}
+        solves = {k: v for k, v in self.raw.items() if k not in ("anm", "cutting")}
         h = hashlib.sha256(json.dumps(solves, sort_keys=True, default=str).encode())
         h.update(file_digest(self.problem.mesh.file).encode())
         return h.hexdigest()
@@ -233,6 +236,18 @@ def _anm(r: _Reader, t: dict) -> ANMConfig:
     if not tolerance < 1:
         r.fail("anm", f"tolerance must be below 1, got {tolerance}")
     return ANMConfig(enabled=enabled, order=order, tolerance=tolerance)
+
+
+def _cutting(r: _Reader, t: dict):
+    from hapticrom.offline.cutting_export import CuttingConfig
+
+    r.keys(t, "cutting", {"centre", "radius", "patch_layers", "cut_force"})
+    return CuttingConfig(
+        centre=tuple(r.vector(t, "cutting", "centre", required=True)),
+        radius=r.number(t, "cutting", "radius", positive=True),
+        patch_layers=r.number(t, "cutting", "patch_layers", 2, positive=True, integer=True),
+        cut_force=r.number(t, "cutting", "cut_force", 0.02, positive=True),
+    )
 
 
 # -- running -----------------------------------------------------------------------

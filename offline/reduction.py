@@ -346,6 +346,11 @@ def reduce_campaign(
         anm = config.anm
         say(f"POD-ANM series per sample (order {anm.order}, tolerance {anm.tolerance:g})")
         series = sample_series(config, samples, reduced, comm, say)
+    cut_stiffness = None
+    if config.cutting is not None:
+        from hapticrom.offline.cutting_export import condensed_reduced_stiffness
+
+        cut_stiffness = condensed_reduced_stiffness(comm, ops, global_pod.basis_local)
     points = np.array([s.point for s in samples])
     normals = -np.array([s.direction for s in samples])  # outward: against the push
     origin, axes, chart, triangles = chart_and_triangulation(points, normals)
@@ -422,6 +427,10 @@ def reduce_campaign(
             from hapticrom.offline.anm_reduction import artifact_group
 
             content["anm"] = artifact_group(series, config)
+        if cut_stiffness is not None:
+            from hapticrom.offline.cutting_export import cutting_group
+
+            content["cutting"] = cutting_group(config, config.cutting, global_basis, cut_stiffness)
         root = {
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "software": json.dumps(_software()),

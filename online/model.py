@@ -57,6 +57,7 @@ class ReducedModel:
     coefficients: np.ndarray
     grassmann: dict | None
     anm: dict | None = None  # POD-ANM series: offsets, records, coefficients, n1, smax
+    cut_region: object = None  # online.cutting.CutRegion of the artifact's cuttable region
 
     def __post_init__(self):
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
@@ -84,6 +85,7 @@ class ReducedModel:
                 "grb": _f8(g["gram_reference_basis"]),
             }
         anm = _anm_records(artifact) if "anm" in artifact.groups else None
+        cut_region = _cut_region(artifact) if "cutting" in artifact.groups else None
         return cls(
             path=artifact.path,
             artifact=artifact,
@@ -102,6 +104,7 @@ class ReducedModel:
             coefficients=_f8(samples["coefficients"]),
             grassmann=grassmann,
             anm=anm,
+            cut_region=cut_region,
         )
 
     @property
@@ -136,6 +139,24 @@ class ReducedModel:
             f"{self.trained_depth:.3g} mm / {self.force[:, -1].max():.3g} N "
             f"(artifact {a.version[0]}.{a.version[1]}, {self.path})"
         )
+
+
+def _cut_region(artifact: Artifact):
+    """The cuttable region (format 1.2) for :mod:`hapticrom.online.cutting`."""
+    from hapticrom.online.cutting import CutRegion
+
+    c = artifact["cutting"]
+    try:
+        return CutRegion(
+            coordinates=_f8(c["coordinates"]),
+            cells=_i8(c["cells"]),
+            element_stiffness=_f8(c["element_stiffness"]),
+            basis=_f8(c["basis"]),
+            fixed=np.asarray(c["fixed"]) != 0,
+            reduced_stiffness=_f8(c["reduced_stiffness"]),
+        )
+    except ValueError as exc:
+        raise ArtifactError(f"{artifact.path}: {exc}") from None
 
 
 def _anm_records(artifact: Artifact) -> dict:

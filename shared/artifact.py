@@ -29,7 +29,7 @@ from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.errors import HapticromError
 
 FORMAT = "hapticrom"
-FORMAT_VERSION = (1, 1)  # 1.1: the optional anm group
+FORMAT_VERSION = (1, 2)  # 1.1: the optional anm group; 1.2: the optional cutting group
 
 
 class ArtifactError(HapticromError):
@@ -126,6 +126,22 @@ SCHEMA: tuple[Group, ...] = (
         attrs=("order", "tolerance"),
     ),
     Group(
+        "cutting",
+        "cut-region",
+        (1, 0),
+        (
+            Field("nodes", "i", ("Rn",), "1", "canonical node of each region node"),
+            Field("coordinates", "f", ("Rn", 3), "mm", "reference positions of the region nodes"),
+            Field("cells", "i", ("Rc", 8), "1", "region hexahedra, region node indices"),
+            Field("element_stiffness", "f", ("Rc", 24, 24), "N/mm", "cell matrices at K0"),
+            Field("basis", "f", ("3Rn", "G"), "1", "global POD basis rows at the region nodes"),
+            Field("fixed", "i", ("Rn",), "1", "1: node keeps the reduced field (boundary)"),
+            Field("reduced_stiffness", "f", ("G", "G"), "N/mm", "A^T K0 A, element pressure"),
+        ),
+        required=False,
+        attrs=("patch_layers", "cut_force"),
+    ),
+    Group(
         "global",
         "global-basis",
         (1, 0),
@@ -184,8 +200,8 @@ def _resolve(shape, symbols: dict[str, int], where: str) -> tuple[int, ...]:
     for dim in shape:
         if isinstance(dim, int):
             out.append(dim)
-        elif dim == "3V":
-            out.append(3 * symbols["V"])
+        elif dim[:1] == "3" and dim[1:] in symbols:
+            out.append(3 * symbols[dim[1:]])
         elif dim in symbols:
             out.append(symbols[dim])
         else:
@@ -203,7 +219,7 @@ def _check_fields(group: Group, arrays: dict[str, np.ndarray], symbols: dict[str
                 f"{where}: {group.name}/{spec.name} has dtype {a.dtype}, expected kind {spec.dtype}"
             )
         for dim, size in zip(spec.shape, a.shape, strict=False):
-            if isinstance(dim, str) and dim not in symbols and dim != "3V":
+            if isinstance(dim, str) and dim not in symbols and dim[:1] != "3":
                 symbols[dim] = size
         expected = _resolve(spec.shape, symbols, where)
         if a.shape != expected:

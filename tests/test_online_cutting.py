@@ -102,3 +102,41 @@ def test_online_patch_solves_the_offline_coupled_system(setting, layers):
     # and the lips open
     lips = lip_nodes(origin)
     assert np.ptp(u_online[lips], axis=0).max() > 1e-4 * scale
+
+
+def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
+    """[cutting] in a campaign: the artifact's region assembles to the reduced stiffness."""
+    from conftest import campaign_toml
+    from mpi4py import MPI
+
+    import hapticrom.online as online
+    from hapticrom.offline.campaign import CampaignConfig, run_campaign
+    from hapticrom.offline.reduction import reduce_campaign
+
+    text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=2, per_ring=3)
+    text = text.replace('law = "hgo"', 'law = "svk"\nE = 0.5\nnu = 0.45')
+    text += "\n[anm]\nenabled = false\n[cutting]\ncentre = [0.0, 0.0, -3.0]\nradius = 20.0\n"
+    (tmp_path / "c.toml").write_text(text)
+    config = CampaignConfig.from_toml(tmp_path / "c.toml")
+    run_campaign(config, tmp_path / "store", MPI.COMM_SELF, verbose=False)
+    reduce_campaign(tmp_path / "store", tmp_path / "m.h5", MPI.COMM_SELF, verbose=False)
+    region = online.load(tmp_path / "m.h5").cut_region
+    assert region is not None and len(region.cells) == 264  # the ball holds the whole mesh
+    # Sum_c A_c^T K_c A_c over all cells equals A^T K0 A assembled by DOLFINx (distributed).
+    K = np.zeros_like(region.reduced_stiffness)
+    for c, cell in enumerate(region.cells):
+        A_c = region.basis[(3 * cell[:, None] + np.arange(3)).ravel()]
+        K += A_c.T @ region.element_stiffness[c] @ A_c
+    scale = np.abs(region.reduced_stiffness).max()
+    np.testing.assert_allclose(K, region.reduced_stiffness, atol=1e-10 * scale)
+    assert region.fixed.sum() > 0  # the clamped limbus
+    # A cut through the region and its factorised patch.
+    from hapticrom.meshes import build
+
+    intact = build("cornea", "coarse")  # region node i is mesh node i (the ball holds all)
+    faces, _ = interior_faces(intact.cells)
+    topology = CutTopology(region)
+    new_nodes = topology.cut(faces[limbal_arc(intact, STUDY.incision)])
+    assert len(new_nodes) == 9
+    patch = CutPatch(topology, 1)
+    assert patch.size > region.reduced_stiffness.shape[0]

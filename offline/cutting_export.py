@@ -1,0 +1,93 @@
+"""The artifact's cuttable region: what the runtime's cut patch needs (shared/ARTIFACT.md).
+
+A ball (``centre``, ``radius``, mm) of the organ: the cells whose centroids lie
+in it, their element stiffness matrices at the reference tangent
+(:mod:`.element_matrices`), the rows of the global reduced basis at their
+nodes, which nodes must keep the reduced field (the region's boundary and the
+supports), and the global reduced stiffness with the pressure condensed
+element-wise, consistent with the element matrices (eq. 4.8's K^zeta-zeta).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from mpi4py import MPI
+
+from hapticrom.shared.errors import InputError
+
+
+@dataclass(frozen=True)
+class CuttingConfig:
+    centre: tuple[float, float, float]
+    radius: float  # mm
+    patch_layers: int = 2
+    cut_force: float = 0.02  # N: the blade force above which a face is cut (thesis eq. 4.10)
+
+
+def read_mesh_arrays(mesh_file):
+    """(nodes (n, 3) mm, hexahedra (m, 8) in the file's node order, clamped nodes) on one rank."""
+    from hapticrom.meshes.msh import _read_msh_group
+
+    tags, coords, clamped, cells = _read_msh_group(mesh_file, "clamped")
+    order = np.argsort(tags)
+    if not np.array_equal(tags[order], np.arange(1, len(tags) + 1)):
+        raise InputError(f"{mesh_file}: node tags are not 1..n (not a hapticrom mesh?)")
+    if cells.shape[1] != 8:
+        raise InputError("cutting needs a hexahedral mesh")
+    return coords[order], cells - 1, np.unique(clamped - 1)
+
+
+def condensed_reduced_stiffness(comm: MPI.Comm, ops, A_local: np.ndarray) -> np.ndarray:
+    """A^T K0 A with the pressure condensed element-wise (distributed rows of A)."""
+    from hapticrom.offline.reduction import _allgather_rows, _sum
+
+    K = _sum(comm, A_local.T @ (ops.K @ A_local))
+    if ops.mixed:
+        B = _sum(comm, ops.Kup.T @ A_local)  # (cells, G) = K_pu A
+        kpp = _allgather_rows(comm, ops.kpp)
+        K = K - B.T @ (B / kpp[:, None])
+    return (K + K.T) / 2
+
+
+def cutting_group(config, cutting: CuttingConfig, basis: np.ndarray, reduced_stiffness) -> dict:
+    """The artifact group (rank 0, serial): region arrays and element matrices."""
+    from hapticrom.offline.element_matrices import element_stiffness
+    from hapticrom.offline.formulation import HyperelasticModel, choose_element
+    from hapticrom.offline.materials import make_law
+    from hapticrom.offline.organ import load_organ
+
+    problem = config.problem
+    nodes, cells, clamped = read_mesh_arrays(problem.mesh.file)
+    centroid = nodes[cells].mean(axis=1)
+    inside = np.linalg.norm(centroid - np.asarray(cutting.centre), axis=1) <= cutting.radius
+    region_cells = np.flatnonzero(inside)
+    if region_cells.size == 0:
+        raise InputError(f"no cell lies within {cutting.radius} mm of {list(cutting.centre)}")
+    region_nodes = np.unique(cells[region_cells])
+    local = np.full(len(nodes), -1)
+    local[region_nodes] = np.arange(len(region_nodes))
+    fixed = np.isin(region_nodes, cells[~inside]) | np.isin(region_nodes, clamped)
+    organ = load_organ(problem.mesh.file, MPI.COMM_SELF)
+    law = make_law(problem.material.law, **problem.material.params)
+    element = choose_element(organ.cell_type, problem.discretisation.element)
+    model = HyperelasticModel(organ, law, element, problem.discretisation.quadrature_degree)
+    matrices = element_stiffness(model, region_cells, cells[region_cells])
+    rows = (3 * region_nodes[:, None] + np.arange(3)).ravel()
+    return {
+        "nodes": region_nodes.astype(np.int64),
+        "coordinates": nodes[region_nodes],
+        "cells": local[cells[region_cells]].astype(np.int64),
+        "element_stiffness": matrices,
+        "basis": np.ascontiguousarray(basis[rows]),
+        "fixed": fixed.astype(np.int8),
+        "reduced_stiffness": reduced_stiffness,
+        "attrs": {
+            "centre": list(cutting.centre),
+            "radius": cutting.radius,
+            "patch_layers": cutting.patch_layers,
+            "cut_force": cutting.cut_force,
+            "cells_in_region": int(len(region_cells)),
+        },
+    }
