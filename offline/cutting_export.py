@@ -43,7 +43,8 @@ def condensed_reduced_stiffness(comm: MPI.Comm, ops, A_local: np.ndarray) -> np.
     """A^T K0 A with the pressure condensed element-wise (distributed rows of A)."""
     from hapticrom.offline.reduction import _allgather_rows, _sum
 
-    K = _sum(comm, A_local.T @ (ops.K @ A_local))
+    A = _allgather_rows(comm, A_local)  # the operators' rows span all columns
+    K = _sum(comm, A_local.T @ (ops.K @ A))
     if ops.mixed:
         B = _sum(comm, ops.Kup.T @ A_local)  # (cells, G) = K_pu A
         kpp = _allgather_rows(comm, ops.kpp)

@@ -310,13 +310,26 @@ def reduce_campaign(
     out: str | Path,
     comm: MPI.Comm = MPI.COMM_WORLD,
     verbose: bool = True,
+    reduction: CampaignConfig | None = None,
 ) -> dict:
-    """POD per sample and global, reduced operators, the artifact; returns a summary."""
+    """POD per sample and global, reduced operators, the artifact; returns a summary.
+
+    ``reduction``: a campaign configuration whose ``[anm]`` and ``[cutting]`` tables
+    replace the stored ones (they do not change the solves, so a campaign can be
+    reduced again with other options); it must describe the same campaign.
+    """
     say = (lambda s: print0(comm, s)) if verbose else (lambda s: None)
     t0 = time.perf_counter()
     store = SnapshotStore(campaign_dir)
     manifest = on_rank_zero(comm, store.manifest)
     config = CampaignConfig.from_dict(manifest["campaign"], source=str(store.manifest_path))
+    if reduction is not None:
+        if reduction.campaign_hash() != manifest["campaign_hash"]:
+            raise InputError(
+                f"{store.root} holds another campaign than the configuration given (its "
+                "solves, material, mesh or positions differ)"
+            )
+        config = replace(config, anm=reduction.anm, cutting=reduction.cutting)
     # The campaign's relative mesh path was resolved when it ran; use that file.
     mesh = replace(config.problem.mesh, file=Path(manifest["mesh"]["file"]))
     config = replace(config, problem=replace(config.problem, mesh=mesh))

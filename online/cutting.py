@@ -192,3 +192,216 @@ class CutPatch:
         u = region.basis[rows] @ x[: self.G]
         u[self.dofs] += x[self.G :]
         return u.reshape(-1, 3)
+
+
+# -- the scalpel ------------------------------------------------------------------------
+class ScalpelInputError(ValueError):
+    """A scalpel position off the organ or a degenerate blade; the cut state is unchanged."""
+
+
+@dataclass
+class CutEvent:
+    """One topology change: which faces were cut, the patch after it, and what it cost."""
+
+    faces: int
+    new_nodes: int
+    patch_unknowns: int
+    seconds: float
+
+
+class Scalpel:
+    """Cuts of one simulator: blade position and direction, cut faces, the coupled patch.
+
+    A cut happens when the force in the blade's plane exceeds ``cut_force`` (thesis
+    eq. 4.10, after Bielser and Gross): the region's interior faces under the
+    blade (facing across the blade's plane, down to ``cut_depth`` below the
+    surface) are cut whole, the patch is rebuilt around all cuts so far and the
+    coupled system factorised. For each surface node of the region the
+    factorisation gives the tissue's compliance under a unit normal point load
+    with the cuts, and without them (the reduced model alone); their ratio
+    scales the reduced model's force at the contact (a cut softens the tissue
+    near it), and the cut's own displacement field is added to the rendered
+    surface, lips included.
+    """
+
+    def __init__(self, model, cut_depth: float | None = None, layers: int | None = None):
+        region = model.cut_region
+        if region is None:
+            raise ValueError("this artifact has no cuttable region (format 1.2 'cutting' group)")
+        attrs = model.artifact.group_attrs["cutting"]
+        self.model, self.region = model, region
+        self.cut_force = float(attrs["cut_force"])
+        self.layers = int(layers or attrs["patch_layers"])
+        edges = np.linalg.norm(
+            region.coordinates[region.cells[:, 1]] - region.coordinates[region.cells[:, 0]], axis=1
+        )
+        self.cell_size = float(np.median(edges))
+        self.cut_depth = float(cut_depth) if cut_depth is not None else 0.7 * self._thickness()
+        self.topology = CutTopology(region)
+        self.patch: CutPatch | None = None
+        self.events: list[CutEvent] = []
+        self._faces, _ = self.topology.interior_faces()
+        self._face_centroid = region.coordinates[self._faces].mean(axis=1)
+        x = region.coordinates[self._faces]
+        normal = np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 1])
+        self._face_normal = normal / np.linalg.norm(normal, axis=1, keepdims=True)
+        # Surface vertices of the model that are region nodes (canonical node ids).
+        canonical = np.asarray(model.artifact["cutting"]["nodes"])
+        surface_nodes = np.asarray(model.artifact["surface"]["nodes"])
+        local = {int(n): i for i, n in enumerate(canonical)}
+        self.surface_region = np.array([local.get(int(n), -1) for n in surface_nodes])
+        self.ratio = np.ones(len(surface_nodes))  # cut / intact stiffness per surface vertex
+        self.delta = None  # (Rn', 3): cut displacement per unit force at the contact vertex
+        self.blade = None
+
+    def region_vertex(self, point: np.ndarray) -> int:
+        """The surface vertex of the region nearest ``point``, or -1 if none is within a cell."""
+        if not hasattr(self, "_region_vertices"):
+            self._region_vertices = np.flatnonzero(self.surface_region >= 0)
+            self._region_xyz = self.model.vertices[self._region_vertices]
+        d = np.sum((self._region_xyz - point) ** 2, axis=1)
+        k = int(np.argmin(d))
+        return int(self._region_vertices[k]) if d[k] <= self.cell_size**2 else -1
+
+    def surface_layout(self):
+        """(surface vertices in the region, their region nodes, lip copies, the vertices the
+        copies duplicate) for the current cut state; cached per cut event."""
+        key = len(self.events)
+        if getattr(self, "_layout_key", None) != key:
+            on = np.flatnonzero(self.surface_region >= 0)
+            vertex_of = np.full(len(self.region.coordinates), -1)
+            vertex_of[self.surface_region[on]] = on
+            copies = np.arange(len(self.region.coordinates), len(self.topology.origin))
+            duplicates = vertex_of[self.topology.origin[copies]]
+            keep = duplicates >= 0
+            self._layout = (on, self.surface_region[on], copies[keep], duplicates[keep])
+            self._layout_key = key
+        return self._layout
+
+    def _thickness(self) -> float:
+        """A rough local thickness: the region's extent along its mean surface normal."""
+        x = self.region.coordinates
+        centred = x - x.mean(axis=0)
+        n = np.linalg.svd(centred, full_matrices=False)[2][-1]
+        return float(np.ptp(centred @ n))
+
+    def check(self, position, blade_direction, normal: np.ndarray):
+        """Validated (position, unit blade direction in the tangent plane); state untouched."""
+        p = np.asarray(position, dtype=float)
+        b = np.asarray(blade_direction, dtype=float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ScalpelInputError(
+                f"scalpel position must be 3 finite numbers (mm), got {position!r}"
+            )
+        if b.shape != (3,) or not np.all(np.isfinite(b)):
+            raise ScalpelInputError(
+                f"blade direction must be 3 finite numbers, got {blade_direction!r}"
+            )
+        gap = np.min(np.linalg.norm(self.model.vertices - p, axis=1))
+        if gap > 2.0 * self.cell_size:
+            raise ScalpelInputError(
+                f"scalpel position {p.tolist()} mm is off the organ ({gap:.3g} mm from its surface)"
+            )
+        size = np.linalg.norm(b)
+        b = b - (b @ normal) * normal  # the blade lies in the tangent plane
+        # Within ~6 degrees of the normal a blade has no direction along the surface.
+        if size == 0.0 or np.linalg.norm(b) <= 0.1 * size:
+            raise ScalpelInputError(
+                f"blade direction {np.asarray(blade_direction).tolist()} is zero or along the "
+                "surface normal: it must have a component along the surface"
+            )
+        return p, b / np.linalg.norm(b)
+
+    def faces_under(self, position: np.ndarray, blade: np.ndarray, normal: np.ndarray):
+        """Region interior faces under the blade: facing across its plane, within its depth."""
+        across = np.cross(blade, normal)  # normal of the blade's plane
+        facing = np.abs(self._face_normal @ across) > 0.7
+        rel = self._face_centroid - position
+        depth = -(rel @ normal)  # below the surface, along the inward normal
+        along = rel @ blade
+        off_plane = np.abs(rel @ across)
+        # A blade is a few cells long: the faces within one cell size along it are cut.
+        near = (np.abs(along) <= self.cell_size) & (off_plane <= 0.75 * self.cell_size)
+        within = (depth >= -0.5 * self.cell_size) & (depth <= self.cut_depth)
+        keys = self.topology.cut_faces
+        chosen = [i for i in np.flatnonzero(facing & near & within)
+                  if tuple(sorted(self._faces[i])) not in keys]  # fmt: skip
+        return self._faces[chosen]
+
+    def cut(self, faces: np.ndarray) -> CutEvent | None:
+        """Cut ``faces`` (region node ids), rebuild and factorise the patch."""
+        import time
+
+        if len(faces) == 0:
+            return None
+        t0 = time.perf_counter()
+        new = self.topology.cut(faces)
+        if len(self.topology.lip_nodes) == 0:  # only front nodes so far: nothing opens yet
+            event = CutEvent(len(faces), len(new), 0, time.perf_counter() - t0)
+            self.events.append(event)
+            return event
+        self.patch = CutPatch(self.topology, self.layers)
+        self._compliances()
+        event = CutEvent(len(faces), len(new), self.patch.size, time.perf_counter() - t0)
+        self.events.append(event)
+        return event
+
+    def _compliances(self) -> None:
+        """Stiffness ratio (cut / intact) for a unit normal load at every region surface vertex."""
+        patch, region = self.patch, self.region
+        normals = _vertex_normals(self.model.vertices, self.model.triangles)
+        on_region = np.flatnonzero(self.surface_region >= 0)
+        nodes = self.surface_region[on_region]
+        G = patch.G
+        index = np.full(len(self.topology.origin), -1)
+        index[patch.nodes] = np.arange(len(patch.nodes))
+        B = np.zeros((patch.size, len(on_region)))
+        B0 = np.zeros((G, len(on_region)))
+        for k, (node, n) in enumerate(zip(nodes, normals[on_region], strict=True)):
+            f = -n  # a unit push into the tissue
+            rows = 3 * node + np.arange(3)
+            B0[:, k] = region.basis[rows].T @ f
+            B[:G, k] = B0[:, k]
+            if index[node] >= 0:
+                B[G + 3 * index[node] + np.arange(3), k] = f
+        Y = np.linalg.solve(patch.factor, B)  # L^-1 B: compliance = |L^-1 b|^2
+        cut = np.sum(Y * Y, axis=0)
+        intact = np.sum(B0 * np.linalg.solve(region.reduced_stiffness, B0), axis=0)
+        self.ratio[:] = 1.0
+        ratio = np.ones_like(cut)
+        np.divide(intact, cut, out=ratio, where=cut > 0)
+        self.ratio[on_region] = ratio
+        self._loads = (on_region, B, B0)
+
+    def cut_field(self, vertex: int) -> np.ndarray | None:
+        """Displacement per unit normal force at ``vertex`` of (cut - intact) models, (Rn', 3).
+
+        Cached per contact vertex and cut state (a solve with the patch's factor).
+        """
+        if self.patch is None or self.surface_region[vertex] < 0:
+            return None
+        key = (vertex, len(self.events))
+        if getattr(self, "_field_key", None) == key:
+            return self._field
+        self._field_key, self._field = key, self._cut_field(vertex)
+        return self._field
+
+    def _cut_field(self, vertex: int) -> np.ndarray:
+        on_region, B, B0 = self._loads
+        k = int(np.flatnonzero(on_region == vertex)[0])
+        x = self.patch.solve(B[: self.patch.G, k], B[self.patch.G :, k])
+        u = self.patch.region_displacement(x)
+        zeta0 = np.linalg.solve(self.region.reduced_stiffness, B0[:, k])
+        rows = (3 * self.topology.origin[:, None] + np.arange(3)).ravel()
+        u0 = (self.region.basis[rows] @ zeta0).reshape(-1, 3)
+        return u - u0
+
+
+def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Outward unit vertex normals (area-weighted) of a triangulated surface."""
+    x = vertices[triangles]
+    area = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], area)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)

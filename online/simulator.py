@@ -98,6 +98,13 @@ class Simulator:
         self._scratch = np.zeros(3 + 3 * n)  # depth weights + three n-vectors
         self._frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
         self._contact = False
+        self._cutting = None  # online.cutting.Scalpel once the scalpel is used
+        self._blade = None  # unit blade direction while the scalpel is in contact
+        self._across = None  # unit normal of the blade's plane
+        self._armed = False  # the blade may still cut at this placement
+        self._vertex = -1  # region surface vertex at the contact (while cutting), or -1
+        self.last_cut = None  # the last CutEvent
+        self._lips = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))  # second lip, rendered
 
     # -- contact -----------------------------------------------------------------
     def set_contact(self, point) -> None:
@@ -131,6 +138,9 @@ class Simulator:
             )
         self._buf[kernels.FLAGS] = flag
         self._contact = True
+        if self._cutting is not None:
+            self._armed = False  # a plain contact; scalpel() arms the blade again
+            self._vertex = self._cutting.region_vertex(p)
 
     # -- steps -------------------------------------------------------------------
     def _check(self, status: int, what: str, value) -> None:
@@ -147,13 +157,74 @@ class Simulator:
         status = self._step_displacement(d, self._buf) if self._contact else -1
         if status:
             self._check(status, "displacement", d)
+        if self._cutting is not None:
+            self._cut_step()
         return self._force
+
+    # -- cutting -------------------------------------------------------------------
+    def scalpel(self, position, blade_direction) -> None:
+        """Put the scalpel at ``position`` (mm, on the surface) with its blade along
+        ``blade_direction`` (its component in the surface plane is used).
+
+        Then step as with any tool: when the force in the blade's plane exceeds
+        the artifact's cut force, the faces under the blade are cut whole and the
+        cut patch is rebuilt (``last_cut`` says what it cost). A position off the
+        organ or a blade along the normal raises ``ScalpelInputError``; nothing
+        changes then.
+        """
+        from hapticrom.online.cutting import Scalpel, _vertex_normals
+
+        m = self.model
+        if self._cutting is None:
+            scalpel = Scalpel(m)  # raises ValueError without a cuttable region
+            scalpel.normals = _vertex_normals(m.vertices, m.triangles)
+        else:
+            scalpel = self._cutting
+        p = np.asarray(position, dtype=float)
+        vertex = int(np.argmin(np.sum((m.vertices - p) ** 2, axis=1))) if p.shape == (3,) else 0
+        normal = scalpel.normals[vertex]
+        blade = scalpel.check(position, blade_direction, normal)[1]
+        self._cutting = scalpel
+        self.set_contact(p)
+        self._vertex, self._scalpel_vertex = scalpel.region_vertex(p), vertex
+        across = np.cross(blade, normal)
+        self._blade, self._across = blade, across / np.linalg.norm(across)
+        self._armed = True
+
+    def _cut_step(self) -> None:
+        """After a step while cutting: cut if the blade force is high enough; soften."""
+        scalpel = self._cutting
+        if self._armed:
+            f0, f1, f2 = self._force
+            a0, a1, a2 = self._across
+            across = f0 * a0 + f1 * a1 + f2 * a2
+            if f0 * f0 + f1 * f1 + f2 * f2 - across * across > scalpel.cut_force**2:
+                # Once per placement: an unmoved scalpel has nothing new under it, and the
+                # steps stay cheap until scalpel() places it again.
+                self._armed = False
+                vertex = self._scalpel_vertex
+                faces = scalpel.faces_under(
+                    self.model.vertices[vertex], self._blade, scalpel.normals[vertex]
+                )
+                event = scalpel.cut(faces)
+                if event is not None:
+                    self.last_cut = event
+        if self._vertex >= 0:
+            self._force *= scalpel.ratio[self._vertex]
+
+    @property
+    def cut_events(self) -> list:
+        """Every topology change so far (CutEvent: faces, new nodes, patch size, seconds)."""
+        return [] if self._cutting is None else list(self._cutting.events)
 
     def step_force(self, f) -> np.ndarray:
         """Force the tool applies to the tissue ``f`` (N) -> tool displacement (mm)."""
         status = self._step_force(f, self._buf) if self._contact else -1
         if status:
             self._check(status, "force", f)
+        if self._cutting is not None and self._vertex >= 0:
+            # Linear scaling: the cut tissue yields 1 / ratio times more under the same force.
+            self._displacement /= self._cutting.ratio[self._vertex]
         return self._displacement
 
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:
@@ -182,7 +253,28 @@ class Simulator:
                 self.depth, m.depth_step, self._weights, self._vertices, m.surface_basis_t,
                 m.coefficients, self._scratch, out,
             )  # fmt: skip
+        if self._cutting is not None and self._cutting.patch is not None:
+            self._add_cut_field(out)
         return out
+
+    def _add_cut_field(self, out: np.ndarray) -> None:
+        """The cuts' displacement (per unit force, times the current force) and the lips."""
+        scalpel = self._cutting
+        field = scalpel.cut_field(self._vertex) if self._vertex >= 0 else None
+        on, region_of_on, copies, lip_vertices = scalpel.surface_layout()
+        base = out[lip_vertices]
+        force = float(np.linalg.norm(self._force))
+        if field is not None:
+            out[on] += force * field[region_of_on]
+            base = base + force * field[copies]
+        self._lips = (base, lip_vertices)
+
+    @property
+    def lip_vertices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The cut's second lip for rendering: (surface vertex each copies, its reference
+        position (mm), its displacement (mm) at the last ``surface_displacement``)."""
+        displacement, vertices = self._lips
+        return vertices, self.model.vertices[vertices], displacement
 
     # -- what the simulator can read ---------------------------------------------
     @property

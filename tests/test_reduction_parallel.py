@@ -69,3 +69,28 @@ def test_reduction_on_two_ranks_equals_one(mesh_dir, tmp_path_factory, method):
             np.linalg.eigvalsh(S["reduced_stiffness"][i]),
             rtol=1e-6,
         )
+
+
+def test_cutting_region_on_two_ranks(mesh_dir, tmp_path_factory):
+    """The element-condensed reduced stiffness, reduced over 2 ranks, matches its elements."""
+    comm = MPI.COMM_WORLD
+    if comm.size < 2:
+        pytest.skip("run under mpirun -n 2")
+    root = Path(comm.bcast(str(tmp_path_factory.mktemp("cutred")) if comm.rank == 0 else None))
+    if comm.rank == 0:
+        text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=2, per_ring=3)
+        text += "\n[anm]\nenabled = false\n[cutting]\ncentre = [0.0, 0.0, -3.0]\nradius = 20.0\n"
+        (root / "c.toml").write_text(text)
+        config = CampaignConfig.from_toml(root / "c.toml")
+        run_campaign(config, root / "store", MPI.COMM_SELF, verbose=False)
+    comm.barrier()
+    reduce_campaign(root / "store", root / "parallel.h5", comm, verbose=False)
+    if comm.rank != 0:
+        return
+    cutting = read_artifact(root / "parallel.h5")["cutting"]
+    K = np.zeros_like(cutting["reduced_stiffness"])
+    for c, cell in enumerate(cutting["cells"]):
+        A_c = cutting["basis"][(3 * cell[:, None] + np.arange(3)).ravel()]
+        K += A_c.T @ cutting["element_stiffness"][c] @ A_c
+    scale = np.abs(K).max()
+    np.testing.assert_allclose(cutting["reduced_stiffness"], K, atol=1e-10 * scale)

@@ -146,10 +146,18 @@ def cmd_campaign(args, petsc_args) -> int:
 
 
 def cmd_reduce(args, petsc_args) -> int:
+    reduction = None
+    if args.campaign:
+        from hapticrom.offline import require_offline
+
+        require_offline()
+        from hapticrom.offline.campaign import CampaignConfig
+
+        reduction = CampaignConfig.from_toml(args.campaign)
     _offline(petsc_args)
     from hapticrom.offline.reduction import reduce_campaign
 
-    reduce_campaign(args.campaign_dir, args.out)
+    reduce_campaign(args.campaign_dir, args.out, reduction=reduction)
     return 0
 
 
@@ -167,7 +175,7 @@ def cmd_train(args, petsc_args) -> int:
     out = Path(args.out)
     work = Path(args.work) if args.work else out.with_suffix(".campaign")
     report = run_campaign(config, work, ranks_per_solve=args.ranks_per_solve, restart=args.restart)
-    reduce_campaign(work, out)
+    reduce_campaign(work, out, reduction=config)
     return 1 if report.failed else 0
 
 
@@ -276,6 +284,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("reduce", help="POD and reduced operators of a campaign [offline, mpirun]")
     p.add_argument("campaign_dir", help="directory written by `hapticrom campaign`")
     p.add_argument("--out", required=True, help="reduced model (.h5)")
+    p.add_argument(
+        "--campaign",
+        help="the campaign's TOML, to reduce with its current [anm] and [cutting] tables",
+    )
     p.set_defaults(func=cmd_reduce)
 
     p = sub.add_parser("train", help="campaign + reduce in one go [offline, mpirun]")
