@@ -23,24 +23,16 @@ from hapticrom.meshes.msh import CELL_FACES, CELL_TYPE_OF_NODES, BuiltMesh, boun
 from hapticrom.shared.errors import InputError
 
 
-def _all_faces(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Faces (m * f, k) of every cell, outward for their cell, and the owning cell of each."""
+def _topology(cells: np.ndarray, num_nodes: int | None = None):
+    from hapticrom.online.cutting import CutTopology  # numpy only: the runtime cuts the same way
+
     local = CELL_FACES[CELL_TYPE_OF_NODES[cells.shape[1]]]
-    faces = cells[:, local].reshape(-1, local.shape[1])
-    owner = np.repeat(np.arange(len(cells)), len(local))
-    return faces, owner
+    return CutTopology(cells, int(cells.max()) + 1 if num_nodes is None else num_nodes, local)
 
 
 def interior_faces(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each interior face once (as seen from its first cell) and its two cells (k, 2)."""
-    faces, owner = _all_faces(cells)
-    keys = np.sort(faces, axis=1)
-    order = np.lexsort(keys.T[::-1])
-    sk = keys[order]
-    same = np.all(sk[1:] == sk[:-1], axis=1)
-    first = order[:-1][same]
-    second = order[1:][same]
-    return faces[first], np.column_stack([owner[first], owner[second]])
+    return _topology(np.asarray(cells)).interior_faces()
 
 
 @dataclass(frozen=True)
@@ -109,60 +101,19 @@ def cut_mesh(mesh: BuiltMesh, face_indices: np.ndarray) -> tuple[BuiltMesh, np.n
     """The mesh with the given interior faces (indices into :func:`interior_faces`) cut.
 
     Returns the new mesh and ``origin`` (new node -> original node). Cells keep
-    their order; new nodes are appended after the original ones.
+    their order; new nodes are appended after the original ones. The runtime's
+    :class:`~hapticrom.online.cutting.CutTopology` does the cutting, so the
+    explicit reference and the runtime's cuts are the same by construction.
     """
-    faces, pair = interior_faces(mesh.cells)
+    faces, _ = interior_faces(mesh.cells)
     face_indices = np.unique(np.asarray(face_indices, dtype=np.int64))
     if face_indices.size == 0:
         raise InputError("nothing to cut: no face selected")
-    cut_keys = {tuple(sorted(f)) for f in faces[face_indices]}
-    cut_nodes = np.unique(faces[face_indices])
-    cells = mesh.cells.copy()
-    local = CELL_FACES[CELL_TYPE_OF_NODES[cells.shape[1]]]
-    new_nodes = [mesh.nodes]
-    origin = [np.arange(len(mesh.nodes))]
-    next_id = len(mesh.nodes)
-    for node in cut_nodes:
-        around = np.flatnonzero(np.any(mesh.cells == node, axis=1))
-        groups = _components(mesh.cells, around, node, local, cut_keys)
-        for component in groups[1:]:  # the first side keeps the original node
-            for c in component:
-                cells[c][cells[c] == node] = next_id
-            new_nodes.append(mesh.nodes[node][None, :])
-            origin.append(np.array([node]))
-            next_id += 1
-    origin = np.concatenate(origin)
-    nodes = np.vstack(new_nodes)
+    topology = _topology(mesh.cells, len(mesh.nodes))
+    topology.cut(faces[face_indices])
+    cells, origin = topology.cells, topology.origin
     groups = _regroup_boundary(mesh, cells, origin)
-    return replace(mesh, nodes=nodes, cells=cells, facet_groups=groups), origin
-
-
-def _components(cells, around, node, local, cut_keys) -> list[list[int]]:
-    """The cells around ``node`` split into sides: linked through uncut faces at the node."""
-    parent = {int(c): int(c) for c in around}
-
-    def find(c):
-        while parent[c] != c:
-            parent[c] = parent[parent[c]]
-            c = parent[c]
-        return c
-
-    shared: dict[tuple, int] = {}
-    for c in around:
-        for f in cells[c][local]:
-            if node not in f:
-                continue
-            key = tuple(sorted(f))
-            if key in cut_keys:
-                continue
-            if key in shared:
-                parent[find(int(c))] = find(shared[key])
-            else:
-                shared[key] = int(c)
-    sides: dict[int, list[int]] = {}
-    for c in around:
-        sides.setdefault(find(int(c)), []).append(int(c))
-    return sorted(sides.values(), key=min)
+    return replace(mesh, nodes=mesh.nodes[origin], cells=cells, facet_groups=groups), origin
 
 
 def _regroup_boundary(mesh: BuiltMesh, cells: np.ndarray, origin: np.ndarray) -> dict:

@@ -61,18 +61,30 @@ class CutRegion:
 
 
 class CutTopology:
-    """The region's cells with the cut faces opened (lip-aware connectivity)."""
+    """Cells with cut faces opened (lip-aware connectivity), one cut event at a time.
 
-    def __init__(self, region: CutRegion):
-        self.region = region
-        self.cells = region.cells.copy()
-        self.origin = np.arange(len(region.coordinates))  # node -> region node it copies
-        self.cut_faces: set[tuple[int, ...]] = set()  # in original region node ids
+    ``cells`` (m, k): node indices of the intact cells; ``num_nodes``: how many
+    nodes there are; ``local_faces``: each cell's faces as local node indices
+    (hexahedra by default, gmsh order). New nodes are numbered from ``num_nodes``
+    on; ``origin`` maps every node to the intact node it copies.
+    """
+
+    def __init__(self, cells: np.ndarray, num_nodes: int, local_faces: np.ndarray = HEX_FACES):
+        self.intact = np.asarray(cells)
+        self.local_faces = np.asarray(local_faces)
+        self.cells = self.intact.copy()
+        self.origin = np.arange(num_nodes)  # node -> intact node it copies
+        self.cut_faces: set[tuple[int, ...]] = set()  # in intact node ids
+
+    @classmethod
+    def of_region(cls, region: CutRegion) -> CutTopology:
+        return cls(region.cells, len(region.coordinates))
 
     def interior_faces(self) -> tuple[np.ndarray, np.ndarray]:
-        """The region's interior faces (original node ids, k x 4) and their two cells."""
-        faces = self.region.cells[:, HEX_FACES].reshape(-1, 4)
-        owner = np.repeat(np.arange(len(self.region.cells)), 6)
+        """The interior faces (intact node ids, (f, k)) and their two cells."""
+        nf, k = self.local_faces.shape
+        faces = self.intact[:, self.local_faces].reshape(-1, k)
+        owner = np.repeat(np.arange(len(self.intact)), nf)
         keys = np.sort(faces, axis=1)
         order = np.lexsort(keys.T[::-1])
         same = np.all(keys[order][1:] == keys[order][:-1], axis=1)
@@ -80,7 +92,7 @@ class CutTopology:
         return faces[first], np.column_stack([owner[first], owner[second]])
 
     def cut(self, faces: np.ndarray) -> np.ndarray:
-        """Open interior ``faces`` (k, 4; original region node ids); return the new nodes."""
+        """Open interior ``faces`` ((f, k), intact node ids); return the new nodes."""
         faces = np.atleast_2d(np.asarray(faces, dtype=np.int64))
         self.cut_faces |= {tuple(sorted(f)) for f in faces}
         before = len(self.origin)
@@ -101,7 +113,7 @@ class CutTopology:
 
         seen: dict[tuple, int] = {}
         for c in cells_at:
-            for f in self.region.cells[c][HEX_FACES]:
+            for f in self.intact[c][self.local_faces]:
                 if original not in f:
                     continue
                 key = tuple(sorted(f))
@@ -134,18 +146,17 @@ class CutTopology:
 
     @property
     def lip_nodes(self) -> np.ndarray:
-        """Nodes (original and copies) of the region that exist more than once."""
-        counts = np.bincount(self.origin, minlength=len(self.region.coordinates))
-        return np.flatnonzero(counts[self.origin] > 1)
+        """Nodes (originals and copies) that exist more than once."""
+        return np.flatnonzero(np.bincount(self.origin)[self.origin] > 1)
 
 
 class CutPatch:
-    """The factorised coupled system (thesis eq. 4.8) of one cut topology."""
+    """The factorised coupled system (thesis eq. 4.8) of one cut topology of a region."""
 
-    def __init__(self, topology: CutTopology, layers: int = 2):
+    def __init__(self, topology: CutTopology, region: CutRegion, layers: int = 2):
         if layers < 1:
             raise ValueError(f"the patch needs at least one layer of cells, got {layers}")
-        region = topology.region
+        self.region = region
         cells = topology.cells
         in_patch = np.any(np.isin(cells, topology.lip_nodes), axis=1)
         for _ in range(layers - 1):
@@ -186,8 +197,7 @@ class CutPatch:
 
     def region_displacement(self, x: np.ndarray) -> np.ndarray:
         """Displacement (mm) of every node of the cut region (copies included), (R', 3)."""
-        topology = self.topology
-        region = topology.region
+        topology, region = self.topology, self.region
         rows = (3 * topology.origin[:, None] + np.arange(3)).ravel()
         u = region.basis[rows] @ x[: self.G]
         u[self.dofs] += x[self.G :]
@@ -237,7 +247,7 @@ class Scalpel:
         )
         self.cell_size = float(np.median(edges))
         self.cut_depth = float(cut_depth) if cut_depth is not None else 0.7 * self._thickness()
-        self.topology = CutTopology(region)
+        self.topology = CutTopology.of_region(region)
         self.patch: CutPatch | None = None
         self.events: list[CutEvent] = []
         self._faces, _ = self.topology.interior_faces()
@@ -340,7 +350,7 @@ class Scalpel:
             event = CutEvent(len(faces), len(new), 0, time.perf_counter() - t0)
             self.events.append(event)
             return event
-        self.patch = CutPatch(self.topology, self.layers)
+        self.patch = CutPatch(self.topology, self.region, self.layers)
         self._compliances()
         event = CutEvent(len(faces), len(new), self.patch.size, time.perf_counter() - t0)
         self.events.append(event)

@@ -56,7 +56,7 @@ def test_online_cut_topology_matches_the_explicit_cut_mesh(setting):
     intact, cut, origin, *_, region, supported = setting
     faces, _ = interior_faces(intact.cells)
     selected = faces[limbal_arc(intact, STUDY.incision)]
-    topology = CutTopology(region)
+    topology = CutTopology.of_region(region)
     # Cut in two events (as a scalpel would), which must end as the one-shot cut.
     half = len(selected) // 2
     topology.cut(selected[:half])
@@ -66,7 +66,7 @@ def test_online_cut_topology_matches_the_explicit_cut_mesh(setting):
     np.testing.assert_array_equal(_first_seen(topology.cells), _first_seen(cut.cells))
     np.testing.assert_array_equal(topology.origin[topology.cells], origin[cut.cells])
     # In one event, the numbering is the explicit cut's too.
-    once = CutTopology(region)
+    once = CutTopology.of_region(region)
     once.cut(selected)
     np.testing.assert_array_equal(once.cells, cut.cells)
     np.testing.assert_array_equal(once.origin, origin)
@@ -83,9 +83,9 @@ def _first_seen(cells: np.ndarray) -> np.ndarray:
 def test_online_patch_solves_the_offline_coupled_system(setting, layers):
     intact, cut, origin, K_intact, K_cut, f_intact, f_cut, A, region, supported = setting
     faces, _ = interior_faces(intact.cells)
-    topology = CutTopology(region)
+    topology = CutTopology.of_region(region)
     topology.cut(faces[limbal_arc(intact, STUDY.incision)])
-    patch = CutPatch(topology, layers)
+    patch = CutPatch(topology, region, layers)
     cut_supported = supported | {i for i in range(len(origin)) if origin[i] in supported}
     offline = couple(K_intact, K_cut, A, origin, patch_around(cut.cells, lip_nodes(origin),
                                                                layers, cut_supported))  # fmt: skip
@@ -135,8 +135,8 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
 
     intact = build("cornea", "coarse")  # region node i is mesh node i (the ball holds all)
     faces, _ = interior_faces(intact.cells)
-    topology = CutTopology(region)
+    topology = CutTopology.of_region(region)
     new_nodes = topology.cut(faces[limbal_arc(intact, STUDY.incision)])
     assert len(new_nodes) == 9
-    patch = CutPatch(topology, 1)
+    patch = CutPatch(topology, region, 1)
     assert patch.size > region.reduced_stiffness.shape[0]
