@@ -153,14 +153,25 @@ class CutTopology:
 class CutPatch:
     """The factorised coupled system (thesis eq. 4.8) of one cut topology of a region."""
 
-    def __init__(self, topology: CutTopology, region: CutRegion, layers: int = 2):
+    def __init__(
+        self,
+        topology: CutTopology,
+        region: CutRegion,
+        layers: int = 2,
+        patch_cells: np.ndarray | None = None,
+    ):
+        """``patch_cells``: use these cells instead of ``layers`` rings around the cut."""
         if layers < 1:
             raise ValueError(f"the patch needs at least one layer of cells, got {layers}")
         self.region = region
         cells = topology.cells
-        in_patch = np.any(np.isin(cells, topology.lip_nodes), axis=1)
-        for _ in range(layers - 1):
-            in_patch |= np.any(np.isin(cells, np.unique(cells[in_patch])), axis=1)
+        if patch_cells is None:
+            in_patch = np.any(np.isin(cells, topology.lip_nodes), axis=1)
+            for _ in range(layers - 1):
+                in_patch |= np.any(np.isin(cells, np.unique(cells[in_patch])), axis=1)
+        else:
+            in_patch = np.zeros(len(cells), dtype=bool)
+            in_patch[patch_cells] = True
         outside = np.unique(cells[~in_patch])
         fixed = region.fixed[topology.origin]
         candidates = np.unique(cells[in_patch])
@@ -357,31 +368,26 @@ class Scalpel:
         return event
 
     def _compliances(self) -> None:
-        """Stiffness ratio (cut / intact) for a unit normal load at every region surface vertex."""
-        patch, region = self.patch, self.region
+        """Stiffness ratio (cut / uncut) for a unit normal load at every region surface vertex.
+
+        The uncut reference is the same patch without the cut, not the reduced model
+        alone: the patch's local DOFs relax the reduced basis as well (for nearly
+        incompressible tissue, whose element-condensed reduced part is too stiff, by
+        a lot), and only the cut's share of the softening belongs in the force.
+        """
         normals = _vertex_normals(self.model.vertices, self.model.triangles)
         on_region = np.flatnonzero(self.surface_region >= 0)
+        loads = -normals[on_region]  # unit pushes into the tissue
         nodes = self.surface_region[on_region]
-        G = patch.G
-        index = np.full(len(self.topology.origin), -1)
-        index[patch.nodes] = np.arange(len(patch.nodes))
-        B = np.zeros((patch.size, len(on_region)))
-        B0 = np.zeros((G, len(on_region)))
-        for k, (node, n) in enumerate(zip(nodes, normals[on_region], strict=True)):
-            f = -n  # a unit push into the tissue
-            rows = 3 * node + np.arange(3)
-            B0[:, k] = region.basis[rows].T @ f
-            B[:G, k] = B0[:, k]
-            if index[node] >= 0:
-                B[G + 3 * index[node] + np.arange(3), k] = f
-        Y = np.linalg.solve(patch.factor, B)  # L^-1 B: compliance = |L^-1 b|^2
-        cut = np.sum(Y * Y, axis=0)
-        intact = np.sum(B0 * np.linalg.solve(region.reduced_stiffness, B0), axis=0)
-        self.ratio[:] = 1.0
+        uncut = CutPatch(CutTopology.of_region(self.region), self.region, 1, self.patch.cells)
+        B, B_uncut = (_unit_loads(p, nodes, loads) for p in (self.patch, uncut))
+        cut = _compliance(self.patch, B)
+        reference = _compliance(uncut, B_uncut)
         ratio = np.ones_like(cut)
-        np.divide(intact, cut, out=ratio, where=cut > 0)
+        np.divide(reference, cut, out=ratio, where=cut > 0)
+        self.ratio[:] = 1.0
         self.ratio[on_region] = ratio
-        self._loads = (on_region, B, B0)
+        self._loads = (on_region, B, B_uncut, uncut)
 
     def cut_field(self, vertex: int) -> np.ndarray | None:
         """Displacement per unit normal force at ``vertex`` of (cut - intact) models, (Rn', 3).
@@ -397,14 +403,35 @@ class Scalpel:
         return self._field
 
     def _cut_field(self, vertex: int) -> np.ndarray:
-        on_region, B, B0 = self._loads
+        on_region, B, B_uncut, uncut = self._loads
         k = int(np.flatnonzero(on_region == vertex)[0])
-        x = self.patch.solve(B[: self.patch.G, k], B[self.patch.G :, k])
-        u = self.patch.region_displacement(x)
-        zeta0 = np.linalg.solve(self.region.reduced_stiffness, B0[:, k])
-        rows = (3 * self.topology.origin[:, None] + np.arange(3)).ravel()
-        u0 = (self.region.basis[rows] @ zeta0).reshape(-1, 3)
-        return u - u0
+        G = self.patch.G
+        u = self.patch.region_displacement(self.patch.solve(B[:G, k], B[G:, k]))
+        u0 = uncut.region_displacement(uncut.solve(B_uncut[:G, k], B_uncut[G:, k]))
+        field = u.copy()
+        field[: len(u0)] -= u0  # copies have no uncut twin: they move with their original
+        copies = np.arange(len(u0), len(u))
+        field[copies] -= u0[self.topology.origin[copies]]
+        return field
+
+
+def _unit_loads(patch: CutPatch, nodes: np.ndarray, loads: np.ndarray) -> np.ndarray:
+    """Right-hand sides [A^T f; f on the patch DOFs] of unit point loads at region nodes."""
+    region, G = patch.region, patch.G
+    index = np.full(len(patch.topology.origin), -1)
+    index[patch.nodes] = np.arange(len(patch.nodes))
+    B = np.zeros((patch.size, len(nodes)))
+    for k, (node, f) in enumerate(zip(nodes, loads, strict=True)):
+        B[:G, k] = region.basis[3 * node + np.arange(3)].T @ f
+        if index[node] >= 0:
+            B[G + 3 * index[node] + np.arange(3), k] = f
+    return B
+
+
+def _compliance(patch: CutPatch, B: np.ndarray) -> np.ndarray:
+    """b^T K^-1 b for every column b of B, from the Cholesky factor: |L^-1 b|^2."""
+    Y = np.linalg.solve(patch.factor, B)
+    return np.sum(Y * Y, axis=0)
 
 
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
