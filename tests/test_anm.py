@@ -227,3 +227,14 @@ def test_force_controlled_campaign_gets_series_the_runtime_follows(mesh_dir, tmp
             assert force == pytest.approx(data["force"][k] @ direction, rel=1e-3)
             push = sim.step_force(-(data["force"][k] @ direction) * sim.contact_normal)
             assert -push @ sim.contact_normal == pytest.approx(depth, rel=1e-3)
+
+
+def test_order_ten_series(mesh_dir):
+    """The issue asks for orders up to at least 10: same beam, one section of order 10."""
+    fom = FullOrderModel(beam_config(mesh_dir, "neo-hookean"), verbose=False)
+    result = run_study(fom, ANMOptions(order=10, tolerance=1e-6), verbose=False)
+    assert result.branch.sections[0].order == 10
+    for lam in (0.3, 0.7, 1.0):
+        stretch = 1 + result.branch.response_at(lam) / LENGTH
+        exact = analytic_stretches("neo-hookean", lam * TRACTION)[0]
+        assert abs(stretch - exact) / exact <= 1e-4
