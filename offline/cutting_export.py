@@ -11,6 +11,7 @@ element-wise, consistent with the element matrices (eq. 4.8's K^zeta-zeta).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from mpi4py import MPI
@@ -30,7 +31,7 @@ def read_mesh_arrays(mesh_file):
     """(nodes (n, 3) mm, hexahedra (m, 8) in the file's node order, clamped nodes) on one rank."""
     from hapticrom.meshes.msh import _read_msh_group
 
-    tags, coords, clamped, cells = _read_msh_group(mesh_file, "clamped")
+    tags, coords, clamped, cells = _read_msh_group(Path(mesh_file), "clamped")
     order = np.argsort(tags)
     if not np.array_equal(tags[order], np.arange(1, len(tags) + 1)):
         raise InputError(f"{mesh_file}: node tags are not 1..n (not a hapticrom mesh?)")

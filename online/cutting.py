@@ -375,12 +375,9 @@ class Scalpel:
         incompressible tissue, whose element-condensed reduced part is too stiff, by
         a lot), and only the cut's share of the softening belongs in the force.
         """
-        normals = _vertex_normals(self.model.vertices, self.model.triangles)
         on_region = np.flatnonzero(self.surface_region >= 0)
-        loads = -normals[on_region]  # unit pushes into the tissue
-        nodes = self.surface_region[on_region]
         uncut = CutPatch(CutTopology.of_region(self.region), self.region, 1, self.patch.cells)
-        B, B_uncut = (_unit_loads(p, nodes, loads) for p in (self.patch, uncut))
+        B, B_uncut = (self._tool_loads(p, on_region) for p in (self.patch, uncut))
         cut = _compliance(self.patch, B)
         reference = _compliance(uncut, B_uncut)
         ratio = np.ones_like(cut)
@@ -388,6 +385,36 @@ class Scalpel:
         self.ratio[:] = 1.0
         self.ratio[on_region] = ratio
         self._loads = (on_region, B, B_uncut, uncut)
+
+    def _tool_loads(self, patch: CutPatch, vertices: np.ndarray) -> np.ndarray:
+        """Right-hand sides of a unit tool force centred on each of ``vertices``.
+
+        The tool presses over a disk, like the training's soft tip: the weight
+        (1 - r^2 / a^2)^2 of the region's surface vertices within its radius a, along
+        their inward normals, normalised to 1 N. A point load would not do: at a lip
+        its compliance is dominated by the local (singular) response.
+        """
+        model = self.model
+        normals = _vertex_normals(model.vertices, model.triangles)
+        radius = float(model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5))
+        on = np.flatnonzero(self.surface_region >= 0)
+        xyz = model.vertices[on]
+        region, G = patch.region, patch.G
+        index = np.full(len(patch.topology.origin), -1)
+        index[patch.nodes] = np.arange(len(patch.nodes))
+        B = np.zeros((patch.size, len(vertices)))
+        for k, v in enumerate(vertices):
+            r2 = np.sum((xyz - model.vertices[v]) ** 2, axis=1) / radius**2
+            near = np.flatnonzero(r2 < 1.0)
+            w = (1.0 - r2[near]) ** 2
+            w /= w.sum()
+            for vertex, weight in zip(on[near], w, strict=True):
+                node = self.surface_region[vertex]
+                f = -weight * normals[vertex]
+                B[:G, k] += region.basis[3 * node + np.arange(3)].T @ f
+                if index[node] >= 0:
+                    B[G + 3 * index[node] + np.arange(3), k] += f
+        return B
 
     def cut_field(self, vertex: int) -> np.ndarray | None:
         """Displacement per unit normal force at ``vertex`` of (cut - intact) models, (Rn', 3).
@@ -413,19 +440,6 @@ class Scalpel:
         copies = np.arange(len(u0), len(u))
         field[copies] -= u0[self.topology.origin[copies]]
         return field
-
-
-def _unit_loads(patch: CutPatch, nodes: np.ndarray, loads: np.ndarray) -> np.ndarray:
-    """Right-hand sides [A^T f; f on the patch DOFs] of unit point loads at region nodes."""
-    region, G = patch.region, patch.G
-    index = np.full(len(patch.topology.origin), -1)
-    index[patch.nodes] = np.arange(len(patch.nodes))
-    B = np.zeros((patch.size, len(nodes)))
-    for k, (node, f) in enumerate(zip(nodes, loads, strict=True)):
-        B[:G, k] = region.basis[3 * node + np.arange(3)].T @ f
-        if index[node] >= 0:
-            B[G + 3 * index[node] + np.arange(3), k] = f
-    return B
 
 
 def _compliance(patch: CutPatch, B: np.ndarray) -> np.ndarray:
