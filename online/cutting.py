@@ -299,6 +299,34 @@ class Scalpel:
             self._layout_key = key
         return self._layout
 
+    def surface_triangles(self) -> np.ndarray:
+        """The surface triangles with the lips split: a triangle on a copy's side of the cut
+        uses that copy's lip vertex (numbered V + k, k as in ``surface_layout``'s copies)."""
+        key = len(self.events)
+        if getattr(self, "_triangles_key", None) == key:
+            return self._triangles
+        triangles = np.asarray(self.model.triangles).copy()
+        _, _, copies, duplicated = self.surface_layout()
+        V = len(self.model.vertices)
+        lip_vertex = {int(c): V + k for k, c in enumerate(copies)}
+        region_of = self.surface_region
+        touched = np.flatnonzero(np.isin(triangles, duplicated).any(axis=1))
+        for t in touched:
+            nodes = region_of[triangles[t]]
+            if np.any(nodes < 0):
+                continue
+            # The one region cell holding the three nodes of a surface triangle.
+            cells = np.flatnonzero(np.isin(self.region.cells, nodes).sum(axis=1) == 3)
+            if cells.size != 1:
+                continue
+            current = self.topology.cells[cells[0]]
+            for j in range(3):
+                used = current[self.region.cells[cells[0]] == nodes[j]]
+                if used.size and int(used[0]) in lip_vertex:
+                    triangles[t, j] = lip_vertex[int(used[0])]
+        self._triangles_key, self._triangles = key, triangles
+        return triangles
+
     def _thickness(self) -> float:
         """A rough local thickness: the region's extent along its mean surface normal."""
         x = self.region.coordinates

@@ -269,6 +269,17 @@ class Simulator:
             base = base + force * field[copies]
         self._lips = (base, lip_vertices)
 
+    def cut_surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """(vertices, triangles) to render with the cut open: the model's surface vertices,
+        then the lip copies (``lip_vertices`` order), and the triangles re-indexed so each lip
+        uses its own vertices. Without a cut, the model's surface."""
+        m = self.model
+        if self._cutting is None or self._cutting.patch is None:
+            return m.vertices, m.triangles
+        _, _, _, duplicated = self._cutting.surface_layout()
+        vertices = np.vstack([m.vertices, m.vertices[duplicated]])
+        return vertices, self._cutting.surface_triangles()
+
     @property
     def lip_vertices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The cut's second lip for rendering: (surface vertex each copies, its reference

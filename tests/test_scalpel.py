@@ -68,6 +68,16 @@ def test_pressing_the_blade_cuts_and_softens(model):
     assert len(vertices) > 0
     np.testing.assert_array_equal(positions, model.vertices[vertices])
     assert np.abs(displacement - out[vertices]).max() > 0
+    # A renderer's view: the lips split the triangles, each side uses its own vertices.
+    all_vertices, triangles = sim.cut_surface()
+    V = len(model.vertices)
+    assert len(all_vertices) == V + len(vertices) and len(triangles) == len(model.triangles)
+    used = np.unique(triangles)
+    assert np.all(np.isin(np.arange(V, V + len(vertices)), used))  # every lip copy is drawn
+    assert np.all(np.isin(vertices, used))  # and so is the other lip
+    changed = np.any(triangles != model.triangles, axis=1)
+    np.testing.assert_array_equal(all_vertices[triangles[changed]],
+                                  model.vertices[model.triangles[changed]])  # fmt: skip
 
 
 def test_bad_scalpel_input_leaves_the_state_alone(model):
