@@ -46,6 +46,7 @@ displacement along the load, ``f^T u / |sum f|`` (mm).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import dolfinx
@@ -227,8 +228,6 @@ class ReducedResidual:
         self.residual, self.space, self.comm = residual, space, comm
         self.n, self.n_p = space.n, space.n_p
         self.size = self.n + self.n_p + 1  # unknowns (alpha, beta, lam)
-        self.load_response = comm.allreduce(float(space.f @ space.g), op=MPI.SUM)  # 0
-        self.fA = comm.allreduce(space.f @ space.A, op=MPI.SUM)  # (n,) A^T f
         self.evaluations = 0
 
     def fields(self, y: np.ndarray):
@@ -471,8 +470,6 @@ def _correct(r: ReducedResidual, y: np.ndarray, reference: float, tol: float):
 
 def continuation(r: ReducedResidual, scale: np.ndarray, options: ANMOptions) -> Branch:
     """ANM sections from the reference state (y = 0) until ``options.load_max`` is covered."""
-    import time
-
     t0 = time.perf_counter()
     y0 = np.zeros(r.size)
     J = r.jacobian(y0)

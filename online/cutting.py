@@ -18,6 +18,7 @@ Units: mm, N, N/mm.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -273,7 +274,7 @@ class Scalpel:
         self.surface_region = np.array([local.get(int(n), -1) for n in surface_nodes])
         self.ratio = np.ones(len(surface_nodes))  # cut / intact stiffness per surface vertex
         self.delta = None  # (Rn', 3): cut displacement per unit force at the contact vertex
-        self.blade = None
+        self.normals = _vertex_normals(model.vertices, model.triangles)  # outward, per vertex
 
     def region_vertex(self, point: np.ndarray) -> int:
         """The surface vertex of the region nearest ``point``, or -1 if none is within a cell."""
@@ -379,8 +380,6 @@ class Scalpel:
 
     def cut(self, faces: np.ndarray) -> CutEvent | None:
         """Cut ``faces`` (region node ids), rebuild and factorise the patch."""
-        import time
-
         if len(faces) == 0:
             return None
         t0 = time.perf_counter()
@@ -423,7 +422,7 @@ class Scalpel:
         its compliance is dominated by the local (singular) response.
         """
         model = self.model
-        normals = _vertex_normals(model.vertices, model.triangles)
+        normals = self.normals
         radius = float(model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5))
         on = np.flatnonzero(self.surface_region >= 0)
         xyz = model.vertices[on]

@@ -172,14 +172,11 @@ class Simulator:
         organ or a blade along the normal raises ``ScalpelInputError``; nothing
         changes then.
         """
-        from hapticrom.online.cutting import Scalpel, _vertex_normals
+        from hapticrom.online.cutting import Scalpel
 
         m = self.model
-        if self._cutting is None:
-            scalpel = Scalpel(m)  # raises ValueError without a cuttable region
-            scalpel.normals = _vertex_normals(m.vertices, m.triangles)
-        else:
-            scalpel = self._cutting
+        # Scalpel() raises ValueError for an artifact without a cuttable region.
+        scalpel = self._cutting if self._cutting is not None else Scalpel(m)
         p = np.asarray(position, dtype=float)
         vertex = int(np.argmin(np.sum((m.vertices - p) ** 2, axis=1))) if p.shape == (3,) else 0
         normal = scalpel.normals[vertex]
