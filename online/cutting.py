@@ -273,7 +273,6 @@ class Scalpel:
         local = {int(n): i for i, n in enumerate(canonical)}
         self.surface_region = np.array([local.get(int(n), -1) for n in surface_nodes])
         self.ratio = np.ones(len(surface_nodes))  # cut / intact stiffness per surface vertex
-        self.delta = None  # (Rn', 3): cut displacement per unit force at the contact vertex
         self.normals = _vertex_normals(model.vertices, model.triangles)  # outward, per vertex
 
     def region_vertex(self, point: np.ndarray) -> int:
