@@ -6,6 +6,10 @@ in it, their element stiffness matrices at the reference tangent
 nodes, which nodes must keep the reduced field (the region's boundary and the
 supports), and the global reduced stiffness with the pressure condensed
 element-wise, consistent with the element matrices (eq. 4.8's K^zeta-zeta).
+With an element-wise pressure, also the blocks before condensation and the
+global reduced pressure basis, so the runtime can keep the reduced pressure
+outside its patch (the element-condensed reduced stiffness locks nearly
+incompressible tissue).
 """
 
 from __future__ import annotations
@@ -53,9 +57,21 @@ def condensed_reduced_stiffness(comm: MPI.Comm, ops, A_local: np.ndarray) -> np.
     return (K + K.T) / 2
 
 
-def cutting_group(config, cutting: CuttingConfig, basis: np.ndarray, reduced_stiffness) -> dict:
-    """The artifact group (rank 0, serial): region arrays and element matrices."""
-    from hapticrom.offline.element_matrices import element_stiffness
+def cutting_group(
+    config, cutting: CuttingConfig, basis: np.ndarray, reduced_stiffness, pressure=None
+) -> dict:
+    """The artifact group (rank 0, serial): region arrays and element matrices.
+
+    ``pressure``: for an element-wise pressure, the global reduced pressure modes
+    (``pressure_modes``, canonical cell rows) and the reduced blocks
+    (``reduced_*`` datasets): the coupling then keeps the reduced pressure outside
+    the cut patch (format 1.3).
+    """
+    from hapticrom.offline.element_matrices import (
+        canonical_cell_index,
+        condense,
+        element_blocks,
+    )
     from hapticrom.offline.formulation import HyperelasticModel, choose_element
     from hapticrom.offline.materials import make_law
     from hapticrom.offline.organ import load_organ
@@ -75,9 +91,20 @@ def cutting_group(config, cutting: CuttingConfig, basis: np.ndarray, reduced_sti
     law = make_law(problem.material.law, **problem.material.params)
     element = choose_element(organ.cell_type, problem.discretisation.element)
     model = HyperelasticModel(organ, law, element, problem.discretisation.quadrature_degree)
-    matrices = element_stiffness(model, region_cells, cells[region_cells])
+    K_uu, k_up, k_pp = element_blocks(model, region_cells, cells[region_cells])
+    matrices = condense(K_uu, k_up, k_pp)
     rows = (3 * region_nodes[:, None] + np.arange(3)).ravel()
+    extra = {}
+    if pressure is not None and k_up is not None:
+        extra = {
+            "element_displacement_stiffness": K_uu,
+            "element_pressure_coupling": k_up,
+            "element_pressure_stiffness": k_pp,
+            "pressure_basis": pressure["pressure_modes"][canonical_cell_index(cells)[region_cells]],
+            **{k: v for k, v in pressure.items() if k.startswith("reduced_")},
+        }
     return {
+        **extra,
         "nodes": region_nodes.astype(np.int64),
         "coordinates": nodes[region_nodes],
         "cells": local[cells[region_cells]].astype(np.int64),

@@ -56,7 +56,22 @@ def element_stiffness(model: HyperelasticModel, msh_cells: np.ndarray, cell_node
 
     ``cell_nodes`` (len, k): the cells' canonical (mesh-file) node indices; the
     matrices follow that node order. The model's state should be the reference
-    (u = 0, p = 0).
+    (u = 0, p = 0). The element-wise pressure, if any, is condensed.
+    """
+    return condense(*element_blocks(model, msh_cells, cell_nodes))
+
+
+def condense(K_uu: np.ndarray, k_up: np.ndarray | None, k_pp: np.ndarray | None) -> np.ndarray:
+    """K_uu - k_up k_up^T / k_pp per cell (K_uu itself without a pressure), symmetrised."""
+    K = K_uu if k_up is None else K_uu - k_up[:, :, None] * k_up[:, None, :] / k_pp[:, None, None]
+    return (K + np.swapaxes(K, 1, 2)) / 2
+
+
+def element_blocks(model: HyperelasticModel, msh_cells: np.ndarray, cell_nodes: np.ndarray):
+    """(K_uu,c (len, 3 k, 3 k) N/mm, k_up,c (len, 3 k) mm^2, k_pp,c (len,) mm^3/MPa).
+
+    The cells' tangent blocks before the pressure is condensed; the last two are
+    None for a displacement-only element. Arguments as :func:`element_stiffness`.
     """
     mesh = model.organ.mesh
     if mesh.comm.size != 1:
@@ -81,7 +96,10 @@ def element_stiffness(model: HyperelasticModel, msh_cells: np.ndarray, cell_node
         for R in residuals
     ]
     k = cell_nodes.shape[1]
-    out = np.zeros((len(msh_cells), 3 * k, 3 * k))
+    Kuu = np.zeros((len(msh_cells), 3 * k, 3 * k))
+    mixed = model.p is not None
+    kup = np.zeros((len(msh_cells), 3 * k)) if mixed else None
+    kpp = np.zeros(len(msh_cells)) if mixed else None
     colours = colour_cells(cell_nodes)
     for colour in np.unique(colours):
         members = np.flatnonzero(colours == colour)
@@ -100,10 +118,20 @@ def element_stiffness(model: HyperelasticModel, msh_cells: np.ndarray, cell_node
                 raise InputError(f"cell {msh_cells[m]}: its nodes do not match the mesh") from None
             dofs = (3 * ordered[:, None] + np.arange(3)).ravel()
             K = blocks[0][0][dofs][:, dofs].toarray()
-            if model.p is not None:
+            Kuu[m] = (K + K.T) / 2
+            if mixed:
                 q = model.Q.dofmap.cell_dofs(c)[0]
-                kup = blocks[0][1][dofs][:, [q]].toarray().ravel()
-                kpp = blocks[1][1][q, q]
-                K = K - np.outer(kup, kup) / kpp
-            out[m] = (K + K.T) / 2
-    return out
+                kup[m] = blocks[0][1][dofs][:, [q]].toarray().ravel()
+                kpp[m] = blocks[1][1][q, q]
+    return Kuu, kup, kpp
+
+
+def canonical_cell_index(cells: np.ndarray) -> np.ndarray:
+    """Canonical index of each mesh-file cell: the order of an element-wise pressure's
+    DOFs in snapshots and operators (cells sorted by their sorted node ids, as
+    :class:`~hapticrom.offline.dofs.CanonicalOrder` does for a DG0 space)."""
+    keys = np.sort(cells, axis=1)
+    order = np.lexsort(keys.T[::-1])
+    index = np.empty(len(cells), dtype=np.int64)
+    index[order] = np.arange(len(cells))
+    return index

@@ -157,14 +157,23 @@ def _sum(comm, a):
     return comm.allreduce(np.asarray(a), op=MPI.SUM)
 
 
-def reduced_stiffness(comm, ops: OperatorRows, A_local, P_local=None) -> np.ndarray:
-    """A^T K A, with the pressure reduced to the basis P when the element has one (N/mm)."""
+def reduced_blocks(comm, ops: OperatorRows, A_local, P_local=None):
+    """(A^T K A (N/mm), A^T K_up P (mm^2), P^T K_pp P (mm^3/MPa)); the last two are None
+    for a displacement-only element or without a pressure basis P. K is K_uu if mixed."""
     A = _allgather_rows(comm, A_local)
     K_r = _sum(comm, A_local.T @ (ops.K @ A))
-    if ops.mixed and P_local is not None:
-        P = _allgather_rows(comm, P_local)
-        B = _sum(comm, A_local.T @ (ops.Kup @ P))  # A^T K_up P
-        Kpp = _sum(comm, P_local.T @ (ops.kpp[:, None] * P_local))  # P^T K_pp P (< 0)
+    if not (ops.mixed and P_local is not None):
+        return (K_r + K_r.T) / 2, None, None
+    P = _allgather_rows(comm, P_local)
+    B = _sum(comm, A_local.T @ (ops.Kup @ P))
+    Kpp = _sum(comm, P_local.T @ (ops.kpp[:, None] * P_local))  # < 0
+    return (K_r + K_r.T) / 2, B, (Kpp + Kpp.T) / 2
+
+
+def reduced_stiffness(comm, ops: OperatorRows, A_local, P_local=None) -> np.ndarray:
+    """A^T K A, with the pressure reduced to the basis P when the element has one (N/mm)."""
+    K_r, B, Kpp = reduced_blocks(comm, ops, A_local, P_local)
+    if B is not None:
         K_r = K_r - B @ np.linalg.solve(Kpp, B.T)
     return (K_r + K_r.T) / 2
 
@@ -359,11 +368,19 @@ def reduce_campaign(
         anm = config.anm
         say(f"POD-ANM series per sample (order {anm.order}, tolerance {anm.tolerance:g})")
         series = sample_series(config, samples, reduced, comm, say)
-    cut_stiffness = None
+    cut_stiffness = cut_pressure = None
     if config.cutting is not None:
         from hapticrom.offline.cutting_export import condensed_reduced_stiffness
 
         cut_stiffness = condensed_reduced_stiffness(comm, ops, global_pod.basis_local)
+        if global_P is not None:  # the coupling keeps the reduced pressure (ARTIFACT.md)
+            K_uu, K_up, K_pp = reduced_blocks(comm, ops, global_pod.basis_local, global_P)
+            cut_pressure = {
+                "pressure_modes": _allgather_rows(comm, global_P),
+                "reduced_displacement_stiffness": K_uu,
+                "reduced_pressure_coupling": K_up,
+                "reduced_pressure_stiffness": K_pp,
+            }
     points = np.array([s.point for s in samples])
     normals = -np.array([s.direction for s in samples])  # outward: against the push
     origin, axes, chart, triangles = chart_and_triangulation(points, normals)
@@ -443,7 +460,9 @@ def reduce_campaign(
         if cut_stiffness is not None:
             from hapticrom.offline.cutting_export import cutting_group
 
-            content["cutting"] = cutting_group(config, config.cutting, global_basis, cut_stiffness)
+            content["cutting"] = cutting_group(
+                config, config.cutting, global_basis, cut_stiffness, cut_pressure
+            )
         root = {
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "software": json.dumps(_software()),

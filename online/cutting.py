@@ -28,6 +28,54 @@ HEX_FACES = np.array(
 )
 
 
+# Degree-4 symmetric quadrature on a triangle (Dunavant): barycentric points, weights (sum 1).
+_A, _B = 0.445948490915965, 0.091576213509771
+TRIANGLE_RULE = (
+    np.array([[_A, _A, 1 - 2 * _A], [_A, 1 - 2 * _A, _A], [1 - 2 * _A, _A, _A],
+              [_B, _B, 1 - 2 * _B], [_B, 1 - 2 * _B, _B], [1 - 2 * _B, _B, _B]]),
+    np.array([0.223381589678011] * 3 + [0.109951743655322] * 3),
+)  # fmt: skip
+
+
+@dataclass
+class PressureCoupling:
+    """What a consistent coupling needs when the element has an element-wise pressure.
+
+    The reduced model keeps its pressure in a reduced basis (locking-free, as the
+    reduced model everywhere else); the patch's cells keep their own pressure,
+    condensed cell by cell. So the patch's cells are taken out of the reduced
+    blocks and put back with their own pressures. Per region cell: ``displacement``
+    K_uu,c (C, 24, 24) N/mm, ``coupling`` k_up,c (C, 24) mm^2, ``pressure`` k_pp,c
+    (C,) mm^3/MPa (< 0), ``pressure_basis`` (C, P) the reduced pressure modes' cell
+    values. Reduced, over the whole organ: ``reduced_displacement`` A^T K_uu A
+    (G, G), ``reduced_coupling`` A^T K_up P (G, P), ``reduced_pressure`` P^T K_pp P (P, P).
+    """
+
+    displacement: np.ndarray
+    coupling: np.ndarray
+    pressure: np.ndarray
+    pressure_basis: np.ndarray
+    reduced_displacement: np.ndarray
+    reduced_coupling: np.ndarray
+    reduced_pressure: np.ndarray
+
+    def outside(self, cells: np.ndarray, cell_basis) -> tuple:
+        """(A^T K_uu A, A^T K_up P, P^T K_pp P) of the cells not in ``cells``.
+
+        ``cell_basis(c)``: the reduced basis rows (24, G) at cell c's nodes.
+        """
+        A = self.reduced_displacement.copy()
+        B = self.reduced_coupling.copy()
+        C = self.reduced_pressure.copy()
+        for c in cells:
+            Phi = cell_basis(c)
+            psi = self.pressure_basis[c]
+            A -= Phi.T @ self.displacement[c] @ Phi
+            B -= np.outer(Phi.T @ self.coupling[c], psi)
+            C -= self.pressure[c] * np.outer(psi, psi)
+        return A, B, C
+
+
 @dataclass
 class CutRegion:
     """What the runtime knows of the cuttable region (region-local node numbering).
@@ -44,6 +92,7 @@ class CutRegion:
     basis: np.ndarray
     fixed: np.ndarray
     reduced_stiffness: np.ndarray
+    pressure: PressureCoupling | None = None
 
     def __post_init__(self):
         R, C = len(self.coordinates), len(self.cells)
@@ -56,6 +105,18 @@ class CutRegion:
             "fixed": self.fixed.shape == (R,),
             "reduced_stiffness": self.reduced_stiffness.shape == (G, G),
         }  # fmt: skip
+        if self.pressure is not None:
+            q = self.pressure
+            P = q.reduced_pressure.shape[0]
+            checks |= {
+                "displacement stiffness": q.displacement.shape == (C, 24, 24),
+                "pressure coupling": q.coupling.shape == (C, 24),
+                "pressure stiffness": q.pressure.shape == (C,),
+                "pressure basis": q.pressure_basis.shape == (C, P),
+                "reduced displacement": q.reduced_displacement.shape == (G, G),
+                "reduced coupling": q.reduced_coupling.shape == (G, P),
+                "reduced pressure": q.reduced_pressure.shape == (P, P),
+            }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
             raise ValueError(f"cut region: inconsistent {', '.join(bad)}")
@@ -184,16 +245,27 @@ class CutPatch:
         index[nodes] = np.arange(len(nodes))
         K_zd = np.zeros((G, m))
         K_dd = np.zeros((m, m))
+
+        def cell_basis(c):  # (24, G): the reduced field does not see the cut
+            return region.basis[(3 * topology.origin[cells[c]][:, None] + np.arange(3)).ravel()]
+
+        if region.pressure is None:
+            K_zz = region.reduced_stiffness.copy()
+        else:
+            # Reduced pressure outside the patch, the cells' own pressures inside it.
+            A, B, C = region.pressure.outside(self.cells, cell_basis)
+            K_zz = A - B @ np.linalg.solve(C, B.T)
         for c in self.cells:
             Ke = region.element_stiffness[c]
-            rows = (3 * topology.origin[cells[c]][:, None] + np.arange(3)).ravel()
-            A_c = region.basis[rows]  # (24, G): the reduced field does not see the cut
+            A_c = cell_basis(c)
+            if region.pressure is not None:
+                K_zz += A_c.T @ Ke @ A_c
             local = index[cells[c]]
             dofs = (3 * local[:, None] + np.arange(3)).ravel()
             keep = np.repeat(local >= 0, 3)
             K_zd[:, dofs[keep]] += A_c.T @ Ke[:, keep]
             K_dd[np.ix_(dofs[keep], dofs[keep])] += Ke[np.ix_(keep, keep)]
-        K = np.block([[region.reduced_stiffness, K_zd], [K_zd.T, K_dd]])
+        K = np.block([[K_zz, K_zd], [K_zd.T, K_dd]])
         self.size, self.G = K.shape[0], G
         self.factor = np.linalg.cholesky((K + K.T) / 2)  # raises LinAlgError if not SPD
 
@@ -238,12 +310,12 @@ class Scalpel:
     eq. 4.10, after Bielser and Gross): the region's interior faces under the
     blade (facing across the blade's plane, down to ``cut_depth`` below the
     surface) are cut whole, the patch is rebuilt around all cuts so far and the
-    coupled system factorised. For each surface node of the region the
-    factorisation gives the tissue's compliance under a unit normal point load
-    with the cuts, and without them (the reduced model alone); their ratio
-    scales the reduced model's force at the contact (a cut softens the tissue
-    near it), and the cut's own displacement field is added to the rendered
-    surface, lips included.
+    coupled system factorised. For each surface vertex of the region the
+    factorisation gives the tissue's compliance under a unit tool load with the
+    cuts, and without them (the same patch uncut); their ratio scales the
+    reduced model's force at the contact (a cut softens the tissue near it), and
+    the cut's own displacement field is added to the rendered surface, lips
+    included.
     """
 
     def __init__(self, model, cut_depth: float | None = None, layers: int | None = None):
@@ -273,6 +345,7 @@ class Scalpel:
         local = {int(n): i for i, n in enumerate(canonical)}
         self.surface_region = np.array([local.get(int(n), -1) for n in surface_nodes])
         self.ratio = np.ones(len(surface_nodes))  # cut / intact stiffness per surface vertex
+        self.extra_compliance = np.zeros(len(surface_nodes))  # cut - intact compliance, mm/N
         self.normals = _vertex_normals(model.vertices, model.triangles)  # outward, per vertex
 
     def region_vertex(self, point: np.ndarray) -> int:
@@ -306,26 +379,49 @@ class Scalpel:
         if getattr(self, "_triangles_key", None) == key:
             return self._triangles
         triangles = np.asarray(self.model.triangles).copy()
-        _, _, copies, duplicated = self.surface_layout()
-        V = len(self.model.vertices)
-        lip_vertex = {int(c): V + k for k, c in enumerate(copies)}
-        region_of = self.surface_region
-        touched = np.flatnonzero(np.isin(triangles, duplicated).any(axis=1))
-        for t in touched:
-            nodes = region_of[triangles[t]]
-            if np.any(nodes < 0):
-                continue
-            # The one region cell holding the three nodes of a surface triangle.
-            cells = np.flatnonzero(np.isin(self.region.cells, nodes).sum(axis=1) == 3)
-            if cells.size != 1:
-                continue
-            current = self.topology.cells[cells[0]]
-            for j in range(3):
-                used = current[self.region.cells[cells[0]] == nodes[j]]
-                if used.size and int(used[0]) in lip_vertex:
-                    triangles[t, j] = lip_vertex[int(used[0])]
+        _, _, copies, _ = self.surface_layout()
+        vertex_of = np.full(len(self.topology.origin), -1)
+        vertex_of[copies] = len(self.model.vertices) + np.arange(len(copies))
+        which, current = self._region_triangles(self.topology)
+        lip = vertex_of[current]
+        triangles[which] = np.where(lip >= 0, lip, triangles[which])
         self._triangles_key, self._triangles = key, triangles
         return triangles
+
+    def _region_triangles(self, topology: CutTopology) -> tuple[np.ndarray, np.ndarray]:
+        """(indices of the surface triangles wholly in the region, their nodes in
+        ``topology``'s numbering: a triangle on a copy's side of a cut uses the copy)."""
+        if not hasattr(self, "_triangle_cell"):
+            nodes = self.surface_region[np.asarray(self.model.triangles)]
+            which = np.flatnonzero(np.all(nodes >= 0, axis=1))
+            cells = self.region.cells
+            cell = np.full(len(which), -1)
+            position = np.zeros((len(which), 3), dtype=np.int64)
+            for i, t in enumerate(which):
+                # The one region cell holding the three nodes of a surface triangle.
+                holding = np.flatnonzero(np.isin(cells, nodes[t]).sum(axis=1) == 3)
+                if holding.size:
+                    cell[i] = holding[0]
+                    position[i] = [np.flatnonzero(cells[holding[0]] == n)[0] for n in nodes[t]]
+            keep = cell >= 0
+            self._triangle_cell = (which[keep], cell[keep], position[keep])
+        which, cell, position = self._triangle_cell
+        return which, topology.cells[cell[:, None], position]
+
+    def _surface_quadrature(self, topology: CutTopology):
+        """(loadable region triangles in ``topology``'s numbering (T, 3), their quadrature
+        points (T, 6, 3) mm, and weights (T, 6) mm^2), for tool tractions.
+
+        Only the loadable surface counts (a tool touches the anterior surface, not the
+        posterior one, however thin the tissue). A lip copy's triangles are those of
+        its own side of the cut.
+        """
+        which, triangles = self._region_triangles(topology)
+        triangles = triangles[np.asarray(self.model.artifact["surface"]["groups"])[which] == 1]
+        x = self.region.coordinates[topology.origin[triangles]]  # (T, 3, 3)
+        area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1)
+        points = np.einsum("qi,tij->tqj", TRIANGLE_RULE[0], x)
+        return triangles, points, area[:, None] * TRIANGLE_RULE[1]
 
     def _thickness(self) -> float:
         """A rough local thickness: the region's extent along its mean surface normal."""
@@ -394,12 +490,13 @@ class Scalpel:
         return event
 
     def _compliances(self) -> None:
-        """Stiffness ratio (cut / uncut) for a unit normal load at every region surface vertex.
+        """Stiffness ratio (cut / uncut) for a unit tool load at every region surface vertex.
 
         The uncut reference is the same patch without the cut, not the reduced model
-        alone: the patch's local DOFs relax the reduced basis as well (for nearly
-        incompressible tissue, whose element-condensed reduced part is too stiff, by
-        a lot), and only the cut's share of the softening belongs in the force.
+        alone: the patch's local DOFs relax the reduced basis a little too (a lot if
+        the reduced part has its pressure condensed per element, which locks nearly
+        incompressible tissue), and only the cut's share of the softening belongs
+        in the force.
         """
         on_region = np.flatnonzero(self.surface_region >= 0)
         uncut = CutPatch(CutTopology.of_region(self.region), self.region, 1, self.patch.cells)
@@ -410,36 +507,45 @@ class Scalpel:
         np.divide(reference, cut, out=ratio, where=cut > 0)
         self.ratio[:] = 1.0
         self.ratio[on_region] = ratio
+        self.extra_compliance[:] = 0.0
+        self.extra_compliance[on_region] = cut - reference
         self._loads = (on_region, B, B_uncut, uncut)
 
     def _tool_loads(self, patch: CutPatch, vertices: np.ndarray) -> np.ndarray:
         """Right-hand sides of a unit tool force centred on each of ``vertices``.
 
-        The tool presses over a disk, like the training's soft tip: the weight
-        (1 - r^2 / a^2)^2 of the region's surface vertices within its radius a, along
-        their inward normals, normalised to 1 N. A point load would not do: at a lip
-        its compliance is dominated by the local (singular) response.
+        The tool presses as the training's soft tip does: a traction of profile
+        (1 - r^2 / a^2)^2 within its radius a, along the inward normal at its centre,
+        1 N in all, integrated over the surface triangles (6-point rule, linear
+        shapes). A point load would not do (at a lip its compliance is the local,
+        singular response), nor would a load on one lip only: each lip takes the
+        traction of its own side of the surface; nor a nodal lumping, on a mesh as
+        coarse as the tool.
         """
         model = self.model
-        normals = self.normals
         radius = float(model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5))
-        on = np.flatnonzero(self.surface_region >= 0)
-        xyz = model.vertices[on]
-        region, G = patch.region, patch.G
-        index = np.full(len(patch.topology.origin), -1)
+        topology, region, G = patch.topology, patch.region, patch.G
+        triangles, points, weights = self._surface_quadrature(topology)
+        nodes, triangles = np.unique(triangles, return_inverse=True)
+        triangles = triangles.reshape(-1, 3)
+        rows = (3 * topology.origin[nodes][:, None] + np.arange(3)).ravel()
+        basis = region.basis[rows].reshape(len(nodes), 3, G)
+        index = np.full(len(topology.origin), -1)
         index[patch.nodes] = np.arange(len(patch.nodes))
+        local = index[nodes]
         B = np.zeros((patch.size, len(vertices)))
         for k, v in enumerate(vertices):
-            r2 = np.sum((xyz - model.vertices[v]) ** 2, axis=1) / radius**2
-            near = np.flatnonzero(r2 < 1.0)
-            w = (1.0 - r2[near]) ** 2
-            w /= w.sum()
-            for vertex, weight in zip(on[near], w, strict=True):
-                node = self.surface_region[vertex]
-                f = -weight * normals[vertex]
-                B[:G, k] += region.basis[3 * node + np.arange(3)].T @ f
-                if index[node] >= 0:
-                    B[G + 3 * index[node] + np.arange(3), k] += f
+            # The traction profile at the quadrature points, spread by the linear shapes.
+            s = np.sum((points - model.vertices[v]) ** 2, axis=2) / radius**2
+            traction = weights * np.where(s < 1.0, (1.0 - s) ** 2, 0.0)
+            w = np.bincount(triangles.ravel(), (traction @ TRIANGLE_RULE[0]).ravel(), len(nodes))
+            near = np.flatnonzero(w > 0)
+            w = w[near] / w.sum()
+            direction = -self.normals[v]
+            B[:G, k] = np.einsum("i,ijg,j->g", w, basis[near], direction)
+            on_patch = local[near] >= 0
+            dofs = G + 3 * local[near[on_patch]][:, None] + np.arange(3)
+            B[dofs, k] = w[on_patch][:, None] * direction
         return B
 
     def cut_field(self, vertex: int) -> np.ndarray | None:

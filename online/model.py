@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticrom.shared.artifact import Artifact, ArtifactError, read_artifact
+from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
 
 INTERPOLATIONS = ("podi", "grassmann")
 RESPONSES = ("anm", "curves")
@@ -142,10 +142,30 @@ class ReducedModel:
 
 
 def _cut_region(artifact: Artifact):
-    """The cuttable region (format 1.2) for :mod:`hapticrom.online.cutting`."""
-    from hapticrom.online.cutting import CutRegion
+    """The cuttable region (format 1.2; 1.3 adds its pressure coupling) for
+    :mod:`hapticrom.online.cutting`."""
+    from hapticrom.online.cutting import CutRegion, PressureCoupling
 
     c = artifact["cutting"]
+    pressure = None
+    coupling = [spec.name for group in SCHEMA if group.name == "cutting"
+                for spec in group.fields if not spec.required]  # fmt: skip
+    missing = [name for name in coupling if name not in c]
+    if 0 < len(missing) < len(coupling):
+        raise ArtifactError(
+            f"{artifact.path}: incomplete pressure coupling in /cutting: "
+            f"missing {', '.join(missing)}"
+        )
+    if not missing:
+        pressure = PressureCoupling(
+            displacement=_f8(c["element_displacement_stiffness"]),
+            coupling=_f8(c["element_pressure_coupling"]),
+            pressure=_f8(c["element_pressure_stiffness"]),
+            pressure_basis=_f8(c["pressure_basis"]),
+            reduced_displacement=_f8(c["reduced_displacement_stiffness"]),
+            reduced_coupling=_f8(c["reduced_pressure_coupling"]),
+            reduced_pressure=_f8(c["reduced_pressure_stiffness"]),
+        )
     try:
         return CutRegion(
             coordinates=_f8(c["coordinates"]),
@@ -154,6 +174,7 @@ def _cut_region(artifact: Artifact):
             basis=_f8(c["basis"]),
             fixed=np.asarray(c["fixed"]) != 0,
             reduced_stiffness=_f8(c["reduced_stiffness"]),
+            pressure=pressure,
         )
     except ValueError as exc:
         raise ArtifactError(f"{artifact.path}: {exc}") from None

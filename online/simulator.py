@@ -105,6 +105,7 @@ class Simulator:
         self._vertex = -1  # region surface vertex at the contact (while cutting), or -1
         self.last_cut = None  # the last CutEvent
         self._lips = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))  # second lip, rendered
+        self._controlled = "displacement"  # the last step's control: the cut's field needs it
 
     # -- contact -----------------------------------------------------------------
     def set_contact(self, point) -> None:
@@ -154,6 +155,7 @@ class Simulator:
         The force points out of the tissue (along the outward normal). The
         returned array is reused by the next call.
         """
+        self._controlled = "displacement"
         status = self._step_displacement(d, self._buf) if self._contact else -1
         if status:
             self._check(status, "displacement", d)
@@ -210,12 +212,20 @@ class Simulator:
             self._force *= scalpel.ratio[self._vertex]
 
     @property
+    def cut_stiffness_ratio(self) -> float:
+        """The cuts' softening at the contact: cut / intact stiffness under the tool (1 uncut)."""
+        if self._cutting is None or self._vertex < 0:
+            return 1.0
+        return float(self._cutting.ratio[self._vertex])
+
+    @property
     def cut_events(self) -> list:
         """Every topology change so far (CutEvent: faces, new nodes, patch size, seconds)."""
         return [] if self._cutting is None else list(self._cutting.events)
 
     def step_force(self, f) -> np.ndarray:
         """Force the tool applies to the tissue ``f`` (N) -> tool displacement (mm)."""
+        self._controlled = "force"
         status = self._step_force(f, self._buf) if self._contact else -1
         if status:
             self._check(status, "force", f)
@@ -255,12 +265,22 @@ class Simulator:
         return out
 
     def _add_cut_field(self, out: np.ndarray) -> None:
-        """The cuts' displacement (per unit force, times the current force) and the lips."""
+        """The cuts' displacement (per unit force, times the current force) and the lips.
+
+        Under displacement control the reduced model's field is that of the intact
+        tissue at the tool's depth, while the cut tissue reaches that depth at a
+        lower force: the cut's field already holds the extra depth (its compliance
+        increase times the force), so the intact part is scaled down to the depth
+        the intact tissue would have under that force (linear, as the cut's field).
+        """
         scalpel = self._cutting
         field = scalpel.cut_field(self._vertex) if self._vertex >= 0 else None
         on, region_of_on, copies, lip_vertices = scalpel.surface_layout()
-        base = out[lip_vertices]
         force = float(np.linalg.norm(self._force))
+        if field is not None and self._controlled == "displacement" and self.depth > 0:
+            extra = force * scalpel.extra_compliance[self._vertex]
+            out *= max(0.0, 1.0 - extra / self.depth)
+        base = out[lip_vertices]
         if field is not None:
             out[on] += force * field[region_of_on]
             base = base + force * field[copies]

@@ -29,7 +29,7 @@ from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.errors import HapticromError
 
 FORMAT = "hapticrom"
-FORMAT_VERSION = (1, 2)  # 1.1: the optional anm group; 1.2: the optional cutting group
+FORMAT_VERSION = (1, 3)  # 1.1: the anm group; 1.2: the cutting group; 1.3: its pressure coupling
 
 
 class ArtifactError(HapticromError):
@@ -128,7 +128,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "cutting",
         "cut-region",
-        (1, 0),
+        (1, 1),
         (
             Field("nodes", "i", ("Rn",), "1", "canonical node of each region node"),
             Field("coordinates", "f", ("Rn", 3), "mm", "reference positions of the region nodes"),
@@ -137,6 +137,19 @@ SCHEMA: tuple[Group, ...] = (
             Field("basis", "f", ("3Rn", "G"), "1", "global POD basis rows at the region nodes"),
             Field("fixed", "i", ("Rn",), "1", "1: node keeps the reduced field (boundary)"),
             Field("reduced_stiffness", "f", ("G", "G"), "N/mm", "A^T K0 A, element pressure"),
+            # 1.1 (format 1.3): an element-wise pressure, for a locking-free coupling.
+            *(
+                Field(name, "f", shape, units, meaning, required=False)
+                for name, shape, units, meaning in (
+                    ("element_displacement_stiffness", ("Rc", 24, 24), "N/mm", "cell K_uu"),
+                    ("element_pressure_coupling", ("Rc", 24), "mm^2", "cell k_up"),
+                    ("element_pressure_stiffness", ("Rc",), "mm^3/MPa", "cell k_pp (< 0)"),
+                    ("pressure_basis", ("Rc", "Gp"), "1", "reduced pressure modes' cell values"),
+                    ("reduced_displacement_stiffness", ("G", "G"), "N/mm", "A^T K_uu A"),
+                    ("reduced_pressure_coupling", ("G", "Gp"), "mm^2", "A^T K_up P"),
+                    ("reduced_pressure_stiffness", ("Gp", "Gp"), "mm^3/MPa", "P^T K_pp P"),
+                )
+            ),
         ),
         required=False,
         attrs=("patch_layers", "cut_force"),
@@ -186,6 +199,8 @@ def write_artifact(path: str | Path, content: dict[str, dict[str, Any]], root_at
             for key, value in content[group.name].get("attrs", {}).items():
                 g.attrs[key] = _encode(value)
             for spec in group.fields:
+                if not spec.required and spec.name not in content[group.name]:
+                    continue
                 array = np.asarray(content[group.name][spec.name])
                 dset = g.create_dataset(spec.name, data=array)
                 dset.attrs["units"] = spec.units
@@ -211,6 +226,8 @@ def _resolve(shape, symbols: dict[str, int], where: str) -> tuple[int, ...]:
 
 def _check_fields(group: Group, arrays: dict[str, np.ndarray], symbols: dict[str, int], where):
     for spec in group.fields:
+        if not spec.required and spec.name not in arrays:
+            continue
         if spec.name not in arrays:
             raise ArtifactError(f"{where}: required dataset {group.name}/{spec.name} is missing")
         a = arrays[spec.name]
@@ -307,6 +324,8 @@ def read_artifact(path: str | Path) -> Artifact:
                     raise ArtifactError(f"{path}: group {group.name} lacks attribute {key}")
             arrays = {}
             for spec in group.fields:
+                if not spec.required and spec.name not in g:
+                    continue
                 if spec.name not in g:
                     raise ArtifactError(
                         f"{path}: required dataset {group.name}/{spec.name} is missing"

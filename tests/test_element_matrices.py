@@ -9,10 +9,15 @@ import scipy.sparse
 import hapticrom.offline  # noqa: F401 - h5py and MPI first
 from hapticrom.meshes import build
 from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.element_matrices import colour_cells, element_stiffness
+from hapticrom.offline.element_matrices import (
+    canonical_cell_index,
+    colour_cells,
+    element_blocks,
+    element_stiffness,
+)
 from hapticrom.offline.formulation import HyperelasticModel, choose_element
 from hapticrom.offline.materials import make_law
-from hapticrom.offline.operators import reference_tangent
+from hapticrom.offline.operators import reference_tangent, tangent_blocks
 from hapticrom.offline.organ import load_organ
 from hapticrom.shared.errors import InputError
 
@@ -45,6 +50,35 @@ def test_element_matrices_assemble_to_the_reference_tangent(cornea):
         for motion in (np.tile(np.eye(3)[0], 8), np.cross([0.0, 0.0, 1.0], x).ravel()):
             assert np.abs(Ke[c] @ motion).max() <= 1e-10 * np.abs(Ke[c]).max()
         assert np.linalg.eigvalsh(Ke[c]).min() >= -1e-10 * np.abs(Ke[c]).max()
+
+
+def test_element_blocks_assemble_to_the_mixed_tangent(cornea):
+    """K_uu,c, k_up,c, k_pp,c before condensation: DOLFINx's canonical blocks, cell by cell
+    (the pressure DOF of mesh-file cell c is canonical_cell_index(cells)[c])."""
+    model, mesh = cornea
+    cells = mesh.cells
+    K_uu, k_up, k_pp = element_blocks(model, np.arange(len(cells)), cells)
+    reference = tangent_blocks(model, CanonicalOrder(model.V), CanonicalOrder(model.Q))
+    pressure_dof = canonical_cell_index(cells)
+    dofs = (3 * cells[:, :, None] + np.arange(3)).reshape(len(cells), -1)
+    Kuu = reference["Kuu"]
+    rows = np.repeat(dofs, dofs.shape[1], axis=1).ravel()
+    cols = np.tile(dofs, dofs.shape[1]).ravel()
+    assembled = scipy.sparse.csr_matrix((K_uu.ravel(), (rows, cols)), shape=Kuu.shape)
+    assert abs(assembled - Kuu).max() <= 1e-12 * abs(Kuu).max()
+    np.testing.assert_allclose(k_pp, reference["Kpp"][pressure_dof], rtol=1e-12)
+    assert np.all(k_pp < 0)  # minus volume over bulk modulus
+    Kup = reference["Kup"].tocsc()
+    for c in (0, len(cells) // 3, len(cells) - 1):
+        column = Kup[:, pressure_dof[c]].toarray().ravel()
+        assert np.abs(column[dofs[c]] - k_up[c]).max() <= 1e-12 * np.abs(column).max()
+        assert np.count_nonzero(np.delete(column, dofs[c])) == 0  # no other cell's DOFs
+    # Condensed, they are the element stiffness.
+    condensed = K_uu - k_up[:, :, None] * k_up[:, None, :] / k_pp[:, None, None]
+    np.testing.assert_allclose(
+        element_stiffness(model, np.arange(3), cells[:3]), condensed[:3],
+        atol=1e-12 * np.abs(condensed).max(),
+    )  # fmt: skip
 
 
 def test_a_region_and_its_order(cornea):

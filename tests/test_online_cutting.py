@@ -140,3 +140,32 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
     assert len(new_nodes) == 9
     patch = CutPatch(topology, region, 1)
     assert patch.size > region.reduced_stiffness.shape[0]
+
+    # A format 1.2 file (no pressure coupling) still loads, without it; a damaged
+    # optional dataset is named.
+    import shutil
+
+    import h5py
+
+    from hapticrom.shared.artifact import SCHEMA, ArtifactError
+    from hapticrom.shared.checksum import array_digest
+
+    old = tmp_path / "old.h5"
+    shutil.copyfile(tmp_path / "m.h5", old)
+    coupling = [spec.name for group in SCHEMA if group.name == "cutting"
+                for spec in group.fields if not spec.required]  # fmt: skip
+    assert len(coupling) == 7
+    with h5py.File(old, "r+") as f:
+        del f[f"cutting/{coupling[0]}"]
+    with pytest.raises(ArtifactError, match=f"incomplete .* {coupling[0]}"):
+        online.load(old)
+    with h5py.File(old, "r+") as f:
+        for name in coupling[1:]:
+            del f[f"cutting/{name}"]
+    assert online.load(old).cut_region.pressure is None
+    with h5py.File(tmp_path / "m.h5", "r+") as f:
+        bad = f["cutting/pressure_basis"][()][:, :-1]
+        del f["cutting/pressure_basis"]
+        f["cutting"].create_dataset("pressure_basis", data=bad).attrs["sha256"] = array_digest(bad)
+    with pytest.raises(ArtifactError, match=r"cutting/\w+ has shape"):
+        online.load(tmp_path / "m.h5")

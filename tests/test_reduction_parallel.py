@@ -94,3 +94,16 @@ def test_cutting_region_on_two_ranks(mesh_dir, tmp_path_factory):
         K += A_c.T @ cutting["element_stiffness"][c] @ A_c
     scale = np.abs(K).max()
     np.testing.assert_allclose(cutting["reduced_stiffness"], K, atol=1e-10 * scale)
+    # The pressure coupling's blocks, reduced over 2 ranks, make up its cells' blocks.
+    A = cutting["reduced_displacement_stiffness"].copy()
+    B = cutting["reduced_pressure_coupling"].copy()
+    C = cutting["reduced_pressure_stiffness"].copy()
+    for c, cell in enumerate(cutting["cells"]):
+        A_c = cutting["basis"][(3 * cell[:, None] + np.arange(3)).ravel()]
+        psi = cutting["pressure_basis"][c]
+        A -= A_c.T @ cutting["element_displacement_stiffness"][c] @ A_c
+        B -= np.outer(A_c.T @ cutting["element_pressure_coupling"][c], psi)
+        C -= cutting["element_pressure_stiffness"][c] * np.outer(psi, psi)
+    assert np.abs(A).max() <= 1e-10 * np.abs(cutting["reduced_displacement_stiffness"]).max()
+    assert np.abs(B).max() <= 1e-10 * np.abs(cutting["reduced_pressure_coupling"]).max()
+    assert np.abs(C).max() <= 1e-10 * np.abs(cutting["reduced_pressure_stiffness"]).max()
