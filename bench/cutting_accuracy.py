@@ -6,7 +6,10 @@ Serial. Trains a reduced basis on the intact cornea (soft-tip loads where the
 scalpel works), cuts a limbal arc (radius 5.2 mm, -30..30 degrees, 70 % deep),
 and compares, for a tool load next to the incision, the nonlinear full-order
 solve on the explicitly cut mesh with the reduced model coupled with the cut
-patch (linear, thesis eq. 4.8) and with the reduced model blind to the cut.
+patch (linear, thesis eq. 4.8) and with the reduced model blind to the cut,
+with the patch around the cut only, and around the cut and the tool's contact
+(the scalpel is the tool: local DOFs under it hold a dent the basis lacks at a
+position the training did not cover).
 Target (issue "surgical cutting"): relative L2 difference at most 5 %.
 Writes cut-displacement.png and cut-opening.png into --out.
 """
@@ -37,22 +40,30 @@ def main() -> None:
     out = Path(args.out)
     rows = []
     for angle in args.angle or (0.0, 7.5):
-        study = CuttingStudy(refinement=args.refinement, test_point=(4.8, angle))
-        r = run_study(study, out / "work", out=out / f"angle-{angle:g}")
-        trained = any(angle in angles for rho, angles in study.training if rho == 4.8)
-        rows.append((angle, trained, r))
-        print(json.dumps(r, indent=1, default=str))
+        for at_tool in (False, True):
+            study = CuttingStudy(
+                refinement=args.refinement, test_point=(4.8, angle), patch_at_tool=at_tool
+            )
+            name = f"angle-{angle:g}" + ("-patch-at-tool" if at_tool else "")
+            r = run_study(study, out / "work", out=out / name)
+            trained = any(angle in angles for rho, angles in study.training if rho == 4.8)
+            rows.append((angle, trained, at_tool, r))
+            print(json.dumps(r, indent=1, default=str))
     print(
-        f"\nlimbal incision, {args.refinement} cornea: {rows[0][2]['nodes']} nodes, "
-        f"{rows[0][2]['modes']} reduced modes, patch {rows[0][2]['patch_dofs']} DOFs"
+        f"\nlimbal incision, {args.refinement} cornea: {rows[0][3]['nodes']} nodes, "
+        f"{rows[0][3]['modes']} reduced modes"
     )
-    print("tool at (deg) | trained | coupled vs full % | blind vs full % | linear vs full %")
-    for angle, trained, r in rows:
+    print(
+        "tool at (deg) | trained | patch around  | patch DOFs | coupled vs full % | "
+        "blind vs full % | linear vs full %"
+    )
+    for angle, trained, at_tool, r in rows:
         verdict = "met" if r["error_coupled"] <= TARGET else "missed"
         print(
-            f"{angle:13g} | {'yes' if trained else 'no':7s} | {100 * r['error_coupled']:17.2f} | "
-            f"{100 * r['error_blind']:15.2f} | {100 * r['error_linear_full_order']:16.2f} "
-            f"(target 5 %: {verdict})"
+            f"{angle:13g} | {'yes' if trained else 'no':7s} | "
+            f"{'cut and tool' if at_tool else 'cut':13s} | {r['patch_dofs']:10d} | "
+            f"{100 * r['error_coupled']:17.2f} | {100 * r['error_blind']:15.2f} | "
+            f"{100 * r['error_linear_full_order']:16.2f} (target 5 %: {verdict})"
         )
 
 

@@ -56,8 +56,18 @@ def main() -> None:
     parser.add_argument("model")
     parser.add_argument("--depth", type=float, default=0.2, help="indentation, mm")
     parser.add_argument("--out", default="out/cutting-runtime")
+    parser.add_argument(
+        "--slide",
+        type=int,
+        default=0,
+        help="then lift and press again this many cells along the blade on either side, one "
+        "cell at a time, and back at the start (a longer cut, compared there)",
+    )
+    parser.add_argument("--layers", type=int, help="cell rings of the cut patch (the artifact's)")
     args = parser.parse_args()
     model = online.load(args.model)
+    if args.layers:
+        model.artifact.group_attrs["cutting"]["patch_layers"] = args.layers
     if model.cut_region is None or model.artifact.attrs is None:
         raise SystemExit(f"{args.model} has no cuttable region")
     campaign = model.artifact.attrs["campaign"]
@@ -69,11 +79,18 @@ def main() -> None:
     radial = point - [0.0, 0.0, point[2]]
     blade = np.cross([0.0, 0.0, 1.0], radial / np.linalg.norm(radial))
     sim, blind = model.simulator(), model.simulator()
-    sim.scalpel(point, blade)
+    edges = model.vertices[model.triangles[:, 1]] - model.vertices[model.triangles[:, 0]]
+    cell = float(np.median(np.linalg.norm(edges, axis=1)))
+    path = [0, *range(-args.slide, args.slide + 1), 0] if args.slide else [0]
+    for k in path:
+        # On the surface: the vertex nearest the point moved k cells along the blade.
+        target = point + k * cell * blade
+        at = model.vertices[np.argmin(np.linalg.norm(model.vertices - target, axis=1))]
+        sim.scalpel(at if k else point, blade)
+        n = sim.contact_normal.copy()
+        for depth in np.linspace(0.0, args.depth, 41)[1:]:
+            force = sim.step_displacement(-depth * n).copy()
     blind.set_contact(point)
-    n = sim.contact_normal.copy()
-    for depth in np.linspace(0.0, args.depth, 41)[1:]:
-        force = sim.step_displacement(-depth * n).copy()
     blind_force = blind.step_displacement(-args.depth * n).copy()
     if not sim.cut_events:
         raise SystemExit("the scalpel did not cut: press deeper or lower the cut force")

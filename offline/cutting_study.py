@@ -47,6 +47,9 @@ class CuttingStudy:
     test_point: tuple = (4.8, 0.0)  # rho (mm), angle (degrees)
     patch_layers: int = 3
     steps: int = 2
+    # The patch also covers the tool's contact (the cells within its radius): the
+    # scalpel is the tool, and local DOFs under it hold a dent the basis lacks.
+    patch_at_tool: bool = False
 
 
 def surface_point(rho: float, degrees: float) -> list[float]:
@@ -155,7 +158,14 @@ def run_study(study: CuttingStudy, work: Path, comm=None, out: Path | None = Non
 
     supported = supported_nodes(intact, origin)
     t0 = time.perf_counter()
-    patch = patch_around(cut.cells, lip_nodes(origin), study.patch_layers, supported)
+    seeds = lip_nodes(origin)
+    if study.patch_at_tool:
+        # The cells under the tool: those with a node within its radius (or at the
+        # nearest node, on a mesh coarser than the tool).
+        distance = np.linalg.norm(cut.nodes - np.asarray(point), axis=1)
+        under = np.union1d(np.flatnonzero(distance <= study.tip_radius), [np.argmin(distance)])
+        seeds = np.union1d(seeds, cut.cells[np.any(np.isin(cut.cells, under), axis=1)])
+    patch = patch_around(cut.cells, seeds, study.patch_layers, supported)
     coupled = couple(K_intact, K_cut, A, origin, patch)
     timings["couple_and_factorise_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -216,6 +226,8 @@ def _figures(out: Path, cut, u_ref, u_coupled, u_blind, pairs, point) -> list[Pa
         tpc = ax.tripcolor(x[:, 0], x[:, 1], tri[near], mag, shading="gouraud", vmin=0, vmax=vmax)
         ax.plot(x[pairs[:, 1], 0], x[pairs[:, 1], 1], "k.", ms=2)
         ax.set_aspect("equal")
+        ax.set_xlim(point[0] - 2.2, point[0] + 2.2)
+        ax.set_ylim(point[1] - 2.2, point[1] + 2.2)
         ax.set_title(title)
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")

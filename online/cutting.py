@@ -11,7 +11,10 @@ must stay continuous (the region's boundary and the supports). Here:
 - :class:`CutPatch` builds the superimposed patch around the cut and the
   coupled system of thesis eq. 4.8 (reduced coordinates + the patch's local
   DOFs, with one DOF set per lip: Heaviside enrichment of a face-aligned cut),
-  factorises it once per topology change, and solves it for a load.
+  factorises it once per topology change, and solves it for a load. With an
+  element-wise pressure (:class:`PressureCoupling`) the reduced part keeps the
+  reduced pressure basis outside the patch, so nearly incompressible tissue
+  does not lock; the patch's cells keep their own pressures.
 
 Units: mm, N, N/mm.
 """
@@ -59,20 +62,18 @@ class PressureCoupling:
     reduced_coupling: np.ndarray
     reduced_pressure: np.ndarray
 
-    def outside(self, cells: np.ndarray, cell_basis) -> tuple:
+    def outside(self, cells: np.ndarray, cell_basis: np.ndarray) -> tuple:
         """(A^T K_uu A, A^T K_up P, P^T K_pp P) of the cells not in ``cells``.
 
-        ``cell_basis(c)``: the reduced basis rows (24, G) at cell c's nodes.
+        ``cell_basis`` (len(cells), 24, G): the reduced basis rows at those cells' nodes.
         """
-        A = self.reduced_displacement.copy()
-        B = self.reduced_coupling.copy()
-        C = self.reduced_pressure.copy()
-        for c in cells:
-            Phi = cell_basis(c)
-            psi = self.pressure_basis[c]
-            A -= Phi.T @ self.displacement[c] @ Phi
-            B -= np.outer(Phi.T @ self.coupling[c], psi)
-            C -= self.pressure[c] * np.outer(psi, psi)
+        psi = self.pressure_basis[cells]  # (c, P)
+        G = cell_basis.shape[2]
+        KA = self.displacement[cells] @ cell_basis  # (c, 24, G)
+        A = self.reduced_displacement - cell_basis.reshape(-1, G).T @ KA.reshape(-1, G)
+        coupling = np.einsum("cig,ci->cg", cell_basis, self.coupling[cells])
+        B = self.reduced_coupling - coupling.T @ psi
+        C = self.reduced_pressure - (self.pressure[cells][:, None] * psi).T @ psi
         return A, B, C
 
 
@@ -243,29 +244,27 @@ class CutPatch:
         m = 3 * len(nodes)
         index = np.full(len(topology.origin), -1)
         index[nodes] = np.arange(len(nodes))
-        K_zd = np.zeros((G, m))
-        K_dd = np.zeros((m, m))
-
-        def cell_basis(c):  # (24, G): the reduced field does not see the cut
-            return region.basis[(3 * topology.origin[cells[c]][:, None] + np.arange(3)).ravel()]
-
+        conn = cells[self.cells]  # (c, 8) nodes of the patch cells, lips apart
+        # The reduced field does not see the cut: each copy takes its original's rows.
+        basis = region.basis[(3 * topology.origin[conn][:, :, None] + np.arange(3)).reshape(
+            len(conn), 24)]  # (c, 24, G)  # fmt: skip
+        Ke = region.element_stiffness[self.cells]  # (c, 24, 24)
+        KA = Ke @ basis  # (c, 24, G); Ke is symmetric: (A_c^T Ke)^T
         if region.pressure is None:
             K_zz = region.reduced_stiffness.copy()
         else:
             # Reduced pressure outside the patch, the cells' own pressures inside it.
-            A, B, C = region.pressure.outside(self.cells, cell_basis)
-            K_zz = A - B @ np.linalg.solve(C, B.T)
-        for c in self.cells:
-            Ke = region.element_stiffness[c]
-            A_c = cell_basis(c)
-            if region.pressure is not None:
-                K_zz += A_c.T @ Ke @ A_c
-            local = index[cells[c]]
-            dofs = (3 * local[:, None] + np.arange(3)).ravel()
-            keep = np.repeat(local >= 0, 3)
-            K_zd[:, dofs[keep]] += A_c.T @ Ke[:, keep]
-            K_dd[np.ix_(dofs[keep], dofs[keep])] += Ke[np.ix_(keep, keep)]
-        K = np.block([[K_zz, K_zd], [K_zd.T, K_dd]])
+            A, B, C = region.pressure.outside(self.cells, basis)
+            K_zz = A - B @ np.linalg.solve(C, B.T) + basis.reshape(-1, G).T @ KA.reshape(-1, G)
+        dofs = (3 * index[conn][:, :, None] + np.arange(3)).reshape(len(conn), 24)
+        keep = dofs >= 0
+        K_dz = np.zeros((m, G))
+        np.add.at(K_dz, dofs[keep], KA[keep])
+        both = keep[:, :, None] & keep[:, None, :]
+        rows = np.broadcast_to(dofs[:, :, None], both.shape)[both]
+        columns = np.broadcast_to(dofs[:, None, :], both.shape)[both]
+        K_dd = np.bincount(rows * m + columns, Ke[both], m * m).reshape(m, m)
+        K = np.block([[K_zz, K_dz.T], [K_dz, K_dd]])
         self.size, self.G = K.shape[0], G
         self.factor = np.linalg.cholesky((K + K.T) / 2)  # raises LinAlgError if not SPD
 
@@ -276,8 +275,8 @@ class CutPatch:
     def solve(self, load_reduced: np.ndarray, load_patch: np.ndarray) -> np.ndarray:
         """[zeta, d] for the reduced load A^T f (G,) and the load on the patch DOFs."""
         L = self.factor
-        y = np.linalg.solve(L, np.r_[load_reduced, load_patch])
-        return np.linalg.solve(L.T, y)
+        y = solve_lower(L, np.r_[load_reduced, load_patch])
+        return solve_lower(L, y, transposed=True)
 
     def region_displacement(self, x: np.ndarray) -> np.ndarray:
         """Displacement (mm) of every node of the cut region (copies included), (R', 3)."""
@@ -395,16 +394,19 @@ class Scalpel:
             nodes = self.surface_region[np.asarray(self.model.triangles)]
             which = np.flatnonzero(np.all(nodes >= 0, axis=1))
             cells = self.region.cells
+            cells_at: dict[int, set] = {}
+            for c, cell_nodes in enumerate(cells.tolist()):
+                for n in cell_nodes:
+                    cells_at.setdefault(n, set()).add(c)
             cell = np.full(len(which), -1)
-            position = np.zeros((len(which), 3), dtype=np.int64)
-            for i, t in enumerate(which):
+            for i, (a, b, c) in enumerate(nodes[which].tolist()):
                 # The one region cell holding the three nodes of a surface triangle.
-                holding = np.flatnonzero(np.isin(cells, nodes[t]).sum(axis=1) == 3)
-                if holding.size:
-                    cell[i] = holding[0]
-                    position[i] = [np.flatnonzero(cells[holding[0]] == n)[0] for n in nodes[t]]
+                holding = cells_at.get(a, set()) & cells_at.get(b, set()) & cells_at.get(c, set())
+                cell[i] = min(holding, default=-1)
             keep = cell >= 0
-            self._triangle_cell = (which[keep], cell[keep], position[keep])
+            which, cell = which[keep], cell[keep]
+            position = np.argmax(cells[cell][:, None, :] == nodes[which][:, :, None], axis=2)
+            self._triangle_cell = (which, cell, position)
         which, cell, position = self._triangle_cell
         return which, topology.cells[cell[:, None], position]
 
@@ -490,7 +492,9 @@ class Scalpel:
         return event
 
     def _compliances(self) -> None:
-        """Stiffness ratio (cut / uncut) for a unit tool load at every region surface vertex.
+        """Stiffness ratio (cut / uncut) for a unit tool load at the region's surface
+        vertices whose tool disk reaches the patch (1 elsewhere: the patch is the cut's
+        zone of influence, u^L = 0 beyond it).
 
         The uncut reference is the same patch without the cut, not the reduced model
         alone: the patch's local DOFs relax the reduced basis a little too (a lot if
@@ -499,6 +503,13 @@ class Scalpel:
         in the force.
         """
         on_region = np.flatnonzero(self.surface_region >= 0)
+        radius = float(self.model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5))
+        patch_nodes = np.unique(self.topology.origin[self.topology.cells[self.patch.cells]])
+        x = self.region.coordinates[patch_nodes]
+        v = self.model.vertices[on_region]
+        gap2 = (np.sum(v * v, axis=1)[:, None] + np.sum(x * x, axis=1)[None, :]
+                - 2.0 * v @ x.T).min(axis=1)  # fmt: skip
+        on_region = on_region[gap2 <= radius**2]
         uncut = CutPatch(CutTopology.of_region(self.region), self.region, 1, self.patch.cells)
         B, B_uncut = (self._tool_loads(p, on_region) for p in (self.patch, uncut))
         cut = _compliance(self.patch, B)
@@ -512,7 +523,8 @@ class Scalpel:
         self._loads = (on_region, B, B_uncut, uncut)
 
     def _tool_loads(self, patch: CutPatch, vertices: np.ndarray) -> np.ndarray:
-        """Right-hand sides of a unit tool force centred on each of ``vertices``.
+        """Right-hand sides (patch.size, len(vertices)) of a unit tool force centred on
+        each of ``vertices``.
 
         The tool presses as the training's soft tip does: a traction of profile
         (1 - r^2 / a^2)^2 within its radius a, along the inward normal at its centre,
@@ -528,24 +540,29 @@ class Scalpel:
         triangles, points, weights = self._surface_quadrature(topology)
         nodes, triangles = np.unique(triangles, return_inverse=True)
         triangles = triangles.reshape(-1, 3)
+        centres = model.vertices[vertices]
+        # Traction at every quadrature point for every tool centre: (T * 6, k).
+        x = points.reshape(-1, 3)
+        s = (np.sum(x * x, axis=1)[:, None] + np.sum(centres * centres, axis=1)[None, :]
+             - 2.0 * x @ centres.T) / radius**2  # fmt: skip
+        traction = weights.reshape(-1, 1) * np.where(s < 1.0, (1.0 - s) ** 2, 0.0)
+        # Spread to the triangles' nodes by the linear shapes: W (nodes, k), columns sum to 1.
+        corner = np.einsum("qc,tqk->tck", TRIANGLE_RULE[0], traction.reshape(len(triangles), 6, -1))
+        W = np.zeros((len(nodes), len(vertices)))
+        np.add.at(W, triangles.ravel(), corner.reshape(-1, len(vertices)))
+        W /= np.maximum(W.sum(axis=0), 1e-300)
+        direction = -self.normals[vertices]  # (k, 3)
         rows = (3 * topology.origin[nodes][:, None] + np.arange(3)).ravel()
         basis = region.basis[rows].reshape(len(nodes), 3, G)
+        B = np.zeros((patch.size, len(vertices)))
+        for j in range(3):
+            B[:G] += (basis[:, j, :].T @ W) * direction[:, j]
         index = np.full(len(topology.origin), -1)
         index[patch.nodes] = np.arange(len(patch.nodes))
         local = index[nodes]
-        B = np.zeros((patch.size, len(vertices)))
-        for k, v in enumerate(vertices):
-            # The traction profile at the quadrature points, spread by the linear shapes.
-            s = np.sum((points - model.vertices[v]) ** 2, axis=2) / radius**2
-            traction = weights * np.where(s < 1.0, (1.0 - s) ** 2, 0.0)
-            w = np.bincount(triangles.ravel(), (traction @ TRIANGLE_RULE[0]).ravel(), len(nodes))
-            near = np.flatnonzero(w > 0)
-            w = w[near] / w.sum()
-            direction = -self.normals[v]
-            B[:G, k] = np.einsum("i,ijg,j->g", w, basis[near], direction)
-            on_patch = local[near] >= 0
-            dofs = G + 3 * local[near[on_patch]][:, None] + np.arange(3)
-            B[dofs, k] = w[on_patch][:, None] * direction
+        on_patch = np.flatnonzero(local >= 0)
+        for j in range(3):
+            B[G + 3 * local[on_patch] + j] = W[on_patch] * direction[:, j]
         return B
 
     def cut_field(self, vertex: int) -> np.ndarray | None:
@@ -576,8 +593,30 @@ class Scalpel:
 
 def _compliance(patch: CutPatch, B: np.ndarray) -> np.ndarray:
     """b^T K^-1 b for every column b of B, from the Cholesky factor: |L^-1 b|^2."""
-    Y = np.linalg.solve(patch.factor, B)
+    Y = solve_lower(patch.factor, B)
     return np.sum(Y * Y, axis=0)
+
+
+def solve_lower(L: np.ndarray, B: np.ndarray, transposed: bool = False, block: int = 128):
+    """L^-1 B (or L^-T B) for a lower-triangular L, by blocks.
+
+    numpy has no triangular solve, and np.linalg.solve factorises L again (2/3 n^3):
+    here only the diagonal blocks are solved, the rest is matrix products.
+    """
+    n = L.shape[0]
+    Y = np.empty(B.shape)
+    starts = list(range(0, n, block))
+    if not transposed:
+        for i0 in starts:
+            i1 = min(i0 + block, n)
+            rhs = B[i0:i1] - L[i0:i1, :i0] @ Y[:i0]
+            Y[i0:i1] = np.linalg.solve(L[i0:i1, i0:i1], rhs)
+    else:  # L^T is upper triangular: from the last block up
+        for i0 in reversed(starts):
+            i1 = min(i0 + block, n)
+            rhs = B[i0:i1] - L[i1:, i0:i1].T @ Y[i1:]
+            Y[i0:i1] = np.linalg.solve(L[i0:i1, i0:i1].T, rhs)
+    return Y
 
 
 def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -169,3 +169,17 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
         f["cutting"].create_dataset("pressure_basis", data=bad).attrs["sha256"] = array_digest(bad)
     with pytest.raises(ArtifactError, match=r"cutting/\w+ has shape"):
         online.load(tmp_path / "m.h5")
+
+
+@pytest.mark.parametrize("n", [1, 127, 128, 129, 700])
+def test_blocked_triangular_solve_matches_numpy(n):
+    from hapticrom.online.cutting import solve_lower
+
+    rng = np.random.default_rng(n)
+    M = rng.standard_normal((n, n))
+    L = np.linalg.cholesky(M @ M.T + n * np.eye(n))
+    B = rng.standard_normal((n, 3))
+    np.testing.assert_allclose(solve_lower(L, B), np.linalg.solve(L, B), rtol=1e-10, atol=1e-12)
+    b = B[:, 0]
+    np.testing.assert_allclose(solve_lower(L, b, transposed=True), np.linalg.solve(L.T, b),
+                               rtol=1e-10, atol=1e-12)  # fmt: skip
