@@ -1,6 +1,7 @@
 # hapticrom: one venv (.venv, Python 3.12), meshes under meshes/, caches under .cache/.
 #   make demo   set up everything, train the default cornea model on 2 ranks, play it,
-#               check it at held-out positions, write the report (out/report/report.html)
+#               check it at held-out positions, write the report (out/report/report.html),
+#               cut it with the scalpel (latency, and against the full order with the cut meshed)
 #   make test   set up everything, then run the tests serially and under mpirun -n 2
 
 SHELL := /bin/bash
@@ -63,11 +64,14 @@ demo: venv meshes/cornea.msh
 	$(VENV)/bin/hapticrom play $(DEMO_MODEL)
 	$(VENV)/bin/mpirun -n $(NP) $(PY) bench/accuracy.py $(DEMO_MODEL) --json out/accuracy.json
 	$(VENV)/bin/hapticrom report $(DEMO_MODEL) --out out/report --accuracy out/accuracy.json
+	$(PY) bench/cutting_latency.py $(DEMO_MODEL)
+	$(PY) bench/cutting_runtime_accuracy.py $(DEMO_MODEL) --out out/cutting-runtime
 	@echo "reduced model: $(DEMO_MODEL) (snapshots: $(DEMO_MODEL:.h5=.campaign)); report: out/report/report.html; try: $(VENV)/bin/hapticrom bench $(DEMO_MODEL)"
 
 bench: demo
 	$(PY) bench/fullorder.py
 	$(PY) bench/online.py $(DEMO_MODEL)
+	$(PY) bench/cutting_accuracy.py
 
 # Static checks, seconds (part of `make test`): ruff lint and format, and hadolint on the
 # Dockerfiles (no Docker engine needed; rules in .hadolint.yaml).
