@@ -21,6 +21,7 @@ Units: mm, N, N/mm.
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 
@@ -142,6 +143,13 @@ class CutTopology:
     @classmethod
     def of_region(cls, region: CutRegion) -> CutTopology:
         return cls(region.cells, len(region.coordinates))
+
+    def copy(self) -> CutTopology:
+        other = CutTopology.__new__(CutTopology)
+        other.intact, other.local_faces = self.intact, self.local_faces
+        other.cells, other.origin = self.cells.copy(), self.origin.copy()
+        other.cut_faces = set(self.cut_faces)
+        return other
 
     def interior_faces(self) -> tuple[np.ndarray, np.ndarray]:
         """The interior faces (intact node ids, (f, k)) and their two cells."""
@@ -302,6 +310,16 @@ class CutEvent:
     seconds: float
 
 
+@dataclass
+class _CutState:
+    """A cut state prepared (possibly on a worker thread), installed between steps."""
+
+    topology: CutTopology
+    patch: CutPatch | None
+    compliances: tuple | None  # (vertices, ratio, extra compliance, loads)
+    event: CutEvent
+
+
 class Scalpel:
     """Cuts of one simulator: blade position and direction, cut faces, the coupled patch.
 
@@ -345,7 +363,12 @@ class Scalpel:
         self.surface_region = np.array([local.get(int(n), -1) for n in surface_nodes])
         self.ratio = np.ones(len(surface_nodes))  # cut / intact stiffness per surface vertex
         self.extra_compliance = np.zeros(len(surface_nodes))  # cut - intact compliance, mm/N
+        self._loads = (np.zeros(0, dtype=np.int64), None, None, None)
+        self._executor = None  # a worker thread, once a cut is asked not to wait
+        self._next: CutTopology | None = None  # the worker's topology (all cuts asked so far)
+        self._pending: list = []  # futures of background cuts, in order
         self.normals = _vertex_normals(model.vertices, model.triangles)  # outward, per vertex
+        self._region_triangles(self.topology)  # cached now: workers only read it
 
     def region_vertex(self, point: np.ndarray) -> int:
         """The surface vertex of the region nearest ``point``, or -1 if none is within a cell."""
@@ -475,23 +498,99 @@ class Scalpel:
                   if tuple(sorted(self._faces[i])) not in keys]  # fmt: skip
         return self._faces[chosen]
 
-    def cut(self, faces: np.ndarray) -> CutEvent | None:
-        """Cut ``faces`` (region node ids), rebuild and factorise the patch."""
+    def cut(self, faces: np.ndarray, wait: bool = True) -> CutEvent | None:
+        """Cut ``faces`` (region node ids), rebuild and factorise the patch.
+
+        ``wait=False``: do it on a worker thread and return None at once; the
+        current cut state stays in force until :meth:`poll` installs the new one
+        (cuts are installed in the order they were asked for). numpy's LAPACK calls,
+        most of the work, release the GIL, so the servo loop keeps its pace.
+        """
         if len(faces) == 0:
             return None
-        t0 = time.perf_counter()
-        new = self.topology.cut(faces)
-        if len(self.topology.lip_nodes) == 0:  # only front nodes so far: nothing opens yet
-            event = CutEvent(len(faces), len(new), 0, time.perf_counter() - t0)
-            self.events.append(event)
-            return event
-        self.patch = CutPatch(self.topology, self.region, self.layers)
-        self._compliances()
-        event = CutEvent(len(faces), len(new), self.patch.size, time.perf_counter() - t0)
-        self.events.append(event)
+        if wait:
+            self.finish()
+            state = self._prepare(self.topology.copy(), faces)
+            if self._next is not None:
+                self._next = self.topology.copy() if state is None else state.topology.copy()
+            return self._install(state)
+        if self._executor is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hapticrom-cut")
+            self._next = self.topology.copy()
+        # The worker cuts its own topology in order; each result carries a copy of it.
+        if not self._pending:
+            # While the worker runs Python code it holds the GIL for up to the switch
+            # interval (5 ms by default): a servo tick would wait that long. 0.1 ms
+            # while a cut is prepared; the interpreter's value is restored after.
+            self._switch_interval = sys.getswitchinterval()
+            sys.setswitchinterval(min(self._switch_interval, 1e-4))
+        self._pending.append(self._executor.submit(self._prepare, self._next, faces))
+        return None
+
+    @property
+    def pending(self) -> bool:
+        """Whether a background cut is still being prepared."""
+        return bool(self._pending)
+
+    def poll(self) -> CutEvent | None:
+        """Install the background cuts that are ready; the last event installed or None."""
+        event = None
+        while self._pending and self._pending[0].done():
+            event = self._install(self._take()) or event
         return event
 
-    def _compliances(self) -> None:
+    def finish(self) -> CutEvent | None:
+        """Wait for the background cuts and install them; the last event or None."""
+        event = None
+        while self._pending:
+            event = self._install(self._take()) or event
+        return event
+
+    def _take(self) -> _CutState | None:
+        future = self._pending.pop(0)
+        if not self._pending:
+            sys.setswitchinterval(self._switch_interval)
+        return future.result()  # a worker's exception is raised here, in the servo thread
+
+    def _prepare(self, topology: CutTopology, faces: np.ndarray) -> _CutState | None:
+        """Cut ``topology`` (modified) and build everything a cut state needs."""
+        t0 = time.perf_counter()
+        faces = np.atleast_2d(np.asarray(faces, dtype=np.int64))
+        faces = faces[[tuple(sorted(f)) not in topology.cut_faces for f in faces.tolist()]]
+        if len(faces) == 0:
+            return None
+        new = topology.cut(faces)
+        if len(topology.lip_nodes) == 0:  # only front nodes so far: nothing opens yet
+            event = CutEvent(len(faces), len(new), 0, time.perf_counter() - t0)
+            return _CutState(topology.copy(), None, None, event)
+        patch = CutPatch(topology, self.region, self.layers)
+        compliances = self._compliances(patch)
+        event = CutEvent(len(faces), len(new), patch.size, time.perf_counter() - t0)
+        return _CutState(topology.copy(), patch, compliances, event)
+
+    def _install(self, state: _CutState | None) -> CutEvent | None:
+        """Make a prepared cut state the current one (main thread, between steps)."""
+        if state is None:
+            return None
+        if self._executor is not None:
+            # Freeing the old patch's factors takes milliseconds: on the worker, not here.
+            self._executor.submit(_drop, (self.topology, self.patch, self._loads))
+        self.topology = state.topology
+        if state.patch is not None:
+            self.patch = state.patch
+            self.patch.topology = state.topology
+            on_region, ratio, extra, loads = state.compliances
+            self.ratio[:] = 1.0
+            self.ratio[on_region] = ratio
+            self.extra_compliance[:] = 0.0
+            self.extra_compliance[on_region] = extra
+            self._loads = loads
+        self.events.append(state.event)
+        return state.event
+
+    def _compliances(self, patch: CutPatch) -> tuple:
         """Stiffness ratio (cut / uncut) for a unit tool load at the region's surface
         vertices whose tool disk reaches the patch (1 elsewhere: the patch is the cut's
         zone of influence, u^L = 0 beyond it).
@@ -504,23 +603,20 @@ class Scalpel:
         """
         on_region = np.flatnonzero(self.surface_region >= 0)
         radius = float(self.model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5))
-        patch_nodes = np.unique(self.topology.origin[self.topology.cells[self.patch.cells]])
+        topology = patch.topology
+        patch_nodes = np.unique(topology.origin[topology.cells[patch.cells]])
         x = self.region.coordinates[patch_nodes]
         v = self.model.vertices[on_region]
         gap2 = (np.sum(v * v, axis=1)[:, None] + np.sum(x * x, axis=1)[None, :]
                 - 2.0 * v @ x.T).min(axis=1)  # fmt: skip
         on_region = on_region[gap2 <= radius**2]
-        uncut = CutPatch(CutTopology.of_region(self.region), self.region, 1, self.patch.cells)
-        B, B_uncut = (self._tool_loads(p, on_region) for p in (self.patch, uncut))
-        cut = _compliance(self.patch, B)
+        uncut = CutPatch(CutTopology.of_region(self.region), self.region, 1, patch.cells)
+        B, B_uncut = (self._tool_loads(p, on_region) for p in (patch, uncut))
+        cut = _compliance(patch, B)
         reference = _compliance(uncut, B_uncut)
         ratio = np.ones_like(cut)
         np.divide(reference, cut, out=ratio, where=cut > 0)
-        self.ratio[:] = 1.0
-        self.ratio[on_region] = ratio
-        self.extra_compliance[:] = 0.0
-        self.extra_compliance[on_region] = cut - reference
-        self._loads = (on_region, B, B_uncut, uncut)
+        return on_region, ratio, cut - reference, (on_region, B, B_uncut, uncut)
 
     def _tool_loads(self, patch: CutPatch, vertices: np.ndarray) -> np.ndarray:
         """Right-hand sides (patch.size, len(vertices)) of a unit tool force centred on
@@ -570,8 +666,8 @@ class Scalpel:
 
         Cached per contact vertex and cut state (a solve with the patch's factor).
         """
-        if self.patch is None or self.surface_region[vertex] < 0:
-            return None
+        if self.patch is None or not np.any(self._loads[0] == vertex):
+            return None  # no cut, or the tool does not reach the patch from there
         key = (vertex, len(self.events))
         if getattr(self, "_field_key", None) == key:
             return self._field
@@ -589,6 +685,10 @@ class Scalpel:
         copies = np.arange(len(u0), len(u))
         field[copies] -= u0[self.topology.origin[copies]]
         return field
+
+
+def _drop(_objects) -> None:
+    """Nothing: the worker thread drops the last references to what it was given."""
 
 
 def _compliance(patch: CutPatch, B: np.ndarray) -> np.ndarray:

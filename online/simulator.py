@@ -102,6 +102,7 @@ class Simulator:
         self._blade = None  # unit blade direction while the scalpel is in contact
         self._across = None  # unit normal of the blade's plane
         self._armed = False  # the blade may still cut at this placement
+        self._background = False  # cut events on a worker thread (scalpel(background=True))
         self._vertex = -1  # region surface vertex at the contact (while cutting), or -1
         self.last_cut = None  # the last CutEvent
         self._lips = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))  # second lip, rendered
@@ -164,13 +165,16 @@ class Simulator:
         return self._force
 
     # -- cutting -------------------------------------------------------------------
-    def scalpel(self, position, blade_direction) -> None:
+    def scalpel(self, position, blade_direction, background: bool = False) -> None:
         """Put the scalpel at ``position`` (mm, on the surface) with its blade along
         ``blade_direction`` (its component in the surface plane is used).
 
         Then step as with any tool: when the force in the blade's plane exceeds
         the artifact's cut force, the faces under the blade are cut whole and the
-        cut patch is rebuilt (``last_cut`` says what it cost). A position off the
+        cut patch is rebuilt (``last_cut`` says what it cost). That takes 0.1 s or
+        more: with ``background=True`` it runs on a worker thread and the steps go
+        on with the cut state before it, until a step finds the new one ready
+        (``cut_pending`` says whether one is on its way). A position off the
         organ or a blade along the normal raises ``ScalpelInputError``; nothing
         changes then.
         """
@@ -188,11 +192,15 @@ class Simulator:
         self._vertex, self._scalpel_vertex = scalpel.region_vertex(p), vertex
         across = np.cross(blade, normal)
         self._blade, self._across = blade, across / np.linalg.norm(across)
-        self._armed = True
+        self._armed, self._background = True, bool(background)
 
     def _cut_step(self) -> None:
         """After a step while cutting: cut if the blade force is high enough; soften."""
         scalpel = self._cutting
+        if scalpel._pending:  # a background cut: install it once ready (between steps)
+            event = scalpel.poll()
+            if event is not None:
+                self.last_cut = event
         if self._armed:
             f0, f1, f2 = self._force
             a0, a1, a2 = self._across
@@ -205,7 +213,7 @@ class Simulator:
                 faces = scalpel.faces_under(
                     self.model.vertices[vertex], self._blade, scalpel.normals[vertex]
                 )
-                event = scalpel.cut(faces)
+                event = scalpel.cut(faces, wait=not self._background)
                 if event is not None:
                     self.last_cut = event
         if self._vertex >= 0:
@@ -217,6 +225,19 @@ class Simulator:
         if self._cutting is None or self._vertex < 0:
             return 1.0
         return float(self._cutting.ratio[self._vertex])
+
+    @property
+    def cut_pending(self) -> bool:
+        """Whether a background cut is being prepared (see ``scalpel(background=True)``)."""
+        return self._cutting is not None and self._cutting.pending
+
+    def finish_cuts(self) -> None:
+        """Wait for the background cuts and put them in force (e.g. before rendering a frame
+        that must show them)."""
+        if self._cutting is not None:
+            event = self._cutting.finish()
+            if event is not None:
+                self.last_cut = event
 
     @property
     def cut_events(self) -> list:

@@ -80,6 +80,39 @@ def test_pressing_the_blade_cuts_and_softens(model):
                                   model.vertices[model.triangles[changed]])  # fmt: skip
 
 
+def test_a_background_cut_ends_as_the_waited_one(model):
+    """Cut events on a worker thread: the steps go on with the state before the cut, and
+    once installed (in order) everything equals cutting synchronously."""
+    waited, background, intact = model.simulator(), model.simulator(), model.simulator()
+    n = None
+    for angle in (0.0, 8.0):
+        point = on_surface(4.6, angle)
+        waited.scalpel(point, [0.0, 1.0, 0.0])
+        background.scalpel(point, [0.0, 1.0, 0.0], background=True)
+        intact.set_contact(point)
+        n = waited.contact_normal.copy() if n is None else n
+        for depth in (0.005, 0.01, 0.02, 0.04):
+            ratio_before = background.cut_stiffness_ratio
+            waited.step_displacement(-depth * n)
+            f = background.step_displacement(-depth * n).copy()
+            if background.cut_pending:  # not installed yet: the force of the state before
+                f_intact = intact.step_displacement(-depth * n)
+                np.testing.assert_allclose(f, ratio_before * f_intact, rtol=1e-12)
+    background.finish_cuts()
+    assert not background.cut_pending
+    summary = [(e.faces, e.new_nodes, e.patch_unknowns) for e in waited.cut_events]
+    assert len(summary) >= 2
+    assert [(e.faces, e.new_nodes, e.patch_unknowns) for e in background.cut_events] == summary
+    np.testing.assert_array_equal(background._cutting.topology.cells,
+                                  waited._cutting.topology.cells)  # fmt: skip
+    np.testing.assert_allclose(background._cutting.ratio, waited._cutting.ratio, rtol=1e-12)
+    np.testing.assert_allclose(background.step_displacement(-0.03 * n),
+                               waited.step_displacement(-0.03 * n), rtol=1e-12)  # fmt: skip
+    u_waited = waited.surface_displacement(np.zeros_like(model.vertices)).copy()
+    u_background = background.surface_displacement(np.zeros_like(model.vertices))
+    np.testing.assert_allclose(u_background, u_waited, rtol=1e-12, atol=1e-15)
+
+
 def test_bad_scalpel_input_leaves_the_state_alone(model):
     from hapticrom.online.cutting import ScalpelInputError
 
