@@ -22,7 +22,9 @@ Units: mm, N, N/mm.
 from __future__ import annotations
 
 import sys
+import threading
 import time
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,6 +120,7 @@ class CutRegion:
                 "reduced displacement": q.reduced_displacement.shape == (G, G),
                 "reduced coupling": q.reduced_coupling.shape == (G, P),
                 "reduced pressure": q.reduced_pressure.shape == (P, P),
+                "pressure stiffness sign (k_pp < 0)": bool(np.all(q.pressure < 0)),
             }
         bad = [name for name, ok in checks.items() if not ok]
         if bad:
@@ -367,6 +370,7 @@ class Scalpel:
         self._executor = None  # a worker thread, once a cut is asked not to wait
         self._next: CutTopology | None = None  # the worker's topology (all cuts asked so far)
         self._pending: list = []  # futures of background cuts, in order
+        self._fast_switch = [False]  # whether this scalpel holds the short GIL switch interval
         self.normals = _vertex_normals(model.vertices, model.triangles)  # outward, per vertex
         self._region_triangles(self.topology)  # cached now: workers only read it
 
@@ -519,14 +523,12 @@ class Scalpel:
 
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="hapticrom-cut")
             self._next = self.topology.copy()
-        # The worker cuts its own topology in order; each result carries a copy of it.
-        if not self._pending:
-            # While the worker runs Python code it holds the GIL for up to the switch
-            # interval (5 ms by default): a servo tick would wait that long. 0.1 ms
-            # while a cut is prepared; the interpreter's value is restored after.
-            self._switch_interval = sys.getswitchinterval()
-            sys.setswitchinterval(min(self._switch_interval, 1e-4))
+            weakref.finalize(self, _close, self._executor, self._fast_switch)
+        # The worker cuts its own topology in order; each result is a state of its own.
         self._pending.append(self._executor.submit(self._prepare, self._next, faces))
+        if not self._fast_switch[0]:
+            _fast_switch(True)
+            self._fast_switch[0] = True
         return None
 
     @property
@@ -550,9 +552,11 @@ class Scalpel:
 
     def _take(self) -> _CutState | None:
         future = self._pending.pop(0)
-        if not self._pending:
-            sys.setswitchinterval(self._switch_interval)
-        return future.result()  # a worker's exception is raised here, in the servo thread
+        if not self._pending and self._fast_switch[0]:
+            self._fast_switch[0] = False
+            _fast_switch(False)
+        # A worker's exception is raised here; the cut it failed changed nothing.
+        return future.result()
 
     def _prepare(self, topology: CutTopology, faces: np.ndarray) -> _CutState | None:
         """Cut ``topology`` (modified) and build everything a cut state needs."""
@@ -561,14 +565,17 @@ class Scalpel:
         faces = faces[[tuple(sorted(f)) not in topology.cut_faces for f in faces.tolist()]]
         if len(faces) == 0:
             return None
-        new = topology.cut(faces)
-        if len(topology.lip_nodes) == 0:  # only front nodes so far: nothing opens yet
-            event = CutEvent(len(faces), len(new), 0, time.perf_counter() - t0)
-            return _CutState(topology.copy(), None, None, event)
-        patch = CutPatch(topology, self.region, self.layers)
-        compliances = self._compliances(patch)
-        event = CutEvent(len(faces), len(new), patch.size, time.perf_counter() - t0)
-        return _CutState(topology.copy(), patch, compliances, event)
+        work = topology.copy()  # ``topology`` changes only if everything below succeeds
+        new = work.cut(faces)
+        patch = compliances = None
+        if len(work.lip_nodes) > 0:  # else only front nodes so far: nothing opens yet
+            patch = CutPatch(work, self.region, self.layers)
+            compliances = self._compliances(patch)
+        topology.cells, topology.origin = work.cells.copy(), work.origin.copy()
+        topology.cut_faces = set(work.cut_faces)
+        size = 0 if patch is None else patch.size
+        return _CutState(work, patch, compliances, CutEvent(len(faces), len(new), size,
+                                                           time.perf_counter() - t0))  # fmt: skip
 
     def _install(self, state: _CutState | None) -> CutEvent | None:
         """Make a prepared cut state the current one (main thread, between steps)."""
@@ -579,14 +586,12 @@ class Scalpel:
             self._executor.submit(_drop, (self.topology, self.patch, self._loads))
         self.topology = state.topology
         if state.patch is not None:
-            self.patch = state.patch
-            self.patch.topology = state.topology
             on_region, ratio, extra, loads = state.compliances
-            self.ratio[:] = 1.0
-            self.ratio[on_region] = ratio
-            self.extra_compliance[:] = 0.0
-            self.extra_compliance[on_region] = extra
-            self._loads = loads
+            # New arrays swapped in, never half-updated ones.
+            new_ratio, new_extra = np.ones_like(self.ratio), np.zeros_like(self.extra_compliance)
+            new_ratio[on_region], new_extra[on_region] = ratio, extra
+            self.patch, self._loads = state.patch, loads
+            self.ratio, self.extra_compliance = new_ratio, new_extra
         self.events.append(state.event)
         return state.event
 
@@ -685,6 +690,34 @@ class Scalpel:
         copies = np.arange(len(u0), len(u))
         field[copies] -= u0[self.topology.origin[copies]]
         return field
+
+
+# While a worker runs Python code it holds the GIL for up to the interpreter's switch
+# interval (5 ms by default): a servo tick would wait that long. While any background cut
+# is on its way the interval is 0.1 ms; the interpreter's own value is restored after.
+# Process-wide like the setting itself: counted over all scalpels.
+_switch = {"lock": threading.Lock(), "users": 0, "saved": None}
+
+
+def _fast_switch(on: bool) -> None:
+    with _switch["lock"]:
+        if on:
+            if _switch["users"] == 0:
+                _switch["saved"] = sys.getswitchinterval()
+                sys.setswitchinterval(min(_switch["saved"], 1e-4))
+            _switch["users"] += 1
+        else:
+            _switch["users"] -= 1
+            if _switch["users"] == 0:
+                sys.setswitchinterval(_switch["saved"])
+
+
+def _close(executor, held: list) -> None:
+    """A scalpel is gone: stop its worker, give back the switch interval if it held it."""
+    executor.shutdown(wait=False, cancel_futures=True)
+    if held[0]:
+        held[0] = False
+        _fast_switch(False)
 
 
 def _drop(_objects) -> None:

@@ -23,6 +23,8 @@ copy it to keep it). Pass float64 arrays of shape (3,) to avoid conversions.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from hapticrom.online import kernels
@@ -105,6 +107,7 @@ class Simulator:
         self._background = False  # cut events on a worker thread (scalpel(background=True))
         self._vertex = -1  # region surface vertex at the contact (while cutting), or -1
         self.last_cut = None  # the last CutEvent
+        self.cut_error = None  # the last cut that failed (an exception), if any
         self._lips = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))  # second lip, rendered
         self._controlled = "displacement"  # the last step's control: the cut's field needs it
 
@@ -156,12 +159,14 @@ class Simulator:
         The force points out of the tissue (along the outward normal). The
         returned array is reused by the next call.
         """
-        self._controlled = "displacement"
         status = self._step_displacement(d, self._buf) if self._contact else -1
         if status:
             self._check(status, "displacement", d)
+        self._controlled = "displacement"
         if self._cutting is not None:
-            self._cut_step()
+            self._cut_step(self._force)
+            if self._vertex >= 0:
+                self._force *= self._cutting.ratio[self._vertex]
         return self._force
 
     # -- cutting -------------------------------------------------------------------
@@ -194,30 +199,37 @@ class Simulator:
         self._blade, self._across = blade, across / np.linalg.norm(across)
         self._armed, self._background = True, bool(background)
 
-    def _cut_step(self) -> None:
-        """After a step while cutting: cut if the blade force is high enough; soften."""
+    def _cut_step(self, force) -> None:
+        """After a step while cutting: install a ready background cut; cut if the force
+        (N, on the tool or on the tissue) in the blade's plane passes the cut force.
+
+        A cut that fails (e.g. a patch that is no longer positive definite) changes
+        nothing: the error is kept in ``cut_error`` and the servo loop goes on.
+        """
         scalpel = self._cutting
-        if scalpel._pending:  # a background cut: install it once ready (between steps)
-            event = scalpel.poll()
-            if event is not None:
-                self.last_cut = event
-        if self._armed:
-            f0, f1, f2 = self._force
-            a0, a1, a2 = self._across
-            across = f0 * a0 + f1 * a1 + f2 * a2
-            if f0 * f0 + f1 * f1 + f2 * f2 - across * across > scalpel.cut_force**2:
-                # Once per placement: an unmoved scalpel has nothing new under it, and the
-                # steps stay cheap until scalpel() places it again.
-                self._armed = False
-                vertex = self._scalpel_vertex
-                faces = scalpel.faces_under(
-                    self.model.vertices[vertex], self._blade, scalpel.normals[vertex]
-                )
-                event = scalpel.cut(faces, wait=not self._background)
+        try:
+            if scalpel._pending:  # a background cut: install it once ready (between steps)
+                event = scalpel.poll()
                 if event is not None:
                     self.last_cut = event
-        if self._vertex >= 0:
-            self._force *= scalpel.ratio[self._vertex]
+            if self._armed:
+                f0, f1, f2 = force
+                a0, a1, a2 = self._across
+                across = f0 * a0 + f1 * a1 + f2 * a2
+                if f0 * f0 + f1 * f1 + f2 * f2 - across * across > scalpel.cut_force**2:
+                    # Once per placement: an unmoved scalpel has nothing new under it, and
+                    # the steps stay cheap until scalpel() places it again.
+                    self._armed = False
+                    vertex = self._scalpel_vertex
+                    faces = scalpel.faces_under(
+                        self.model.vertices[vertex], self._blade, scalpel.normals[vertex]
+                    )
+                    event = scalpel.cut(faces, wait=not self._background)
+                    if event is not None:
+                        self.last_cut = event
+        except Exception as exc:  # noqa: BLE001 - the servo loop must not stop here
+            self.cut_error = exc
+            warnings.warn(f"a cut failed and was not made: {exc!r}", RuntimeWarning, stacklevel=3)
 
     @property
     def cut_stiffness_ratio(self) -> float:
@@ -246,13 +258,15 @@ class Simulator:
 
     def step_force(self, f) -> np.ndarray:
         """Force the tool applies to the tissue ``f`` (N) -> tool displacement (mm)."""
-        self._controlled = "force"
         status = self._step_force(f, self._buf) if self._contact else -1
         if status:
             self._check(status, "force", f)
-        if self._cutting is not None and self._vertex >= 0:
-            # Linear scaling: the cut tissue yields 1 / ratio times more under the same force.
-            self._displacement /= self._cutting.ratio[self._vertex]
+        self._controlled = "force"
+        if self._cutting is not None:
+            self._cut_step(f)
+            if self._vertex >= 0:
+                # Linear scaling: the cut tissue yields 1 / ratio times more under the same force.
+                self._displacement /= self._cutting.ratio[self._vertex]
         return self._displacement
 
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:

@@ -93,9 +93,11 @@ def test_a_background_cut_ends_as_the_waited_one(model):
         n = waited.contact_normal.copy() if n is None else n
         for depth in (0.005, 0.01, 0.02, 0.04):
             ratio_before = background.cut_stiffness_ratio
+            installed = len(background.cut_events)
             waited.step_displacement(-depth * n)
             f = background.step_displacement(-depth * n).copy()
-            if background.cut_pending:  # not installed yet: the force of the state before
+            if background.cut_pending and len(background.cut_events) == installed:
+                # Not installed yet: the force of the state before.
                 f_intact = intact.step_displacement(-depth * n)
                 np.testing.assert_allclose(f, ratio_before * f_intact, rtol=1e-12)
     background.finish_cuts()
@@ -111,6 +113,58 @@ def test_a_background_cut_ends_as_the_waited_one(model):
     u_waited = waited.surface_displacement(np.zeros_like(model.vertices)).copy()
     u_background = background.surface_displacement(np.zeros_like(model.vertices))
     np.testing.assert_allclose(u_background, u_waited, rtol=1e-12, atol=1e-15)
+
+
+def test_a_failed_background_cut_changes_nothing(model, monkeypatch):
+    """A cut whose patch cannot be factorised: the servo loop goes on, the error is kept,
+    the topology is as before, a later cut works; the GIL switch interval is restored."""
+    import sys
+
+    from hapticrom.online.cutting import Scalpel
+
+    switch = sys.getswitchinterval()
+    sim = model.simulator()
+    sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0], background=True)
+    n = sim.contact_normal.copy()
+    original = Scalpel._compliances
+
+    def failing(self, patch):
+        raise np.linalg.LinAlgError("not positive definite (test)")
+
+    monkeypatch.setattr(Scalpel, "_compliances", failing)
+    with pytest.warns(RuntimeWarning, match="cut failed"):
+        for depth in (0.005, 0.01, 0.02, 0.04):
+            sim.step_displacement(-depth * n)
+        assert sim.cut_pending or sim.cut_error is not None
+        sim.step_displacement(-0.04 * n)
+        while sim.cut_pending:
+            sim.step_displacement(-0.04 * n)
+    assert isinstance(sim.cut_error, np.linalg.LinAlgError)
+    assert sim.cut_events == [] and sim._cutting.topology.cut_faces == set()
+    assert sim._cutting._next.cut_faces == set()  # the worker's topology too
+    assert sys.getswitchinterval() == switch
+    monkeypatch.setattr(Scalpel, "_compliances", original)
+    sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0], background=True)
+    sim.step_displacement(-0.04 * n)
+    sim.finish_cuts()
+    reference = model.simulator()
+    reference.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
+    reference.step_displacement(-0.04 * n)
+    assert [e.faces for e in sim.cut_events] == [e.faces for e in reference.cut_events]
+    assert sim._cutting.topology.cut_faces == reference._cutting.topology.cut_faces
+    assert sys.getswitchinterval() == switch
+
+
+def test_the_scalpel_cuts_under_force_control(model):
+    sim = model.simulator()
+    sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
+    n = sim.contact_normal.copy()
+    for force in (1e-5, 5e-5, 2e-4, 5e-4):  # N on the tissue, into it; cut force 1e-4 N
+        d = sim.step_force(-force * n).copy()
+    assert sim.cut_events and sim.cut_stiffness_ratio < 1.0
+    intact = model.simulator()
+    intact.set_contact(on_surface(4.6))
+    assert np.linalg.norm(d) > np.linalg.norm(intact.step_force(-5e-4 * n))  # yields more
 
 
 def test_bad_scalpel_input_leaves_the_state_alone(model):
