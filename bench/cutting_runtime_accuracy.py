@@ -27,6 +27,7 @@ from hapticrom.meshes import build
 from hapticrom.meshes.cut import cut_mesh, interior_faces
 from hapticrom.meshes.msh import write_msh
 from hapticrom.offline.config import ProblemConfig
+from hapticrom.offline.cutting_study import draw_magnitude
 from hapticrom.offline.dofs import CanonicalOrder
 from hapticrom.offline.fullorder import FullOrderModel
 
@@ -192,15 +193,7 @@ def _picture(out: Path, model, u_runtime, u_reference, point) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
     fields = (("runtime, scalpel cut", u_runtime), ("full order, cut meshed", u_reference))
     for ax, (title, u) in zip(axes, fields, strict=True):
-        t = ax.tripcolor(x[:, 0], x[:, 1], tri[near], np.linalg.norm(u, axis=1),
-                         shading="gouraud", vmin=0, vmax=vmax)  # fmt: skip
-        ax.set_aspect("equal")
-        ax.set_xlim(point[0] - 1.6, point[0] + 1.6)
-        ax.set_ylim(point[1] - 1.6, point[1] + 1.6)
-        ax.set_title(title)
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        fig.colorbar(t, ax=ax, label="|u| (mm)", shrink=0.8)
+        draw_magnitude(fig, ax, x, tri[near], u, point, 1.6, vmax, title)
     fig.tight_layout()
     fig.savefig(out / "runtime-cut-vs-full-order.png", dpi=110)
     plt.close(fig)

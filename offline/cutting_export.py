@@ -44,12 +44,17 @@ def read_mesh_arrays(mesh_file):
     return coords[order], cells - 1, np.unique(clamped - 1)
 
 
-def condensed_reduced_stiffness(comm: MPI.Comm, ops, A_local: np.ndarray) -> np.ndarray:
-    """A^T K0 A with the pressure condensed element-wise (distributed rows of A)."""
+def condensed_reduced_stiffness(comm: MPI.Comm, ops, A_local: np.ndarray, K_r=None) -> np.ndarray:
+    """A^T K0 A with the pressure condensed element-wise (distributed rows of A).
+
+    ``K_r``: A^T K A (K_uu if mixed) when already computed (``reduction.reduced_blocks``).
+    """
     from hapticrom.offline.reduction import _allgather_rows, _sum
 
-    A = _allgather_rows(comm, A_local)  # the operators' rows span all columns
-    K = _sum(comm, A_local.T @ (ops.K @ A))
+    K = K_r
+    if K is None:
+        A = _allgather_rows(comm, A_local)  # the operators' rows span all columns
+        K = _sum(comm, A_local.T @ (ops.K @ A))
     if ops.mixed:
         B = _sum(comm, ops.Kup.T @ A_local)  # (cells, G) = K_pu A
         kpp = _allgather_rows(comm, ops.kpp)

@@ -205,6 +205,19 @@ def run_study(study: CuttingStudy, work: Path, comm=None, out: Path | None = Non
     return result
 
 
+def draw_magnitude(fig, ax, x, triangles, u, point, half_width: float, vmax: float, title: str):
+    """|u| (mm) over surface ``triangles`` seen from above, around ``point`` (mm)."""
+    magnitude = np.linalg.norm(np.reshape(u, (-1, 3)), axis=1)
+    t = ax.tripcolor(x[:, 0], x[:, 1], triangles, magnitude, shading="gouraud", vmin=0, vmax=vmax)
+    ax.set_aspect("equal")
+    ax.set_xlim(point[0] - half_width, point[0] + half_width)
+    ax.set_ylim(point[1] - half_width, point[1] + half_width)
+    ax.set_title(title)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    fig.colorbar(t, ax=ax, label="|u| (mm)", shrink=0.8)
+
+
 def _figures(out: Path, cut, u_ref, u_coupled, u_blind, pairs, point) -> list[Path]:
     import matplotlib
 
@@ -222,16 +235,8 @@ def _figures(out: Path, cut, u_ref, u_coupled, u_blind, pairs, point) -> list[Pa
     fig = plt.figure(figsize=(15, 5))
     for k, (title, u) in enumerate(fields.items()):
         ax = fig.add_subplot(1, 3, k + 1)
-        mag = np.linalg.norm(u.reshape(-1, 3), axis=1)
-        tpc = ax.tripcolor(x[:, 0], x[:, 1], tri[near], mag, shading="gouraud", vmin=0, vmax=vmax)
+        draw_magnitude(fig, ax, x, tri[near], u, point, 2.2, vmax, title)
         ax.plot(x[pairs[:, 1], 0], x[pairs[:, 1], 1], "k.", ms=2)
-        ax.set_aspect("equal")
-        ax.set_xlim(point[0] - 2.2, point[0] + 2.2)
-        ax.set_ylim(point[1] - 2.2, point[1] + 2.2)
-        ax.set_title(title)
-        ax.set_xlabel("x (mm)")
-        ax.set_ylabel("y (mm)")
-        fig.colorbar(tpc, ax=ax, label="|u| (mm)", shrink=0.8)
     fig.suptitle("anterior surface near the limbal incision (dots: the cut)")
     fig.tight_layout()
     p1 = out / "cut-displacement.png"

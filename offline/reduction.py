@@ -172,7 +172,11 @@ def reduced_blocks(comm, ops: OperatorRows, A_local, P_local=None):
 
 def reduced_stiffness(comm, ops: OperatorRows, A_local, P_local=None) -> np.ndarray:
     """A^T K A, with the pressure reduced to the basis P when the element has one (N/mm)."""
-    K_r, B, Kpp = reduced_blocks(comm, ops, A_local, P_local)
+    return condense_reduced_pressure(*reduced_blocks(comm, ops, A_local, P_local))
+
+
+def condense_reduced_pressure(K_r, B, Kpp) -> np.ndarray:
+    """K_r - B Kpp^-1 B^T (K_r itself without a pressure basis), symmetrised."""
     if B is not None:
         K_r = K_r - B @ np.linalg.solve(Kpp, B.T)
     return (K_r + K_r.T) / 2
@@ -359,7 +363,8 @@ def reduce_campaign(
         Qp = np.hstack([s.p_local for s in samples])
         gp = pod(Qp, comm, None, Truncation(eigenvalue_ratio=1e-8), method)
         global_P = gp.basis_local[:, : max(1, min(gp.n_modes, math.ceil(global_pod.n_modes / 2)))]
-    global_K = reduced_stiffness(comm, ops, global_pod.basis_local, global_P)
+    global_blocks = reduced_blocks(comm, ops, global_pod.basis_local, global_P)
+    global_K = condense_reduced_pressure(*global_blocks)
 
     series = None
     if config.anm.enabled:
@@ -372,9 +377,9 @@ def reduce_campaign(
     if config.cutting is not None:
         from hapticrom.offline.cutting_export import condensed_reduced_stiffness
 
-        cut_stiffness = condensed_reduced_stiffness(comm, ops, global_pod.basis_local)
+        K_uu, K_up, K_pp = global_blocks
+        cut_stiffness = condensed_reduced_stiffness(comm, ops, global_pod.basis_local, K_uu)
         if global_P is not None:  # the coupling keeps the reduced pressure (ARTIFACT.md)
-            K_uu, K_up, K_pp = reduced_blocks(comm, ops, global_pod.basis_local, global_P)
             cut_pressure = {
                 "pressure_modes": _allgather_rows(comm, global_P),
                 "reduced_displacement_stiffness": K_uu,

@@ -345,6 +345,10 @@ class Scalpel:
         attrs = model.artifact.group_attrs["cutting"]
         self.model, self.region = model, region
         self.cut_force = float(attrs["cut_force"])
+        # The training's soft tip: the tool load of the stiffness ratios (mm).
+        self.tool_radius = float(
+            model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5)
+        )
         self.layers = int(layers or attrs["patch_layers"])
         edges = np.linalg.norm(
             region.coordinates[region.cells[:, 1]] - region.coordinates[region.cells[:, 0]], axis=1
@@ -607,7 +611,7 @@ class Scalpel:
         in the force.
         """
         on_region = np.flatnonzero(self.surface_region >= 0)
-        radius = float(self.model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5))
+        radius = self.tool_radius
         topology = patch.topology
         patch_nodes = np.unique(topology.origin[topology.cells[patch.cells]])
         x = self.region.coordinates[patch_nodes]
@@ -636,7 +640,7 @@ class Scalpel:
         coarse as the tool.
         """
         model = self.model
-        radius = float(model.artifact.attrs["campaign"]["load"].get("contact_radius", 0.5))
+        radius = self.tool_radius
         topology, region, G = patch.topology, patch.region, patch.G
         triangles, points, weights = self._surface_quadrature(topology)
         nodes, triangles = np.unique(triangles, return_inverse=True)

@@ -14,14 +14,24 @@ def on_surface(rho, degrees=0.0):
     return np.array([rho * np.cos(a), rho * np.sin(a), -R + np.sqrt(R * R - rho * rho)])
 
 
-@pytest.fixture(scope="module")
-def model(mesh_dir, tmp_path_factory):
-    from conftest import campaign_toml
+def _train(root, text: str):
+    """Run the campaign ``text`` (serial) under ``root`` and reduce it: (model, config)."""
     from mpi4py import MPI
 
     import hapticrom.online as online
     from hapticrom.offline.campaign import CampaignConfig, run_campaign
     from hapticrom.offline.reduction import reduce_campaign
+
+    (root / "c.toml").write_text(text)
+    config = CampaignConfig.from_toml(root / "c.toml")
+    run_campaign(config, root / "store", MPI.COMM_SELF, verbose=False)
+    reduce_campaign(root / "store", root / "m.h5", MPI.COMM_SELF, verbose=False)
+    return online.load(root / "m.h5"), config
+
+
+@pytest.fixture(scope="module")
+def model(mesh_dir, tmp_path_factory):
+    from conftest import campaign_toml
 
     root = tmp_path_factory.mktemp("scalpel")
     text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=2, per_ring=3)
@@ -29,11 +39,7 @@ def model(mesh_dir, tmp_path_factory):
     centre = on_surface(4.6).tolist()
     text += f"\n[anm]\nenabled = false\n[cutting]\ncentre = {centre}\nradius = 2.5\n"
     text += "cut_force = 1e-4\npatch_layers = 1\n"
-    (root / "c.toml").write_text(text)
-    config = CampaignConfig.from_toml(root / "c.toml")
-    run_campaign(config, root / "store", MPI.COMM_SELF, verbose=False)
-    reduce_campaign(root / "store", root / "m.h5", MPI.COMM_SELF, verbose=False)
-    return online.load(root / "m.h5")
+    return _train(root, text)[0]
 
 
 def test_pressing_the_blade_cuts_and_softens(model):
@@ -239,11 +245,6 @@ def test_force_control_yields_more_where_cut(model):
 def hgo_model(mesh_dir, tmp_path_factory):
     """The nearly incompressible HGO cornea (D = 1e-5) with a cuttable region (format 1.3)."""
     from conftest import campaign_toml
-    from mpi4py import MPI
-
-    import hapticrom.online as online
-    from hapticrom.offline.campaign import CampaignConfig, run_campaign
-    from hapticrom.offline.reduction import reduce_campaign
 
     root = tmp_path_factory.mktemp("scalpel-hgo")
     text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=2, per_ring=3)
@@ -259,11 +260,8 @@ def hgo_model(mesh_dir, tmp_path_factory):
     text = text.replace("points = [[0.0, 0.0, 0.0]]", f"points = {points}")
     text += f"\n[anm]\nenabled = false\n[cutting]\ncentre = {on_surface(4.6).tolist()}\n"
     text += "radius = 3.0\ncut_force = 1e-4\npatch_layers = 2\n"
-    (root / "c.toml").write_text(text)
-    config = CampaignConfig.from_toml(root / "c.toml")
-    run_campaign(config, root / "store", MPI.COMM_SELF, verbose=False)
-    reduce_campaign(root / "store", root / "m.h5", MPI.COMM_SELF, verbose=False)
-    return online.load(root / "m.h5"), mesh_dir / "cornea-coarse.msh", config
+    model, config = _train(root, text)
+    return model, mesh_dir / "cornea-coarse.msh", config
 
 
 def _linear_full_order(mesh_file, config, point, direction, tmp_path):
