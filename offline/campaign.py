@@ -32,7 +32,14 @@ from mpi4py import MPI
 
 from hapticrom import __version__
 from hapticrom.meshes.msh import read_surface
-from hapticrom.offline.config import LoadConfig, ProblemConfig, _Reader, read_toml
+from hapticrom.offline.config import (
+    LOAD_COMMON_KEYS,
+    LoadConfig,
+    ProblemConfig,
+    _Reader,
+    load_common,
+    read_toml,
+)
 from hapticrom.offline.dofs import CanonicalOrder
 from hapticrom.offline.formulation import HyperelasticModel
 from hapticrom.offline.fullorder import FullOrderModel
@@ -182,27 +189,19 @@ class CampaignConfig:
 
 
 def _campaign_load(r: _Reader, t: dict) -> CampaignLoad:
-    allowed = {
-        "mode", "magnitude", "direction", "contact_radius", "surface", "steps",
-        "max_step_cuts", "predictor",
-    }  # fmt: skip
-    r.keys(t, "load", allowed)
+    """The campaign's [load] table; the keys it shares with a problem's are checked alike."""
+    r.keys(t, "load", {"mode", "magnitude", "direction", *LOAD_COMMON_KEYS})
     mode = r.choice(t, "load", "mode", CONTROL_MODES, None)
     direction = t.get("direction", "normal")
     if direction != "normal":
         direction = r.vector(t, "load", "direction")
         if np.linalg.norm(direction) == 0:
             r.fail("load", "direction must not be the zero vector")
-    base = LoadConfig(mode=mode, force=(0.0, 0.0, 0.0))
     return CampaignLoad(
         mode=mode,
         magnitude=r.number(t, "load", "magnitude", positive=True),
         direction=direction,
-        contact_radius=r.number(t, "load", "contact_radius", 0.5, positive=True),
-        surface=str(t.get("surface", "loadable")),
-        steps=r.number(t, "load", "steps", base.steps, positive=True, integer=True),
-        max_step_cuts=r.number(t, "load", "max_step_cuts", base.max_step_cuts, integer=True),
-        predictor=r.choice(t, "load", "predictor", ("secant", "none"), "secant"),
+        **load_common(r, t),
     )
 
 
@@ -260,6 +259,7 @@ class CampaignReport:
     wall_seconds: float
     ranks: int
     ranks_per_solve: int
+    redone: list[int] = field(default_factory=list)  # stored damaged or failed: solved again
 
 
 def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str, Any]:
@@ -288,10 +288,38 @@ def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str
 
 
 def _plan(config: CampaignConfig, store: SnapshotStore, restart: bool):
+    """Positions, whether resuming, the intact solved ones, and why others are redone."""
     surface = read_surface(config.problem.mesh.file, config.load.surface)
     positions = plan_positions(surface, config.positions)
     resumed = store.open_or_create(_manifest(config, positions), restart=restart)
-    return positions, resumed, store.completed()
+    done, redo = store.audit()
+    planned = {p.index for p in positions}
+    return positions, resumed, done, {i: why for i, why in redo.items() if i in planned}
+
+
+def _operators_damage(store: SnapshotStore) -> str | None:
+    """Why the stored operators must be computed (again), or None if they are intact."""
+    if not store.has_operators():
+        return "missing"
+    try:
+        store.read_operators()
+    except InputError as exc:
+        return f"damaged: {exc}"
+    return None
+
+
+def _ensure_operators(config, organ, comm, group, group_index, store, say) -> None:
+    """Compute and store K0 and the volumes (group 0) unless an intact copy is stored."""
+    damage = on_rank_zero(comm, _operators_damage, store)
+    if damage is None:
+        return
+    if damage != "missing":
+        say(f"stored operators {damage}; computing them again")
+    if group_index == 0:
+        t0 = time.perf_counter()
+        _write_operators(config, organ, group, store)
+        if group.rank == 0:
+            say(f"stored K0 and the volume weights ({time.perf_counter() - t0:.1f} s)")
 
 
 def _write_operators(config: CampaignConfig, organ, group: MPI.Comm, store: SnapshotStore):
@@ -410,7 +438,7 @@ def run_campaign(
         )
     say = (lambda s: print0(comm, s)) if verbose else (lambda s: None)
     store = SnapshotStore(out_dir)
-    positions, resumed, done = on_rank_zero(comm, _plan, config, store, restart)
+    positions, resumed, done, redo = on_rank_zero(comm, _plan, config, store, restart)
     n_groups = comm.size // ranks_per_solve
     group_index = comm.rank // ranks_per_solve
     group = comm.Split(color=group_index, key=comm.rank)
@@ -424,14 +452,11 @@ def run_campaign(
     )
     if verbose and comm.rank == 0 and not done:
         print(positions_table(positions), flush=True)
+    for index, why in sorted(redo.items()):
+        say(f"position {index}: {why}; solving it again")
 
     organ = load_organ(config.problem.mesh.file, group)
-    need_operators = on_rank_zero(comm, lambda: not store.has_operators())
-    if need_operators and group_index == 0:
-        t0 = time.perf_counter()
-        _write_operators(config, organ, group, store)
-        if group.rank == 0:
-            say(f"stored K0 and the volume weights ({time.perf_counter() - t0:.1f} s)")
+    _ensure_operators(config, organ, comm, group, group_index, store, say)
 
     mine = todo[group_index::n_groups]
     bar = ProgressBar(len(positions), already_done=len(done)) if comm.rank == 0 else None
@@ -521,6 +546,7 @@ def run_campaign(
         wall_seconds=wall,
         ranks=comm.size,
         ranks_per_solve=ranks_per_solve,
+        redone=sorted(redo),
     )
 
 

@@ -142,11 +142,20 @@ class ProblemConfig:
 
 
 def read_toml(path: Path, what: str = "configuration file") -> dict[str, Any]:
-    """Parse a TOML file; InputError if it is missing or not TOML."""
+    """Parse a TOML file; InputError if it is missing, unreadable, not UTF-8 or not TOML."""
     if not path.is_file():
         raise InputError(f"{what} {path} not found")
     try:
-        return tomllib.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
+    except OSError as exc:
+        raise InputError(f"{what} {path} cannot be read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise InputError(
+            f"{path}: not valid TOML (not UTF-8 text: byte 0x{exc.object[exc.start]:02x} "
+            f"at offset {exc.start})"
+        ) from None
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{path}: not valid TOML ({exc})") from None
 
@@ -236,30 +245,44 @@ def _material(r: _Reader, t: dict) -> MaterialConfig:
     return MaterialConfig(law=t["law"], params=params)
 
 
+# Keys of the [load] table shared by a problem configuration and a campaign, and
+# the bounds of the integer ones (inclusive), checked by :func:`load_common`.
+LOAD_COMMON_KEYS = ("contact_radius", "surface", "steps", "max_step_cuts", "predictor")
+LOAD_STEPS = (1, 100_000)
+LOAD_MAX_STEP_CUTS = (0, 16)
+
+
 def _load(r: _Reader, t: dict) -> LoadConfig:
-    allowed = {
-        "mode", "force", "displacement", "traction", "contact_point", "contact_radius",
-        "surface", "steps", "max_step_cuts", "predictor",
-    }  # fmt: skip
-    r.keys(t, "load", allowed)
+    r.keys(t, "load", {"mode", *LOAD_MODES, "contact_point", *LOAD_COMMON_KEYS})
     mode = r.choice(t, "load", "mode", LOAD_MODES, None)
     vectors = {m: r.vector(t, "load", m, required=(m == mode)) for m in LOAD_MODES}
     for m in LOAD_MODES:
         if m != mode and vectors[m] is not None:
             r.fail("load", f"{m} is given but mode is {mode!r}")
-    surface = t.get("surface", "loadable")
-    if not isinstance(surface, str):
-        r.fail("load", "surface must be the name of a surface group")
     return LoadConfig(
         mode=mode,
         contact_point=r.vector(t, "load", "contact_point"),
-        contact_radius=r.number(t, "load", "contact_radius", 0.5, positive=True),
-        surface=surface,
-        steps=_bounded(r, t, "steps", 10, 1, 100_000),
-        max_step_cuts=_bounded(r, t, "max_step_cuts", 8, 0, 16),
-        predictor=r.choice(t, "load", "predictor", PREDICTORS, "secant"),
+        **load_common(r, t),
         **vectors,
     )
+
+
+def load_common(r: _Reader, t: dict) -> dict[str, Any]:
+    """The [load] keys a problem configuration and a campaign share, validated.
+
+    One validator for both, so a campaign is bounded exactly as the problem
+    configuration it becomes at every position (:class:`LoadConfig`).
+    """
+    surface = t.get("surface", "loadable")
+    if not isinstance(surface, str) or not surface:
+        r.fail("load", f"surface must be the name of a surface group, got {surface!r}")
+    return {
+        "contact_radius": r.number(t, "load", "contact_radius", 0.5, positive=True),
+        "surface": surface,
+        "steps": _bounded(r, t, "steps", 10, *LOAD_STEPS),
+        "max_step_cuts": _bounded(r, t, "max_step_cuts", 8, *LOAD_MAX_STEP_CUTS),
+        "predictor": r.choice(t, "load", "predictor", PREDICTORS, "secant"),
+    }
 
 
 def _bounded(r: _Reader, t: dict, key: str, default: int, low: int, high: int) -> int:

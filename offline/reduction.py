@@ -49,7 +49,7 @@ from hapticrom.offline.mpi import on_rank_zero, print0
 from hapticrom.offline.pod import PODResult, Truncation, pod
 from hapticrom.offline.store import SnapshotStore
 from hapticrom.shared.artifact import write_artifact
-from hapticrom.shared.errors import InputError
+from hapticrom.shared.errors import HapticromError, InputError
 
 
 # -- reading the store -------------------------------------------------------------
@@ -394,7 +394,7 @@ def reduce_campaign(
     bases = [_allgather_rows(comm, r.basis_local) for r in reduced]
     tangent_full = [_allgather_rows(comm, t) for t in tangents]
     global_basis = _allgather_rows(comm, global_pod.basis_local)
-    summary = None
+    summary = error = None
     if comm.rank == 0:
         vertices, surface_triangles, nodes, groups = surface_mesh(
             config.problem.mesh.file, ops.node_coordinates
@@ -475,7 +475,8 @@ def reduce_campaign(
             "campaign": json.dumps(manifest["campaign"], default=str),
             "description": f"contact ROM of campaign '{config.name}'",
         }
-        write_artifact(out, content, root)
+        error = _write_model(out, content, root)
+    if comm.rank == 0 and error is None:
         summary = {
             "samples": len(samples),
             "modes": n,
@@ -493,7 +494,21 @@ def reduce_campaign(
                 f"modes, {len(vertices)} surface vertices) in {summary['seconds']:.1f} s",
                 flush=True,
             )
-    return comm.bcast(summary, root=0)
+    summary, error = comm.bcast((summary, error), root=0)
+    if error is not None:
+        raise error
+    return summary
+
+
+def _write_model(out: str | Path, content: dict, root: dict) -> HapticromError | None:
+    """Write the artifact (``write_artifact`` leaves nothing behind when it fails, e.g. on a
+    full disk). The error is returned, not raised, so that rank 0 can hand it to the others.
+    """
+    try:
+        write_artifact(out, content, root)
+    except HapticromError as exc:
+        return exc
+    return None
 
 
 def _common_grid(samples: list[Sample], reduced: list[ReducedSample]):

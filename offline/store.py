@@ -16,13 +16,16 @@ All arrays are in the canonical DOF order of :mod:`hapticrom.offline.dofs`, so
 campaigns run on different numbers of ranks store the same data.
 
 A rerun of the same campaign in the same directory resumes: positions whose
-file exists are not solved again. A directory holding a different campaign
-(another configuration or mesh) is refused.
+file exists, passes its checksums and records a converged solve are not solved
+again; a damaged file (a bit flip, an unreadable file) or a failed solve is
+solved again (:meth:`SnapshotStore.audit`). A directory holding a different
+campaign (another configuration or mesh) is refused.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -36,6 +39,7 @@ from hapticrom.shared.errors import InputError
 
 FORMAT = "hapticrom-campaign"
 VERSION = 2  # 2: pressure snapshots and the mixed tangent blocks
+MESH_KEYS = ("file", "sha256")
 
 
 def _atomic_path(path: Path) -> Path:
@@ -85,9 +89,35 @@ def read_h5(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
                         )
 
             f.visititems(visit)
-    except OSError as exc:
+    except InputError:
+        raise
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError) as exc:
+        # h5py reports damaged metadata with any of these, not only OSError
         raise InputError(f"{path} cannot be read as HDF5 ({exc})") from None
     return data, attrs
+
+
+def _manifest_problem(data: dict) -> str | None:
+    """What is wrong with the shape of a manifest's content, or None."""
+    if not isinstance(data.get("campaign_hash"), str):
+        return "campaign_hash must be a string"
+    if not isinstance(data.get("campaign"), dict):
+        return "campaign must be an object (the campaign's tables)"
+    mesh = data.get("mesh")
+    if not isinstance(mesh, dict) or not all(isinstance(mesh.get(k), str) for k in MESH_KEYS):
+        return 'mesh must be an object {"file": ..., "sha256": ...}'
+    positions = data.get("positions")
+    if not isinstance(positions, list) or not positions:
+        return "positions must be a non-empty list"
+    for i, p in enumerate(positions):
+        if not (isinstance(p, dict) and type(p.get("index")) is int and p["index"] == i):
+            return f"positions[{i}] must be an object with index {i}"
+        for key in ("point", "normal"):
+            v = p.get(key)
+            ok = isinstance(v, list) and len(v) == 3
+            if not ok or not all(type(c) in (int, float) and math.isfinite(c) for c in v):
+                return f"positions[{i}].{key} must be three finite numbers"
+    return None
 
 
 def csr_datasets(prefix: str, K: scipy.sparse.csr_matrix) -> dict[str, np.ndarray]:
@@ -119,16 +149,26 @@ class SnapshotStore:
         return self.root / "manifest.json"
 
     def manifest(self) -> dict:
-        if not self.manifest_path.is_file():
+        """The manifest, checked: InputError naming it if unreadable, not JSON or misshapen."""
+        path = self.manifest_path
+        if not path.is_file():
             raise InputError(f"{self.root} is not a campaign directory (no manifest.json)")
-        data = json.loads(self.manifest_path.read_text())
-        if data.get("format") != FORMAT:
-            raise InputError(f"{self.manifest_path} is not a {FORMAT} manifest")
+        try:
+            data = json.loads(path.read_bytes().decode("utf-8"))
+        except OSError as exc:
+            raise InputError(f"{path} cannot be read ({exc.strerror or exc})") from None
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"{path} is damaged: not valid JSON ({exc})") from None
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise InputError(f"{path} is not a {FORMAT} manifest")
         if data.get("version") != VERSION:
             raise InputError(
-                f"{self.manifest_path}: campaign format version {data.get('version')} "
+                f"{path}: campaign format version {data.get('version')} "
                 f"is not supported (this hapticrom reads version {VERSION})"
             )
+        problem = _manifest_problem(data)
+        if problem:
+            raise InputError(f"{path} is damaged: {problem}")
         return data
 
     def open_or_create(self, manifest: dict, restart: bool = False) -> bool:
@@ -171,6 +211,34 @@ class SnapshotStore:
             except OSError:
                 continue  # unreadable: treated as not done, solved again
         return done
+
+    def audit(self) -> tuple[list[int], dict[int, str]]:
+        """Verify every stored position (all its checksums), for a resume.
+
+        Returns the indices of the positions solved and intact, and for each
+        other stored position why it must be solved again: its file is damaged
+        or unreadable, or its solve failed in an earlier run. Call on one rank.
+        """
+        solved, redo = [], {}
+        for path in sorted(self.solves.glob("position-*.h5")):
+            try:
+                index = int(path.stem.removeprefix("position-"))
+            except ValueError:
+                continue  # not a record of ours
+            try:
+                _, attrs = read_h5(path)
+            except InputError as exc:
+                redo[index] = f"stored record is damaged: {exc}"
+                continue
+            if attrs.get("index") != index:
+                held = attrs.get("index")
+                redo[index] = f"stored record is damaged: {path} holds position {held}"
+            elif attrs.get("status") != "solved":
+                reason = attrs.get("message") or attrs.get("status")
+                redo[index] = f"failed in an earlier run ({reason})"
+            else:
+                solved.append(index)
+        return solved, redo
 
     def write_position(self, index: int, datasets: dict, attrs: dict) -> None:
         write_h5(self.position_path(index), datasets, {"index": index, **attrs})

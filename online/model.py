@@ -68,12 +68,7 @@ class ReducedModel:
     @classmethod
     def from_artifact(cls, artifact: Artifact) -> ReducedModel:
         surface, samples = artifact["surface"], artifact["samples"]
-        depth = np.asarray(samples["depth"], dtype=np.float64)
-        steps = np.diff(depth)
-        if depth[0] != 0.0 or not np.allclose(steps, steps[0], rtol=1e-9, atol=0):
-            raise ArtifactError(f"{artifact.path}: samples/depth must be uniform from 0")
-        if np.any(np.diff(samples["force"], axis=1) < 0):
-            raise ArtifactError(f"{artifact.path}: samples/force is not increasing with depth")
+        step = float(samples["depth"][1])  # uniform from 0 (artifact_rules)
         grassmann = None
         if "grassmann" in artifact.groups:
             g = artifact["grassmann"]
@@ -97,7 +92,7 @@ class ReducedModel:
             chart_axes=_f8(samples["chart_axes"]),
             chart_points=_f8(samples["chart_points"]),
             sample_triangles=_i8(samples["triangles"]),
-            depth_step=float(steps[0]),
+            depth_step=step,
             force=_f8(samples["force"]),
             stiffness=_f8(samples["stiffness"]),
             surface_basis=_f4(samples["surface_basis"]),
@@ -187,24 +182,14 @@ def _anm_records(artifact: Artifact) -> dict:
     from hapticrom.online.kernels import record_stride
 
     a = artifact["anm"]
-    P = len(artifact["samples"]["points"])
     offsets = _i8(a["section_offsets"])
     depth, force, a_max = _f8(a["depth"]), _f8(a["force"]), _f8(a["a_max"])
     Z, n1 = depth.shape
-    where = f"{artifact.path}: anm"
-    if offsets.shape != (P + 1,) or offsets[0] != 0 or offsets[-1] != Z:
-        raise ArtifactError(f"{where}/section_offsets must run from 0 to {Z} over {P} samples")
-    counts = np.diff(offsets)
-    if np.any(counts < 1):
-        raise ArtifactError(f"{where}: every sample needs at least one section")
-    if not np.all(a_max > 0):
-        raise ArtifactError(f"{where}/a_max must be positive")
+    counts = np.diff(offsets)  # offsets, a_max and monotone sections: artifact_rules
     depth_end = np.array([poly.polyval(a_max[z], depth[z]) for z in range(Z)])
     force_end = np.array([poly.polyval(a_max[z], force[z]) for z in range(Z)])
     dd = np.array([poly.polyval(a_max[z], poly.polyder(depth[z])) for z in range(Z)])
     df = np.array([poly.polyval(a_max[z], poly.polyder(force[z])) for z in range(Z)])
-    if np.any(depth_end <= depth[:, 0]) or np.any(dd <= 0):
-        raise ArtifactError(f"{where}: the depth must increase along every section")
     records = np.column_stack([a_max, depth[:, 0], depth_end, force_end, df / dd, depth, force])
     assert records.shape[1] == record_stride(n1)
     return {
@@ -218,18 +203,40 @@ def _anm_records(artifact: Artifact) -> dict:
 
 
 def load(path: str | Path, warm_up: bool = True) -> ReducedModel:
-    """Load and verify a reduced-model artifact; optionally run every kernel once."""
-    model = ReducedModel.from_artifact(read_artifact(path))
-    if warm_up:
-        combos = [("podi", "curves")]
-        if model.grassmann:
-            combos.append(("grassmann", "curves"))
-        if model.anm:
-            combos.append(("podi", "anm"))
-        for interpolation, response in combos:
-            sim = model.simulator(interpolation, response)
-            sim.set_contact(model.sample_points[0])
-            sim.step_displacement(-0.5 * model.trained_depth * sim.contact_normal)
-            sim.step_force(-0.5 * model.trained_force * sim.contact_normal)
-            sim.surface_displacement(np.empty_like(model.vertices))
+    """Load and verify a reduced-model artifact; optionally run every kernel once.
+
+    Anything wrong with the file, found by the reader or by the warm-up (which
+    checks that every kernel returns finite values), is an ``ArtifactError``.
+    """
+    artifact = read_artifact(path)
+    try:
+        model = ReducedModel.from_artifact(artifact)
+        if warm_up:
+            _warm_up(model)
+    except ArtifactError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a file's fault until proven otherwise
+        raise ArtifactError(
+            f"{path}: the model cannot be set up ({type(exc).__name__}: {exc})"
+        ) from None
     return model
+
+
+def _warm_up(model: ReducedModel) -> None:
+    """Compile (or load from cache) and run every kernel the model can use."""
+    combos = [("podi", "curves")]
+    if model.grassmann:
+        combos.append(("grassmann", "curves"))
+    if model.anm:
+        combos.append(("podi", "anm"))
+    surface = np.empty_like(model.vertices)
+    for interpolation, response in combos:
+        sim = model.simulator(interpolation, response)
+        sim.set_contact(model.sample_points[0])
+        outputs = [
+            sim.step_displacement(-0.5 * model.trained_depth * sim.contact_normal).copy(),
+            sim.step_force(-0.5 * model.trained_force * sim.contact_normal).copy(),
+            sim.surface_displacement(surface),
+        ]
+        if not all(np.all(np.isfinite(out)) for out in outputs):
+            raise ArtifactError(f"{model.path}: the model's {response} response is not finite")

@@ -1,21 +1,28 @@
 """The reduced-model artifact: one HDF5 file that the trainer writes and the runtime reads.
 
 The written specification is ``shared/ARTIFACT.md``; :data:`SCHEMA` below is
-its machine-readable form (names, shapes, dtypes, units), used by both the
-writer and the reader so they cannot disagree. numpy, h5py and json only.
+its machine-readable form (names, shapes, dtypes, units, value rules), used by
+both the writer and the reader so they cannot disagree. numpy, h5py and json only.
 
 Versioning (as zarr and anndata do): the root carries ``format = "hapticrom"``
 and ``format_version = [major, minor]``; every group carries its ``type`` and
 ``version``. A reader refuses an unknown major version and names it; a newer
 minor version only adds optional content, which an older reader ignores.
-Every dataset carries the SHA-256 of its contents (``sha256`` attribute),
-verified on load: a truncated or bit-flipped file raises, naming the dataset.
-The writer writes a temporary file and renames it, so a crash never leaves a
-file that loads.
+
+The file is a trust boundary: it comes from elsewhere and drives a haptic motor.
+A whole-file SHA-256 in the HDF5 user block (``shared/envelope.py``) is checked
+before HDF5 parses a byte; then only hard-linked groups and datasets stored
+inside the file, with the schema's dtype, shape and units, are read; every
+dataset's own digest is checked; every value the runtime uses is checked
+against the rules of :mod:`hapticrom.shared.artifact_rules`. Any failure, of
+any kind, is an :class:`ArtifactError` naming the dataset or attribute. The
+writer writes a temporary file, reads it back with this reader and renames
+it, so a crash or a writer bug never leaves a file that loads.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from dataclasses import dataclass, field
@@ -26,19 +33,24 @@ import h5py
 import numpy as np
 
 from hapticrom.shared.checksum import array_digest
-from hapticrom.shared.errors import HapticromError
+from hapticrom.shared.envelope import MAX_BYTES, USERBLOCK, read_verified, seal
+from hapticrom.shared.errors import ArtifactError, HapticromError
+
+__all__ = ["SCHEMA", "ROOT_ATTRS", "Artifact", "ArtifactError", "read_artifact", "write_artifact"]
 
 FORMAT = "hapticrom"
-FORMAT_VERSION = (1, 3)  # 1.1: the anm group; 1.2: the cutting group; 1.3: its pressure coupling
-
-
-class ArtifactError(HapticromError):
-    """A file is not a valid hapticrom artifact; the message names the problem."""
+# 1.1: the anm group; 1.2: the cutting group; 1.3: its pressure coupling;
+# 1.4: the integrity envelope (whole-file digest in the user block), required by this reader.
+FORMAT_VERSION = (1, 4)
 
 
 @dataclass(frozen=True)
 class Field:
-    """One dataset of the schema. ``shape`` uses symbols resolved per file (P, K, n, V, T, S...)."""
+    """One dataset of the schema. ``shape`` uses symbols resolved per file (P, K, n, V, T, S...).
+
+    ``checks``: value rules (``artifact_rules.FIELD_RULES``) on top of "finite", which every
+    float dataset must be.
+    """
 
     name: str
     dtype: str  # numpy kind: "f" float, "i" integer
@@ -46,6 +58,18 @@ class Field:
     units: str
     meaning: str
     required: bool = True
+    checks: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Attr:
+    """One attribute of a group (or of the root). ``kind``: str, json, float, int, ints, floats."""
+
+    name: str
+    kind: str
+    meaning: str
+    required: bool = False
+    checks: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -55,7 +79,27 @@ class Group:
     version: tuple[int, int]
     fields: tuple[Field, ...]
     required: bool = True
-    attrs: tuple[str, ...] = field(default_factory=tuple)
+    attrs: tuple[Attr, ...] = field(default_factory=tuple)
+
+
+ROOT_ATTRS: tuple[Attr, ...] = (
+    Attr("format", "str", "the string hapticrom", required=True),
+    Attr("format_version", "ints", "[major, minor]", required=True, checks=("pair",)),
+    Attr("created", "str", "ISO 8601 time of writing (UTC)"),
+    Attr("software", "json", "versions of the software that wrote it"),
+    Attr("units", "json", "the unit system (mm, N, MPa)"),
+    Attr("campaign", "json", "the training campaign's configuration"),
+    Attr("description", "str", "free text"),
+)
+GROUP_ATTRS: tuple[Attr, ...] = (
+    Attr("type", "str", "the group's type", required=True),
+    Attr("version", "ints", "the group's [major, minor]", required=True, checks=("pair",)),
+)
+
+
+def _fields(*rows, required: bool = True) -> tuple[Field, ...]:
+    """Fields from (name, dtype, shape, units, meaning[, checks]) rows."""
+    return tuple(Field(*row[:5], required=required, checks=tuple(row[5:])) for row in rows)
 
 
 SCHEMA: tuple[Group, ...] = (
@@ -64,50 +108,107 @@ SCHEMA: tuple[Group, ...] = (
         "contact-rom",
         (1, 0),
         (),
-        attrs=("name", "mode", "contact_radius", "surface_group", "material", "campaign_hash"),
+        attrs=(
+            Attr("name", "str", "campaign name", required=True),
+            Attr("mode", "str", "control of the training", True, ("choice:displacement,force",)),
+            Attr("contact_radius", "float", "tool tip radius (mm)", True, ("positive",)),
+            Attr("surface_group", "str", "surface group the tool touches", required=True),
+            Attr("material", "json", "law and parameters (MPa)", required=True),
+            Attr("campaign_hash", "str", "SHA-256 of the campaign", required=True),
+            Attr("mesh_file", "str", "the mesh trained on"),
+            Attr("mesh_sha256", "str", "its SHA-256"),
+            Attr("element", "str", "finite element of the training"),
+            Attr("modes", "int", "modes per sample", checks=("positive",)),
+            Attr("pod_method", "str", "POD method"),
+            Attr("pod_inner_product", "str", "POD inner product"),
+        ),
     ),
     Group(
         "surface",
         "surface-mesh",
         (1, 0),
-        (
-            Field("vertices", "f", ("V", 3), "mm", "reference positions of the surface vertices"),
-            Field("triangles", "i", ("T", 3), "1", "vertex indices, outward (counter-clockwise)"),
-            Field("nodes", "i", ("V",), "1", "canonical node of each vertex (DOFs 3 i + c)"),
-            Field("groups", "i", ("T",), "1", "0 clamped, 1 loadable, 2 free"),
-        ),
+        _fields(
+            ("vertices", "f", ("V", 3), "mm", "reference positions of the surface vertices"),
+            (
+                "triangles",
+                "i",
+                ("T", 3),
+                "1",
+                "vertex indices, outward (counter-clockwise)",
+                "index:V",
+            ),
+            (
+                "nodes",
+                "i",
+                ("V",),
+                "1",
+                "canonical node of each vertex (DOFs 3 i + c)",
+                "nonnegative",
+                "distinct",
+            ),
+            ("groups", "i", ("T",), "1", "0 clamped, 1 loadable, 2 free", "choice:0,1,2"),
+        ),  # fmt: skip
     ),
     Group(
         "samples",
         "contact-samples",
         (1, 0),
-        (
-            Field("points", "f", ("P", 3), "mm", "tool positions of the training samples"),
-            Field("normals", "f", ("P", 3), "1", "outward unit surface normals there"),
-            Field("chart_origin", "f", (3,), "mm", "origin of the 2-D interpolation chart"),
-            Field("chart_axes", "f", (2, 3), "1", "orthonormal chart axes (chart = axes (x - o))"),
-            Field("chart_points", "f", ("P", 2), "mm", "samples in chart coordinates"),
-            Field("triangles", "i", ("S", 3), "1", "Delaunay triangles of the chart points"),
-            Field("depth", "f", ("K",), "mm", "indentation grid, uniform, depth[0] = 0"),
-            Field("force", "f", ("P", "K"), "N", "normal reaction force on the tool at each depth"),
-            Field("stiffness", "f", ("P", "K"), "N/mm", "d force / d depth (monotone cubic)"),
-            Field("surface_basis", "f", ("P", "3V", "n"), "1", "POD basis rows at the vertices"),
-            Field("coefficients", "f", ("P", "K", "n"), "mm", "reduced coordinates at each depth"),
-            Field("reduced_stiffness", "f", ("P", "n", "n"), "N/mm", "A^T K0 A, reduced pressure"),
-            Field("contact_rows", "f", ("P", 3, "n"), "1", "mean basis rows at the contact nodes"),
-            Field("eigenvalues", "f", ("P", "M"), "mm^2", "POD eigenvalues (M snapshots)"),
-        ),
+        _fields(
+            ("points", "f", ("P", 3), "mm", "tool positions of the training samples"),
+            ("normals", "f", ("P", 3), "1", "outward unit surface normals there", "unit"),
+            ("chart_origin", "f", (3,), "mm", "origin of the 2-D interpolation chart"),
+            (
+                "chart_axes",
+                "f",
+                (2, 3),
+                "1",
+                "orthonormal chart axes (chart = axes (x - o))",
+                "orthonormal",
+            ),
+            ("chart_points", "f", ("P", 2), "mm", "samples in chart coordinates"),
+            ("triangles", "i", ("S", 3), "1", "Delaunay triangles of the chart points", "index:P"),
+            ("depth", "f", ("K",), "mm", "indentation grid, uniform, depth[0] = 0"),
+            (
+                "force",
+                "f",
+                ("P", "K"),
+                "N",
+                "normal reaction force on the tool at each depth",
+                "nonnegative",
+            ),
+            (
+                "stiffness",
+                "f",
+                ("P", "K"),
+                "N/mm",
+                "d force / d depth (monotone cubic)",
+                "nonnegative",
+            ),
+            ("surface_basis", "f", ("P", "3V", "n"), "1", "POD basis rows at the vertices"),
+            ("coefficients", "f", ("P", "K", "n"), "mm", "reduced coordinates at each depth"),
+            (
+                "reduced_stiffness",
+                "f",
+                ("P", "n", "n"),
+                "N/mm",
+                "A^T K0 A, reduced pressure",
+                "symmetric",
+            ),
+            ("contact_rows", "f", ("P", 3, "n"), "1", "mean basis rows at the contact nodes"),
+            ("eigenvalues", "f", ("P", "M"), "mm^2", "POD eigenvalues (M snapshots)"),
+        ),  # fmt: skip
+        attrs=(Attr("pressure_modes", "ints", "size of each reduced pressure basis"),),
     ),
     Group(
         "grassmann",
         "grassmann-tangents",
         (1, 0),
-        (
-            Field("reference", "i", (), "1", "index of the reference sample"),
-            Field("tangent_surface", "f", ("P", "3V", "n"), "1", "log-map tangents, surface rows"),
-            Field("gram_tangent_tangent", "f", ("P", "P", "n", "n"), "1", "Gamma_i^T Gamma_j"),
-            Field("gram_tangent_basis", "f", ("P", "P", "n", "n"), "1", "Gamma_i^T A_j"),
-            Field("gram_reference_basis", "f", ("P", "n", "n"), "1", "A_ref^T A_j"),
+        _fields(
+            ("reference", "i", (), "1", "index of the reference sample", "index:P"),
+            ("tangent_surface", "f", ("P", "3V", "n"), "1", "log-map tangents, surface rows"),
+            ("gram_tangent_tangent", "f", ("P", "P", "n", "n"), "1", "Gamma_i^T Gamma_j"),
+            ("gram_tangent_basis", "f", ("P", "P", "n", "n"), "1", "Gamma_i^T A_j"),
+            ("gram_reference_basis", "f", ("P", "n", "n"), "1", "A_ref^T A_j"),
         ),
         required=False,
     ),
@@ -115,53 +216,118 @@ SCHEMA: tuple[Group, ...] = (
         "anm",
         "anm-series",
         (1, 0),
-        (
-            Field("section_offsets", "i", ("P1",), "1", "sample i's sections: offsets[i]:[i+1]"),
-            Field("a_max", "f", ("Z",), "1", "validity radius of each section (path parameter)"),
-            Field("depth", "f", ("Z", "N1"), "mm", "series of the depth in a, order 0..N"),
-            Field("force", "f", ("Z", "N1"), "N", "series of the normal force on the tool"),
-            Field("coefficients", "f", ("Z", "N1", "n"), "mm", "series of the reduced coordinates"),
-        ),
+        _fields(
+            (
+                "section_offsets",
+                "i",
+                ("P1",),
+                "1",
+                "sample i's sections: offsets[i]:[i+1]",
+                "nonnegative",
+            ),
+            (
+                "a_max",
+                "f",
+                ("Z",),
+                "1",
+                "validity radius of each section (path parameter)",
+                "positive",
+            ),
+            ("depth", "f", ("Z", "N1"), "mm", "series of the depth in a, order 0..N"),
+            ("force", "f", ("Z", "N1"), "N", "series of the normal force on the tool"),
+            ("coefficients", "f", ("Z", "N1", "n"), "mm", "series of the reduced coordinates"),
+        ),  # fmt: skip
         required=False,
-        attrs=("order", "tolerance"),
+        attrs=(
+            Attr("order", "int", "series order N", True, ("range:1,30",)),
+            Attr("tolerance", "float", "validity criterion of a section", True, ("positive",)),
+            Attr("residual_evaluations", "int", "cost of the series", checks=("nonnegative",)),
+        ),
     ),
     Group(
         "cutting",
         "cut-region",
         (1, 1),
-        (
-            Field("nodes", "i", ("Rn",), "1", "canonical node of each region node"),
-            Field("coordinates", "f", ("Rn", 3), "mm", "reference positions of the region nodes"),
-            Field("cells", "i", ("Rc", 8), "1", "region hexahedra, region node indices"),
-            Field("element_stiffness", "f", ("Rc", 24, 24), "N/mm", "cell matrices at K0"),
-            Field("basis", "f", ("3Rn", "G"), "1", "global POD basis rows at the region nodes"),
-            Field("fixed", "i", ("Rn",), "1", "1: node keeps the reduced field (boundary)"),
-            Field("reduced_stiffness", "f", ("G", "G"), "N/mm", "A^T K0 A, element pressure"),
-            # 1.1 (format 1.3): an element-wise pressure, for a locking-free coupling.
-            *(
-                Field(name, "f", shape, units, meaning, required=False)
-                for name, shape, units, meaning in (
-                    ("element_displacement_stiffness", ("Rc", 24, 24), "N/mm", "cell K_uu"),
-                    ("element_pressure_coupling", ("Rc", 24), "mm^2", "cell k_up"),
-                    ("element_pressure_stiffness", ("Rc",), "mm^3/MPa", "cell k_pp (< 0)"),
-                    ("pressure_basis", ("Rc", "Gp"), "1", "reduced pressure modes' cell values"),
-                    ("reduced_displacement_stiffness", ("G", "G"), "N/mm", "A^T K_uu A"),
-                    ("reduced_pressure_coupling", ("G", "Gp"), "mm^2", "A^T K_up P"),
-                    ("reduced_pressure_stiffness", ("Gp", "Gp"), "mm^3/MPa", "P^T K_pp P"),
-                )
+        _fields(
+            (
+                "nodes",
+                "i",
+                ("Rn",),
+                "1",
+                "canonical node of each region node",
+                "nonnegative",
+                "distinct",
             ),
-        ),
+            ("coordinates", "f", ("Rn", 3), "mm", "reference positions of the region nodes"),
+            ("cells", "i", ("Rc", 8), "1", "region hexahedra, region node indices", "index:Rn"),
+            ("element_stiffness", "f", ("Rc", 24, 24), "N/mm", "cell matrices at K0", "symmetric"),
+            ("basis", "f", ("3Rn", "G"), "1", "global POD basis rows at the region nodes"),
+            (
+                "fixed",
+                "i",
+                ("Rn",),
+                "1",
+                "1: node keeps the reduced field (boundary)",
+                "choice:0,1",
+            ),
+            (
+                "reduced_stiffness",
+                "f",
+                ("G", "G"),
+                "N/mm",
+                "A^T K0 A, element pressure",
+                "symmetric",
+            ),
+        )  # fmt: skip
+        # 1.1 (format 1.3): an element-wise pressure, for a locking-free coupling.
+        + _fields(
+            (
+                "element_displacement_stiffness",
+                "f",
+                ("Rc", 24, 24),
+                "N/mm",
+                "cell K_uu",
+                "symmetric",
+            ),
+            ("element_pressure_coupling", "f", ("Rc", 24), "mm^2", "cell k_up"),
+            ("element_pressure_stiffness", "f", ("Rc",), "mm^3/MPa", "cell k_pp (< 0)", "negative"),
+            ("pressure_basis", "f", ("Rc", "Gp"), "1", "reduced pressure modes' cell values"),
+            ("reduced_displacement_stiffness", "f", ("G", "G"), "N/mm", "A^T K_uu A", "symmetric"),
+            ("reduced_pressure_coupling", "f", ("G", "Gp"), "mm^2", "A^T K_up P"),
+            (
+                "reduced_pressure_stiffness",
+                "f",
+                ("Gp", "Gp"),
+                "mm^3/MPa",
+                "P^T K_pp P",
+                "symmetric",
+            ),
+            required=False,
+        ),  # fmt: skip
         required=False,
-        attrs=("patch_layers", "cut_force"),
+        attrs=(
+            Attr("centre", "floats", "centre of the region (mm)", checks=("length:3",)),
+            Attr("radius", "float", "radius of the region (mm)", checks=("positive",)),
+            Attr("patch_layers", "int", "rings of cells in a cut patch", True, ("range:1,64",)),
+            Attr("cut_force", "float", "blade force that cuts (N)", True, ("positive",)),
+            Attr("cells_in_region", "int", "region cells", checks=("positive",)),
+        ),
     ),
     Group(
         "global",
         "global-basis",
         (1, 0),
-        (
-            Field("surface_basis", "f", ("3V", "G"), "1", "global POD basis rows at the vertices"),
-            Field("eigenvalues", "f", ("Mg",), "mm^2", "global POD eigenvalues"),
-            Field("reduced_stiffness", "f", ("G", "G"), "N/mm", "A^T K0 A, reduced pressure"),
+        _fields(
+            ("surface_basis", "f", ("3V", "G"), "1", "global POD basis rows at the vertices"),
+            ("eigenvalues", "f", ("Mg",), "mm^2", "global POD eigenvalues"),
+            (
+                "reduced_stiffness",
+                "f",
+                ("G", "G"),
+                "N/mm",
+                "A^T K0 A, reduced pressure",
+                "symmetric",
+            ),
         ),
         required=False,
     ),
@@ -176,38 +342,62 @@ def _encode(value):
     return value
 
 
+# -- writing -------------------------------------------------------------------------
 def write_artifact(path: str | Path, content: dict[str, dict[str, Any]], root_attrs: dict) -> None:
     """Write ``content`` (group -> {dataset name -> array, "attrs" -> dict}) atomically.
 
-    Validates against :data:`SCHEMA` first, so a writer bug cannot produce a
-    file the reader refuses.
+    Validates shapes against :data:`SCHEMA` first, then writes a temporary file,
+    seals it (the envelope), reads it back with :func:`read_artifact` (so a
+    writer bug cannot produce a file the reader refuses), renames it and fsyncs
+    the directory. On any failure nothing is left behind and the target is
+    unchanged; an I/O failure (a full disk, a read-only directory) is a
+    :class:`HapticromError` naming the file.
     """
     path = Path(path)
     _validate_content(content)
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    with h5py.File(tmp, "w") as f:
-        f.attrs["format"] = FORMAT
-        f.attrs["format_version"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
-        for key, value in root_attrs.items():
-            f.attrs[key] = _encode(value)
-        for group in SCHEMA:
-            if group.name not in content:
+    try:
+        with h5py.File(tmp, "w", userblock_size=USERBLOCK) as f:
+            _write_groups(f, content, root_attrs)
+        seal(tmp)
+        read_artifact(tmp)
+        os.replace(tmp, path)
+        _fsync_directory(path.parent)
+    except OSError as exc:
+        raise HapticromError(f"cannot write the artifact {path}: {exc.strerror or exc}") from None
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _write_groups(f: h5py.File, content: dict, root_attrs: dict) -> None:
+    f.attrs["format"] = FORMAT
+    f.attrs["format_version"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
+    for key, value in root_attrs.items():
+        f.attrs[key] = _encode(value)
+    for group in SCHEMA:
+        if group.name not in content:
+            continue
+        g = f.create_group(group.name)
+        g.attrs["type"] = group.type
+        g.attrs["version"] = np.asarray(group.version, dtype=np.int64)
+        for key, value in content[group.name].get("attrs", {}).items():
+            g.attrs[key] = _encode(value)
+        for spec in group.fields:
+            if not spec.required and spec.name not in content[group.name]:
                 continue
-            g = f.create_group(group.name)
-            g.attrs["type"] = group.type
-            g.attrs["version"] = np.asarray(group.version, dtype=np.int64)
-            for key, value in content[group.name].get("attrs", {}).items():
-                g.attrs[key] = _encode(value)
-            for spec in group.fields:
-                if not spec.required and spec.name not in content[group.name]:
-                    continue
-                array = np.asarray(content[group.name][spec.name])
-                dset = g.create_dataset(spec.name, data=array)
-                dset.attrs["units"] = spec.units
-                dset.attrs["sha256"] = array_digest(array)
-    with open(tmp, "rb") as fh:
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+            array = np.asarray(content[group.name][spec.name])
+            dset = g.create_dataset(spec.name, data=array)
+            dset.attrs["units"] = spec.units
+            dset.attrs["sha256"] = array_digest(array)
+
+
+def _fsync_directory(directory: Path) -> None:
+    """Make the rename durable (POSIX: the directory entry is data of the directory)."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def _resolve(shape, symbols: dict[str, int], where: str) -> tuple[int, ...]:
@@ -224,25 +414,27 @@ def _resolve(shape, symbols: dict[str, int], where: str) -> tuple[int, ...]:
     return tuple(out)
 
 
-def _check_fields(group: Group, arrays: dict[str, np.ndarray], symbols: dict[str, int], where):
-    for spec in group.fields:
-        if not spec.required and spec.name not in arrays:
-            continue
-        if spec.name not in arrays:
-            raise ArtifactError(f"{where}: required dataset {group.name}/{spec.name} is missing")
-        a = arrays[spec.name]
-        if a.dtype.kind not in ("iu" if spec.dtype == "i" else spec.dtype):
-            raise ArtifactError(
-                f"{where}: {group.name}/{spec.name} has dtype {a.dtype}, expected kind {spec.dtype}"
-            )
-        for dim, size in zip(spec.shape, a.shape, strict=False):
-            if isinstance(dim, str) and dim not in symbols and dim[:1] != "3":
-                symbols[dim] = size
-        expected = _resolve(spec.shape, symbols, where)
-        if a.shape != expected:
-            raise ArtifactError(
-                f"{where}: {group.name}/{spec.name} has shape {a.shape}, expected {expected}"
-            )
+_DTYPES = {  # what a reader accepts: plain little-endian numbers, nothing else
+    "f": ("<f4", "<f8"),
+    "i": ("|i1", "<i2", "<i4", "<i8", "|u1", "<u2", "<u4"),
+}
+
+
+def _check_meta(group: Group, spec: Field, dtype: np.dtype, shape, symbols, where) -> None:
+    """A dataset's dtype and shape against the schema (resolving new symbols from it)."""
+    name = f"{group.name}/{spec.name}"
+    if np.dtype(dtype).str not in _DTYPES[spec.dtype]:
+        raise ArtifactError(
+            f"{where}: {name} has dtype {dtype}, expected one of {', '.join(_DTYPES[spec.dtype])}"
+        )
+    if len(shape) != len(spec.shape):
+        raise ArtifactError(f"{where}: {name} has shape {shape}, expected rank {len(spec.shape)}")
+    for dim, size in zip(spec.shape, shape, strict=True):
+        if isinstance(dim, str) and dim not in symbols and dim[:1] != "3":
+            symbols[dim] = int(size)
+    expected = _resolve(spec.shape, symbols, where)
+    if tuple(shape) != expected:
+        raise ArtifactError(f"{where}: {name} has shape {tuple(shape)}, expected {expected}")
 
 
 def _validate_content(content: dict) -> None:
@@ -252,98 +444,177 @@ def _validate_content(content: dict) -> None:
             if group.required:
                 raise ArtifactError(f"artifact content lacks the group {group.name}")
             continue
-        arrays = {k: np.asarray(v) for k, v in content[group.name].items() if k != "attrs"}
-        _check_fields(group, arrays, symbols, "artifact content")
+        for spec in group.fields:
+            if spec.name not in content[group.name]:
+                if spec.required:
+                    raise ArtifactError(f"artifact content lacks {group.name}/{spec.name}")
+                continue
+            a = np.asarray(content[group.name][spec.name])
+            _check_meta(group, spec, a.dtype, a.shape, symbols, "artifact content")
 
 
+# -- reading -------------------------------------------------------------------------
 @dataclass
 class Artifact:
-    """A loaded, verified artifact: arrays by group, attributes by group, root attributes."""
+    """A loaded, verified artifact: arrays by group, attributes by group, root attributes.
+
+    Only what the schema names is read: unknown datasets and attributes (a newer
+    minor version's) are ignored.
+    """
 
     path: Path
     version: tuple[int, int]
     attrs: dict[str, Any]
     groups: dict[str, dict[str, np.ndarray]]
     group_attrs: dict[str, dict[str, Any]]
+    symbols: dict[str, int] = field(default_factory=dict)
 
     def __getitem__(self, name: str) -> dict[str, np.ndarray]:
         return self.groups[name]
 
 
-def _decode(value):
-    if isinstance(value, bytes):
-        value = value.decode()
-    if isinstance(value, str) and value[:1] in "[{":
-        try:
-            return json.loads(value)
-        except json.JSONDecodeError:
-            return value
-    return value
+def read_artifact(path: str | Path, max_bytes: int = MAX_BYTES) -> Artifact:
+    """Load and verify an artifact; raise :class:`ArtifactError` naming what is wrong.
 
+    Nothing else escapes: whatever a damaged or hostile file makes h5py or numpy
+    raise is reported as an ``ArtifactError`` naming the dataset or attribute
+    being read.
+    """
+    from hapticrom.shared.artifact_rules import check_values
 
-def read_artifact(path: str | Path) -> Artifact:
-    """Load and verify an artifact; raise :class:`ArtifactError` naming what is wrong."""
     path = Path(path)
-    if not path.is_file():
-        raise ArtifactError(f"artifact {path} not found")
+    data = read_verified(path, max_bytes)
+    reading = _Reading(path, len(data))
     try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
+        with h5py.File(io.BytesIO(data), "r") as f:
+            artifact = reading.artifact(f)
+        reading.where = "values"
+        check_values(artifact)
+    except ArtifactError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the promise: one error type, naming the culprit
         raise ArtifactError(
-            f"{path} is not a readable HDF5 file (truncated or damaged?): {exc}"
+            f"{path}: {reading.where} cannot be read ({type(exc).__name__}: {exc})"
         ) from None
-    with f:
-        if f.attrs.get("format") != FORMAT:
-            raise ArtifactError(f"{path} is not a hapticrom artifact (format attribute missing)")
-        version = tuple(int(v) for v in np.asarray(f.attrs.get("format_version", (0, 0))))
+    return artifact
+
+
+class _Reading:
+    """One pass over a verified file: structure first, then the data."""
+
+    def __init__(self, path: Path, size: int):
+        self.path, self.size = path, size
+        self.where = "the file"  # what is being read, for the error message
+
+    def fail(self, message: str) -> ArtifactError:
+        return ArtifactError(f"{self.path}: {message}")
+
+    def artifact(self, f: h5py.File) -> Artifact:
+        attrs = self.attributes(f, ROOT_ATTRS, "root")
+        if attrs["format"] != FORMAT:
+            raise self.fail("not a hapticrom artifact (format attribute)")
+        version = tuple(attrs["format_version"])
         if version[0] != FORMAT_VERSION[0]:
-            raise ArtifactError(
-                f"{path}: artifact format version {version[0]}.{version[1]} is not supported "
+            raise self.fail(
+                f"artifact format version {version[0]}.{version[1]} is not supported "
                 f"(this runtime reads major version {FORMAT_VERSION[0]})"
             )
-        groups, group_attrs, symbols = {}, {}, {}
-        for group in SCHEMA:
-            if group.name not in f:
-                if group.required:
-                    raise ArtifactError(f"{path}: required group {group.name} is missing")
+        handles, group_attrs, symbols = {}, {}, {}
+        for group in SCHEMA:  # every shape and storage checked before any data is read
+            g = self.member(f, group.name, h5py.Group, group.required)
+            if g is None:
                 continue
-            g = f[group.name]
-            if g.attrs.get("type") != group.type:
-                raise ArtifactError(
-                    f"{path}: group {group.name} has type {g.attrs.get('type')!r}, "
-                    f"expected {group.type!r}"
-                )
-            gversion = tuple(int(v) for v in np.asarray(g.attrs.get("version", (0, 0))))
-            if gversion[0] != group.version[0]:
-                raise ArtifactError(
-                    f"{path}: group {group.name} version {gversion[0]}.{gversion[1]} is not "
-                    f"supported (this runtime reads {group.version[0]}.x)"
-                )
-            for key in group.attrs:
-                if key not in g.attrs:
-                    raise ArtifactError(f"{path}: group {group.name} lacks attribute {key}")
-            arrays = {}
-            for spec in group.fields:
-                if not spec.required and spec.name not in g:
-                    continue
-                if spec.name not in g:
-                    raise ArtifactError(
-                        f"{path}: required dataset {group.name}/{spec.name} is missing"
-                    )
-                dset = g[spec.name]
-                try:
-                    array = dset[()]
-                except OSError as exc:
-                    raise ArtifactError(
-                        f"{path}: dataset {group.name}/{spec.name} cannot be read ({exc})"
-                    ) from None
-                if array_digest(array) != dset.attrs.get("sha256"):
-                    raise ArtifactError(
-                        f"{path}: dataset {group.name}/{spec.name} fails its checksum (damaged)"
-                    )
-                arrays[spec.name] = array
-            _check_fields(group, arrays, symbols, str(path))
-            groups[group.name] = arrays
-            group_attrs[group.name] = {k: _decode(v) for k, v in g.attrs.items()}
-        attrs = {k: _decode(v) for k, v in f.attrs.items()}
-    return Artifact(path, version, attrs, groups, group_attrs)
+            group_attrs[group.name] = self.group_attributes(g, group)
+            handles[group.name] = {
+                spec.name: dset
+                for spec in group.fields
+                if (dset := self.dataset(g, group, spec, symbols)) is not None
+            }
+        groups = {
+            name: {key: self.read(name, key, dset) for key, dset in datasets.items()}
+            for name, datasets in handles.items()
+        }
+        return Artifact(self.path, version, attrs, groups, group_attrs, symbols)
+
+    def member(self, parent, name: str, kind, required: bool):
+        """``parent[name]`` if it is a hard link to a ``kind`` (group or dataset)."""
+        self.where = f"{parent.name.rstrip('/')}/{name}".lstrip("/")
+        link = parent.get(name, getlink=True)
+        if link is None:
+            if required:
+                what = "dataset" if kind is h5py.Dataset else "group"
+                raise self.fail(f"required {what} {self.where} is missing")
+            return None
+        if not isinstance(link, h5py.HardLink):
+            raise self.fail(f"{self.where} is a {type(link).__name__}: only data inside the file")
+        obj = parent[name]
+        if not isinstance(obj, kind):
+            raise self.fail(f"{self.where} is not a {kind.__name__.lower()}")
+        return obj
+
+    def group_attributes(self, g: h5py.Group, group: Group) -> dict:
+        attrs = self.attributes(g, GROUP_ATTRS + group.attrs, group.name)
+        if attrs["type"] != group.type:
+            raise self.fail(
+                f"group {group.name} has type {attrs['type']!r}, expected {group.type!r}"
+            )
+        major, minor = attrs.pop("version")
+        if major != group.version[0]:
+            raise self.fail(
+                f"group {group.name} version {major}.{minor} is not supported "
+                f"(this runtime reads {group.version[0]}.x)"
+            )
+        attrs.pop("type")
+        return attrs
+
+    def attributes(self, obj, specs: tuple[Attr, ...], owner: str) -> dict:
+        from hapticrom.shared.artifact_rules import attribute_value
+
+        out = {}
+        for spec in specs:
+            self.where = f"attribute {spec.name} of {owner}"
+            if spec.name not in obj.attrs:
+                if spec.required:
+                    raise self.fail(f"{owner} lacks the attribute {spec.name}")
+                continue
+            out[spec.name] = attribute_value(obj.attrs, spec, self.fail, self.where)
+        return out
+
+    def dataset(self, g: h5py.Group, group: Group, spec: Field, symbols: dict):
+        dset = self.member(g, spec.name, h5py.Dataset, spec.required)
+        if dset is None:
+            return None
+        name = self.where
+        if dset.is_virtual or dset.external:
+            raise self.fail(f"{name} is stored outside the file")
+        plist = dset.id.get_create_plist()
+        if plist.get_nfilters() or plist.get_layout() not in (
+            h5py.h5d.CONTIGUOUS,
+            h5py.h5d.COMPACT,
+        ):
+            raise self.fail(f"{name} is chunked or filtered (the writer stores data contiguously)")
+        _check_meta(group, spec, dset.dtype, dset.shape, symbols, str(self.path))
+        nbytes = int(np.prod(dset.shape, dtype=np.int64)) * dset.dtype.itemsize
+        stored = dset.id.get_storage_size()
+        if nbytes > self.size or (plist.get_layout() == h5py.h5d.CONTIGUOUS and stored != nbytes):
+            raise self.fail(f"{name} declares {nbytes} bytes but stores {stored}")
+        units = _text(dset.attrs.get("units"))
+        if units != spec.units:
+            raise self.fail(f"{name} has units {units!r}, expected {spec.units!r}")
+        return dset
+
+    def read(self, group: str, name: str, dset: h5py.Dataset) -> np.ndarray:
+        self.where = f"{group}/{name}"
+        array = dset[()]
+        if array_digest(array) != _text(dset.attrs.get("sha256")):
+            raise self.fail(f"dataset {group}/{name} fails its checksum (damaged)")
+        array = np.asarray(array)
+        array.setflags(write=False)  # what the runtime shares between simulators
+        return array
+
+
+def _text(value) -> str | None:
+    """A string attribute as str (h5py returns str or bytes), anything else None."""
+    if isinstance(value, bytes):
+        return value.decode("utf-8", errors="replace")
+    return value if isinstance(value, str) else None

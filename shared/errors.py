@@ -15,3 +15,7 @@ class InputError(HapticromError, ValueError):
 
 class SolverError(HapticromError, RuntimeError):
     """A solve did not converge even after cutting the load step to its floor."""
+
+
+class ArtifactError(HapticromError):
+    """A file is not a valid hapticrom artifact; the message names the problem."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -15,7 +16,7 @@ import pytest
 from conftest import campaign_toml
 
 from hapticrom.offline.campaign import CampaignConfig, run_campaign
-from hapticrom.offline.config import LoadConfig
+from hapticrom.offline.config import LoadConfig, ProblemConfig
 from hapticrom.offline.dofs import CanonicalOrder
 from hapticrom.offline.fullorder import FullOrderModel
 from hapticrom.offline.operators import load_vector
@@ -139,3 +140,104 @@ def test_sigkill_and_resume_loses_nothing(small_campaign, mesh_dir, tmp_path):
         assert mine.keys() == ref.keys()
         for key in ref:
             np.testing.assert_array_equal(mine[key], ref[key], err_msg=f"position {i} {key}")
+
+
+def flip_a_bit(path, dataset: str, byte: int = 8) -> None:
+    """Flip one bit of ``dataset``'s stored values in the file's bytes (not through h5py)."""
+    with h5py.File(path, "r") as f:
+        offset = f[dataset].id.get_offset()
+    assert offset is not None, "contiguous storage expected"
+    with open(path, "r+b") as fh:
+        fh.seek(offset + byte)
+        value = fh.read(1)[0]
+        fh.seek(offset + byte)
+        fh.write(bytes([value ^ 0x01]))
+
+
+@pytest.fixture
+def store_copy(small_campaign, tmp_path):
+    """A copy of the small campaign's store, to damage."""
+    config, store, _ = small_campaign
+    copy = tmp_path / "store"
+    shutil.copytree(store.root, copy)
+    return config, store, SnapshotStore(copy)
+
+
+def test_damaged_records_are_solved_again_on_resume(store_copy, capsys):
+    """A bit flip, a truncated file and damaged operators: detected, redone, nothing else."""
+    config, reference, copy = store_copy
+    flip_a_bit(copy.position_path(2), "displacement")
+    truncated = copy.position_path(4)
+    truncated.write_bytes(truncated.read_bytes()[:1000])
+    flip_a_bit(copy.operators_path, "volumes")
+    untouched = {i: copy.position_path(i).read_bytes() for i in (0, 1, 3)}
+    with pytest.raises(InputError, match="fails its checksum"):
+        copy.read_position(2)
+
+    report = run_campaign(config, copy.root, verbose=True)
+    out = capsys.readouterr().out
+    assert report.redone == [2, 4] and report.solved_now == 2 and report.resumed == 3
+    assert report.failed == []
+    assert "3 already stored, resuming" in out
+    assert "position 2: stored record is damaged: " in out and "fails its checksum" in out
+    assert "position 4: stored record is damaged: " in out and "solving it again" in out
+    assert "stored operators damaged: " in out and "computing them again" in out
+    for i in (0, 1, 3):
+        assert copy.position_path(i).read_bytes() == untouched[i], f"position {i} rewritten"
+    for i in (2, 4):
+        mine, attrs = copy.read_position(i)
+        ref, _ = reference.read_position(i)
+        assert attrs["status"] == "solved" and mine.keys() == ref.keys()
+        for key in ref:
+            np.testing.assert_array_equal(mine[key], ref[key], err_msg=f"position {i} {key}")
+    ops, _ = copy.read_operators()
+    np.testing.assert_array_equal(ops["volumes"], reference.read_operators()[0]["volumes"])
+    assert copy.audit() == ([0, 1, 2, 3, 4], {})
+
+
+def test_a_failed_position_is_retried_on_resume(store_copy, capsys):
+    config, reference, copy = store_copy
+    with h5py.File(copy.position_path(1), "r+") as f:  # as a run whose solve failed records it
+        f.attrs["status"] = "failed"
+        f.attrs["message"] = "no convergence at load factor 0.5"
+    assert copy.audit()[1] == {1: "failed in an earlier run (no convergence at load factor 0.5)"}
+
+    report = run_campaign(config, copy.root, verbose=True)
+    out = capsys.readouterr().out
+    assert report.redone == [1] and report.solved_now == 1 and report.failed == []
+    assert "position 1: failed in an earlier run (no convergence at load factor 0.5); " in out
+    assert "stored operators" not in out  # intact: not computed again
+    _, attrs = copy.read_position(1)
+    assert attrs["status"] == "solved" and attrs["message"] == ""
+    np.testing.assert_array_equal(
+        copy.read_position(1)[0]["displacement"], reference.read_position(1)[0]["displacement"]
+    )
+
+
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("steps", 99999999999, "steps must lie in [1, 100000], got 99999999999"),
+        ("steps", 0, "steps must lie in [1, 100000], got 0"),
+        ("steps", 2.5, "steps must be a finite integer, got 2.5"),
+        ("max_step_cuts", -5, "max_step_cuts must lie in [0, 16], got -5"),
+        ("max_step_cuts", 17, "max_step_cuts must lie in [0, 16], got 17"),
+        ("predictor", "cubic", "predictor must be one of secant, none, got 'cubic'"),
+        ("contact_radius", -1.0, "contact_radius must be positive, got -1.0"),
+        ("surface", 3, "surface must be the name of a surface group, got 3"),
+    ],
+)
+def test_campaign_and_problem_share_the_load_validator(small_campaign, key, value, message):
+    """The same [load] value is refused by a campaign and a problem, with the same words."""
+    config, _, _ = small_campaign
+    campaign = {**config.raw, "load": {**config.raw["load"], key: value}}
+    with pytest.raises(InputError) as from_campaign:
+        CampaignConfig.from_dict(campaign, source="c.toml")
+    problem = {
+        "mesh": config.raw["mesh"],
+        "material": config.raw["material"],
+        "load": {"mode": "displacement", "displacement": [0.0, 0.0, -0.1], key: value},
+    }
+    with pytest.raises(InputError) as from_problem:
+        ProblemConfig.from_dict(problem, source="c.toml")
+    assert str(from_campaign.value) == str(from_problem.value) == f"c.toml: [load] {message}"

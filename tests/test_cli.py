@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -133,3 +134,236 @@ def test_play_and_bench_need_only_the_runtime(small_artifact, tmp_path):
     proc = run_cli("bench", small_artifact, "--steps", "2000", cwd=tmp_path, prelude=env_prelude)
     assert proc.returncode == 0, proc.stderr
     assert "step_displacement" in proc.stdout and "numpy" in proc.stdout
+
+
+# -- the one-line-error promise: bad numbers, bad files, bad output locations -------------
+def main_error(capsys, *args) -> str:
+    """Run ``main`` here: exit status 2, one line ``hapticrom...error: ...``, no traceback."""
+    from hapticrom.cli import main
+
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as exc:  # argparse
+        code = exc.code
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert code == 2, err
+    assert len(lines) == 1, err
+    assert lines[0].startswith("hapticrom") and "error:" in lines[0], err
+    assert "Traceback" not in err
+    return lines[0]
+
+
+@pytest.fixture
+def no_expensive_work(monkeypatch):
+    """The solves and the reduction fail the test if they start."""
+    import hapticrom.offline.campaign
+    import hapticrom.offline.reduction
+
+    def boom(*args, **kwargs):
+        raise AssertionError("expensive work started before the input was checked")
+
+    monkeypatch.setattr(hapticrom.offline.campaign, "run_campaign", boom)
+    monkeypatch.setattr(hapticrom.offline.reduction, "reduce_campaign", boom)
+
+
+def snapshot(directory: Path) -> dict:
+    """Every path under ``directory`` with its bytes (files) or None (directories)."""
+    return {
+        p.relative_to(directory): (p.read_bytes() if p.is_file() else None)
+        for p in sorted(directory.rglob("*"))
+    }
+
+
+def campaign_file(mesh_dir: Path, path: Path, **load) -> Path:
+    from conftest import campaign_toml
+
+    text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=load.pop("steps", 4))
+    extra = "".join(f"{key} = {value}\n" for key, value in load.items())
+    path.write_text(text.replace("[positions]", extra + "[positions]"))
+    return path
+
+
+@pytest.mark.parametrize("command", ["solve", "campaign", "train", "anm"])
+def test_a_non_utf8_toml_is_one_line_naming_it(tmp_path, capsys, no_expensive_work, command):
+    bad = tmp_path / "latin1.toml"
+    bad.write_bytes('[campaign]\nname = "cornée"\n'.encode("latin-1"))
+    out = tmp_path / "out"
+    line = main_error(capsys, command, bad, "--out", out)
+    assert f"{bad}: not valid TOML (not UTF-8 text: byte 0xe9" in line, line
+    assert snapshot(tmp_path).keys() == {Path("latin1.toml")}
+
+
+@pytest.mark.parametrize(
+    "load, message",
+    [
+        ({"steps": 99999999999}, "[load] steps must lie in [1, 100000], got 99999999999"),
+        ({"steps": 0}, "[load] steps must lie in [1, 100000], got 0"),
+        ({"max_step_cuts": -5}, "[load] max_step_cuts must lie in [0, 16], got -5"),
+        ({"max_step_cuts": 17}, "[load] max_step_cuts must lie in [0, 16], got 17"),
+    ],
+)
+def test_campaign_load_is_bounded_like_a_problem(
+    mesh_dir, tmp_path, capsys, no_expensive_work, load, message
+):
+    toml = campaign_file(mesh_dir, tmp_path / "c.toml", **load)
+    line = main_error(capsys, "campaign", toml, "--out", tmp_path / "out")
+    assert line == f"hapticrom: error: {toml}: {message}"
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["play", "--rate", "0"], "argument --rate: must be above 0 and at most 100000 Hz, got 0"),
+        (["play", "--rate", "-5"], "argument --rate: must be above 0"),
+        (["play", "--rate", "nan"], "argument --rate: must be above 0"),
+        (["play", "--rate", "1e9"], "argument --rate: must be above 0 and at most 100000 Hz"),
+        (["play", "--seconds", "1e12"], "argument --seconds: must be above 0 and at most 3600 s"),
+        (["play", "--seconds", "0"], "argument --seconds: must be above 0"),
+        (["play", "--seconds", "nan"], "argument --seconds: must be above 0"),
+        (["play", "--seconds", "inf"], "argument --seconds: must be above 0"),
+        (["play", "--seconds", "soon"], "argument --seconds: expected a number, got 'soon'"),
+        (["play", "--rate", "1", "--seconds", "0.5"], "is 0 servo ticks; give between 1 and"),
+        (["play", "--rate", "1e5", "--seconds", "3600"], "is 360,000,000 servo ticks"),
+        (["bench", "--steps", "0"], "argument --steps: must lie in [1, 2,000,000], got 0"),
+        (["bench", "--steps", "-3"], "argument --steps: must lie in [1, 2,000,000], got -3"),
+        (["bench", "--steps", "99999999999"], "must lie in [1, 2,000,000], got 99,999,999,999"),
+        (["report", "--out", "r", "--latency-steps", "0"], "argument --latency-steps: must lie"),
+    ],
+)
+def test_online_numbers_are_bounded(small_artifact, tmp_path, capsys, monkeypatch, args, message):
+    monkeypatch.chdir(tmp_path)
+    line = main_error(capsys, args[0], small_artifact, *args[1:])
+    assert line.startswith(f"hapticrom: error: {args[0]}") and message in line, line
+    assert not any(tmp_path.iterdir())
+
+
+def test_campaign_out_on_a_file(mesh_dir, tmp_path, capsys, no_expensive_work):
+    toml = campaign_file(mesh_dir, tmp_path / "c.toml")
+    target = tmp_path / "results"
+    target.write_text("precious\n")
+    line = main_error(capsys, "campaign", toml, "--out", target)
+    assert line == f"hapticrom: error: campaign --out {target} exists and is not a directory"
+    assert target.read_text() == "precious\n"
+    line = main_error(capsys, "campaign", toml, "--out", target / "sub")
+    assert f"{target} is not a directory" in line
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b'{"format": "hapticrom-campaign", "vers', "is damaged: not valid JSON"),
+        (b"\xff\xfe{}", "is damaged: not valid JSON"),
+        (b"[1, 2]", "is not a hapticrom-campaign manifest"),
+        (
+            b'{"format": "hapticrom-campaign", "version": 2, "campaign_hash": "x"}',
+            "is damaged: campaign must be an object",
+        ),
+    ],
+)
+def test_a_corrupt_manifest_is_one_line_naming_it(
+    small_campaign, mesh_dir, tmp_path, capsys, no_expensive_work, content, message
+):
+    _, store, _ = small_campaign
+    copy = tmp_path / "store"
+    shutil.copytree(store.root, copy)
+    (copy / "manifest.json").write_bytes(content)
+    before = snapshot(copy)
+    toml = campaign_file(mesh_dir, tmp_path / "c.toml")
+    for args in (["campaign", toml, "--out", copy], ["reduce", copy, "--out", tmp_path / "m.h5"]):
+        line = main_error(capsys, *args)
+        assert line.startswith(f"hapticrom: error: {copy / 'manifest.json'} {message}"), line
+    assert snapshot(copy) == before and not (tmp_path / "m.h5").exists()
+
+
+@pytest.fixture
+def read_only_dir(tmp_path):
+    """A directory nobody can create files in, root included (chattr +i when root)."""
+    d = tmp_path / "read-only"
+    d.mkdir()
+    d.chmod(0o555)
+    immutable = False
+    if os.geteuid() == 0:
+        immutable = subprocess.run(["chattr", "+i", str(d)], capture_output=True).returncode == 0
+        if not immutable:
+            d.chmod(0o755)
+            pytest.skip("running as root and chattr +i is not available")
+    try:
+        yield d
+    finally:
+        if immutable:
+            subprocess.run(["chattr", "-i", str(d)], check=True)
+        d.chmod(0o755)
+
+
+def test_output_files_are_checked_before_any_work(
+    small_campaign, mesh_dir, tmp_path, capsys, no_expensive_work, read_only_dir
+):
+    _, store, _ = small_campaign
+    toml = campaign_file(mesh_dir, tmp_path / "c.toml")
+    missing = tmp_path / "missing" / "model.h5"
+    for command in (["reduce", store.root], ["train", toml]):
+        line = main_error(capsys, *command, "--out", missing)
+        assert line == (
+            f"hapticrom: error: {command[0]} --out {missing}: "
+            f"directory {missing.parent} does not exist"
+        )
+        line = main_error(capsys, *command, "--out", read_only_dir / "model.h5")
+        assert f"cannot write in {read_only_dir} (" in line, line
+        line = main_error(capsys, *command, "--out", tmp_path)
+        assert f"--out {tmp_path} is a directory; give a file name" in line, line
+    assert not missing.parent.exists() and not any(read_only_dir.iterdir())
+    assert not (tmp_path / "model.campaign").exists()
+
+
+def test_report_and_bench_outputs_are_checked_first(small_artifact, tmp_path, capsys):
+    target = tmp_path / "report.html"
+    target.write_text("old report\n")
+    line = main_error(capsys, "report", small_artifact, "--out", target)
+    assert line == f"hapticrom: error: report --out {target} exists and is not a directory"
+    assert target.read_text() == "old report\n"
+    missing = tmp_path / "missing" / "bench.json"
+    line = main_error(capsys, "bench", small_artifact, "--json", missing)
+    assert f"bench --json {missing}: directory {missing.parent} does not exist" in line
+    assert sorted(tmp_path.iterdir()) == [target]
+
+
+def test_mesh_out_through_a_file(tmp_path, capsys):
+    blocker = tmp_path / "meshes"
+    blocker.write_text("not a directory\n")
+    out = blocker / "sub" / "beam.msh"
+    line = main_error(capsys, "mesh", "beam", "--refinement", "coarse", "--out", out)
+    assert line == f"hapticrom: error: mesh --out {out}: {blocker} is not a directory"
+    assert sorted(tmp_path.iterdir()) == [blocker]
+
+
+def test_reduce_onto_a_full_disk_leaves_nothing_behind(
+    small_campaign, tmp_path, capsys, monkeypatch
+):
+    """The disk fills while the artifact is written: one line, no .partial file, old file kept."""
+    import errno
+
+    import h5py
+
+    _, store, _ = small_campaign
+    out = tmp_path / "model.h5"
+    out.write_bytes(b"the previous model\n")
+    create_dataset = h5py.Group.create_dataset
+    calls = []
+
+    def full_disk(self, name, *args, **kwargs):
+        if ".partial-" in self.file.filename:
+            calls.append(name)
+            if len(calls) == 3:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return create_dataset(self, name, *args, **kwargs)
+
+    monkeypatch.setattr(h5py.Group, "create_dataset", full_disk)
+    line = main_error(capsys, "reduce", store.root, "--out", out)
+    assert len(calls) == 3, "the artifact writer was not reached"
+    assert f"cannot write the artifact {out}: No space left on device" in line or (
+        f"cannot write {out}: No space left on device" in line
+    ), line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.h5"]
+    assert out.read_bytes() == b"the previous model\n"

@@ -145,7 +145,7 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
     # optional dataset is named.
     import shutil
 
-    import h5py
+    from tamper import mutate
 
     from hapticrom.shared.artifact import SCHEMA, ArtifactError
     from hapticrom.shared.checksum import array_digest
@@ -155,18 +155,24 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
     coupling = [spec.name for group in SCHEMA if group.name == "cutting"
                 for spec in group.fields if not spec.required]  # fmt: skip
     assert len(coupling) == 7
-    with h5py.File(old, "r+") as f:
-        del f[f"cutting/{coupling[0]}"]
+    mutate(old, lambda f: f.__delitem__(f"cutting/{coupling[0]}"))
     with pytest.raises(ArtifactError, match=f"incomplete .* {coupling[0]}"):
         online.load(old)
-    with h5py.File(old, "r+") as f:
+
+    def drop_the_rest(f):
         for name in coupling[1:]:
             del f[f"cutting/{name}"]
+
+    mutate(old, drop_the_rest)
     assert online.load(old).cut_region.pressure is None
-    with h5py.File(tmp_path / "m.h5", "r+") as f:
+
+    def narrower(f):
         bad = f["cutting/pressure_basis"][()][:, :-1]
         del f["cutting/pressure_basis"]
-        f["cutting"].create_dataset("pressure_basis", data=bad).attrs["sha256"] = array_digest(bad)
+        d = f["cutting"].create_dataset("pressure_basis", data=bad)
+        d.attrs["units"], d.attrs["sha256"] = "1", array_digest(bad)
+
+    mutate(tmp_path / "m.h5", narrower)
     with pytest.raises(ArtifactError, match=r"cutting/\w+ has shape"):
         online.load(tmp_path / "m.h5")
 

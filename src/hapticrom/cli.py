@@ -7,13 +7,15 @@ missing; they run under ``mpirun -n N``. PETSc options go at the end, or after
     mpirun -n 2 hapticrom solve examples/cornea-hgo-indent.toml --out out/cornea \\
         -hapticrom_snes_rtol 1e-10 -hapticrom_snes_monitor
 
-A mistake in the input ends with one line ``hapticrom: error: ...`` and exit
-status 2.
+A mistake in the input, in a number or in an output location ends with one
+line ``hapticrom: error: ...`` and exit status 2 (argparse's own errors too: no
+usage block). Output locations are checked before any expensive work.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from pathlib import Path
@@ -23,6 +25,24 @@ from hapticrom.shared.errors import HapticromError
 
 EXIT_USAGE = 2
 EXIT_MISSING_EXTRA = 3
+# Bounds of the online commands' numbers: a servo loop of at most an hour (and
+# at most MAX_TICKS ticks, which the loop keeps in memory), bench runs that fit
+# in memory (about 150 bytes per timed call).
+MAX_RATE_HZ = 100_000.0
+MAX_SECONDS = 3600.0
+MAX_TICKS = 3_600_000  # an hour at 1 kHz
+MAX_TIMED_STEPS = 2_000_000
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that keeps the promise: a mistake is one line ``hapticrom: error: ...``."""
+
+    def error(self, message: str):
+        if _rank() == 0:
+            command = self.prog.removeprefix("hapticrom").strip()
+            where = f"{command}: " if command else ""
+            print(f"hapticrom: error: {where}{message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(EXIT_USAGE)
 
 
 def _rank() -> int:
@@ -58,6 +78,95 @@ def _is_number(token: str) -> bool:
     return True
 
 
+# -- argument types (argparse turns ArgumentTypeError into one line) ---------------
+def _int_in(low: int, high: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"must lie in [{low:,}, {high:,}], got {value:,}")
+        return value
+
+    return parse
+
+
+def _float_in(low: float, high: float, unit: str):
+    """A finite float in (low, high]."""
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not (math.isfinite(value) and low < value <= high):
+            raise argparse.ArgumentTypeError(
+                f"must be above {low:g} and at most {high:g} {unit}, got {text}"
+            )
+        return value
+
+    return parse
+
+
+# -- output locations, checked before any expensive work ----------------------------
+def _check_writable(directory: Path, label: str) -> None:
+    """HapticromError unless a file can be created in ``directory`` (a probe, removed)."""
+    probe = directory / f".hapticrom-probe-{_rank()}-{os.getpid()}"
+    try:
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+        probe.unlink()
+    except OSError as exc:
+        raise HapticromError(
+            f"{label}: cannot write in {directory} ({exc.strerror or exc})"
+        ) from None
+
+
+def _check_out_file(path: str | Path, label: str, make_parents: bool = False) -> Path:
+    """An output file: not a directory, in an existing (or creatable) writable directory."""
+    out = Path(path)
+    if out.is_dir():
+        raise HapticromError(f"{label} is a directory; give a file name, e.g. {out / 'model.h5'}")
+    if make_parents:
+        _check_ancestor(out.parent, label)
+        return out
+    if not out.parent.is_dir():
+        missing = "is not a directory" if out.parent.exists() else "does not exist"
+        raise HapticromError(f"{label}: directory {out.parent} {missing}")
+    _check_writable(out.parent, label)
+    return out
+
+
+def _check_out_dir(path: str, label: str) -> Path:
+    """An output directory: an existing one, or one that can be created; writable."""
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise HapticromError(f"{label} exists and is not a directory")
+    _check_ancestor(out, label)
+    return out
+
+
+def _check_ancestor(path: Path, label: str) -> None:
+    """The nearest existing ancestor of ``path`` (or itself) is a writable directory."""
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise HapticromError(f"{label}: {existing} is not a directory")
+    _check_writable(existing, label)
+
+
+def _check_campaign_dir(path: str, label: str, restart: bool) -> Path:
+    """A campaign directory to write: as :func:`_check_out_dir`; a manifest it holds is read."""
+    out = _check_out_dir(path, label)
+    from hapticrom.offline.store import SnapshotStore
+
+    store = SnapshotStore(out)
+    if store.manifest_path.exists() and not restart:
+        store.manifest()  # InputError if damaged: before any solve
+    return out
+
+
 def _init_petsc(petsc_args: list[str]) -> None:
     """Hand PETSc its options before anything imports petsc4py.PETSc."""
     import petsc4py
@@ -91,6 +200,7 @@ def cmd_mesh(args, petsc_args) -> int:
 
         incision = LimbalArc(*args.limbal_incision)
     out = Path(args.out) if args.out else Path("meshes") / f"{args.name}.msh"
+    _check_out_file(out, f"mesh --out {out}", make_parents=True)
     if _rank() == 0:
         info = generate(args.name, out, refinement=args.refinement, incision=incision, **params)
         counts = info["counts"]
@@ -108,10 +218,10 @@ def cmd_solve(args, petsc_args) -> int:
     from hapticrom.offline.config import ProblemConfig
 
     config = ProblemConfig.from_toml(args.config)  # fails before MPI/PETSc on a bad file
+    out = _check_out_dir(args.out, f"solve --out {args.out}")
     _init_petsc(petsc_args)
     from hapticrom.offline.fullorder import solve_config
 
-    out = Path(args.out)
     result = solve_config(config, out_dir=out)
     if _rank() == 0:
         print(
@@ -136,28 +246,31 @@ def cmd_campaign(args, petsc_args) -> int:
     from hapticrom.offline.campaign import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
+    out = _check_campaign_dir(args.out, f"campaign --out {args.out}", args.restart)
     _init_petsc(petsc_args)
     from hapticrom.offline.campaign import run_campaign
 
-    report = run_campaign(
-        config, args.out, ranks_per_solve=args.ranks_per_solve, restart=args.restart
-    )
+    report = run_campaign(config, out, ranks_per_solve=args.ranks_per_solve, restart=args.restart)
     return 1 if report.failed else 0
 
 
 def cmd_reduce(args, petsc_args) -> int:
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    from hapticrom.offline.store import SnapshotStore
+
     reduction = None
     if args.campaign:
-        from hapticrom.offline import require_offline
-
-        require_offline()
         from hapticrom.offline.campaign import CampaignConfig
 
         reduction = CampaignConfig.from_toml(args.campaign)
+    SnapshotStore(args.campaign_dir).manifest()  # a campaign directory, intact manifest
+    out = _check_out_file(args.out, f"reduce --out {args.out}")
     _offline(petsc_args)
     from hapticrom.offline.reduction import reduce_campaign
 
-    reduce_campaign(args.campaign_dir, args.out, reduction=reduction)
+    reduce_campaign(args.campaign_dir, out, reduction=reduction)
     return 0
 
 
@@ -168,12 +281,13 @@ def cmd_train(args, petsc_args) -> int:
     from hapticrom.offline.campaign import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
+    out = _check_out_file(args.out, f"train --out {args.out}")
+    work = args.work or str(out.with_suffix(".campaign"))
+    work = _check_campaign_dir(work, f"train --work {work}", args.restart)
     _init_petsc(petsc_args)
     from hapticrom.offline.campaign import run_campaign
     from hapticrom.offline.reduction import reduce_campaign
 
-    out = Path(args.out)
-    work = Path(args.work) if args.work else out.with_suffix(".campaign")
     report = run_campaign(config, work, ranks_per_solve=args.ranks_per_solve, restart=args.restart)
     reduce_campaign(work, out, reduction=config)
     return 1 if report.failed else 0
@@ -186,6 +300,7 @@ def cmd_anm(args, petsc_args) -> int:
     from hapticrom.offline.config import ProblemConfig
 
     config = ProblemConfig.from_toml(args.config)
+    _check_out_dir(args.out, f"anm --out {args.out}")
     _init_petsc(petsc_args)
     from hapticrom.offline.anm import ANMOptions
     from hapticrom.offline.anm_study import run_study
@@ -199,6 +314,12 @@ def cmd_anm(args, petsc_args) -> int:
 
 
 def cmd_play(args, petsc_args) -> int:
+    ticks = int(args.rate * args.seconds)
+    if not 1 <= ticks <= MAX_TICKS:
+        raise HapticromError(
+            f"play --rate {args.rate:g} --seconds {args.seconds:g} is {ticks:,} servo ticks; "
+            f"give between 1 and {MAX_TICKS:,} (an hour at 1 kHz)"
+        )
     from hapticrom.online.play import play
 
     play(args.model, rate=args.rate, seconds=args.seconds, interpolation=args.interpolation,
@@ -211,18 +332,23 @@ def cmd_bench(args, petsc_args) -> int:
 
     from hapticrom.online.latency import measure, report
 
+    json_path = _check_out_file(args.json, f"bench --json {args.json}") if args.json else None
     result = measure(
         args.model, steps=args.steps, interpolation=args.interpolation, response=args.response
     )
     print(report(result))
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=2))
+    if json_path is not None:
+        try:
+            json_path.write_text(json.dumps(result, indent=2))
+        except OSError as exc:
+            raise HapticromError(f"cannot write {json_path}: {exc.strerror or exc}") from None
     return 0
 
 
 def cmd_report(args, petsc_args) -> int:
     from hapticrom.report import write_report
 
+    _check_out_dir(args.out, f"report --out {args.out}")
     path = write_report(
         args.model, args.out, accuracy=args.accuracy, latency_steps=args.latency_steps
     )
@@ -231,7 +357,7 @@ def cmd_report(args, petsc_args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="hapticrom",
         description="Haptic-rate soft-tissue forces by model order reduction (units: mm, N, MPa).",
     )
@@ -265,7 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("campaign", help="campaign configuration (.toml)")
         p.add_argument(
             "--ranks-per-solve",
-            type=int,
+            type=_int_in(1, 1 << 20),
             default=1,
             metavar="K",
             help="ranks cooperating on each solve; the N ranks form N/K groups (default 1)",
@@ -313,15 +439,31 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("play", help="drive a scripted tool path through the runtime [online]")
     p.add_argument("model", help="reduced-model artifact (.h5)")
-    p.add_argument("--rate", type=float, default=1000.0, help="servo rate, Hz (default 1000)")
-    p.add_argument("--seconds", type=float, default=3.0)
+    p.add_argument(
+        "--rate",
+        type=_float_in(0.0, MAX_RATE_HZ, "Hz"),
+        default=1000.0,
+        help=f"servo rate, Hz (default 1000, at most {MAX_RATE_HZ:g})",
+    )
+    p.add_argument(
+        "--seconds",
+        type=_float_in(0.0, MAX_SECONDS, "s"),
+        default=3.0,
+        help=f"duration of the tool path, s (default 3, at most {MAX_SECONDS:g}; "
+        f"rate x seconds at most {MAX_TICKS:,} ticks)",
+    )
     p.add_argument("--interpolation", default="podi", choices=["podi", "grassmann"])
     p.add_argument("--free-running", action="store_true", help="do not pace in real time")
     p.set_defaults(func=cmd_play)
 
     p = sub.add_parser("bench", help="latency of the runtime's calls [online]")
     p.add_argument("model", help="reduced-model artifact (.h5)")
-    p.add_argument("--steps", type=int, default=100_000)
+    p.add_argument(
+        "--steps",
+        type=_int_in(1, MAX_TIMED_STEPS),
+        default=100_000,
+        help=f"timed steps (default 100,000, at most {MAX_TIMED_STEPS:,})",
+    )
     p.add_argument("--interpolation", default="podi", choices=["podi", "grassmann"])
     p.add_argument(
         "--response",
@@ -336,7 +478,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output directory (report.html and its PNGs)")
     p.add_argument("--accuracy", metavar="JSON", help="held-out errors: bench/accuracy.py --json")
     p.add_argument(
-        "--latency-steps", type=int, default=20_000, metavar="N", help="timed steps (20,000)"
+        "--latency-steps",
+        type=_int_in(1, MAX_TIMED_STEPS),
+        default=20_000,
+        metavar="N",
+        help=f"timed steps (20,000, at most {MAX_TIMED_STEPS:,})",
     )
     p.set_defaults(func=cmd_report)
     return parser

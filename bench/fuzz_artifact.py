@@ -1,0 +1,151 @@
+"""Fuzz the artifact reader behind a re-sealed envelope: crafted bytes reach h5py.
+
+Random damage never reaches h5py (the whole-file digest refuses it first; see
+tests/test_artifact_hostile.py). A hostile writer can re-seal, though, so this
+flips random bytes *after* the user block, re-seals the envelope, and loads
+each file with ``hapticrom.online.load`` in a child process, counting:
+
+  refused    ArtifactError (the promise)
+  identical  loaded, every array equal to the original's
+  changed    loaded with different values that passed every check
+  uncaught   another exception escaped
+  crashed    the child died of a signal (e.g. a segfault in HDF5's C code)
+  hung       no answer within --timeout seconds
+
+    python bench/fuzz_artifact.py out/cornea-soft.h5 --flips 1000 [--seed 1]
+
+Exit status 1 if anything crashed, hung or escaped uncaught.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+OUTCOMES = ("refused", "identical", "changed", "uncaught", "crashed", "hung")
+
+
+def make_cases(source: Path, flips: int, seed: int, workdir: Path) -> list[Path]:
+    from hapticrom.shared.envelope import USERBLOCK, seal
+
+    data = source.read_bytes()
+    rng = np.random.default_rng(seed)
+    cases = []
+    for i in range(flips):
+        damaged = bytearray(data)
+        position = int(rng.integers(USERBLOCK, len(data)))
+        damaged[position] ^= int(rng.integers(1, 256))
+        path = workdir / f"flip-{i:05d}-{position}.h5"
+        path.write_bytes(bytes(damaged))
+        seal(path)
+        cases.append(path)
+    return cases
+
+
+def child(source: str, cases: list[str]) -> None:
+    """Load each case; print one JSON line per case (flushed, so a crash loses only its own)."""
+    from hapticrom.online import load
+    from hapticrom.shared.artifact import ArtifactError, read_artifact
+
+    original = read_artifact(source)
+    for case in cases:
+        try:
+            model = load(case)
+            same = all(
+                np.array_equal(model.artifact[g][k], v, equal_nan=True)
+                for g, arrays in original.groups.items()
+                for k, v in arrays.items()
+            )
+            outcome, detail = ("identical" if same else "changed"), ""
+        except ArtifactError as exc:
+            outcome, detail = "refused", str(exc).split(": ", 1)[-1][:80]
+        except BaseException as exc:  # noqa: BLE001 - what we are here to count
+            outcome, detail = "uncaught", f"{type(exc).__name__}: {exc}"[:200]
+        print(json.dumps({"case": case, "outcome": outcome, "detail": detail}), flush=True)
+
+
+def run(source: Path, cases: list[Path], timeout: float) -> dict[str, list]:
+    """Children over the cases; a child that dies or stalls is replaced after its case."""
+    results = {k: [] for k in OUTCOMES}
+    pending = [str(c) for c in cases]
+    while pending:
+        proc = subprocess.Popen(
+            [sys.executable, __file__, "--child", str(source), *pending],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        )  # fmt: skip
+        done = _collect(proc, timeout, results)
+        if done < len(pending):  # the case after the last answered one crashed or hung
+            outcome = "hung" if proc.returncode is None or proc.returncode == -9 else "crashed"
+            results[outcome].append({"case": pending[done], "returncode": proc.returncode})
+            done += 1
+        pending = pending[done:]
+    return results
+
+
+def _collect(proc, timeout: float, results) -> int:
+    import selectors
+
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    done, deadline = 0, time.monotonic() + timeout + 30  # the first case includes the imports
+    while True:
+        if not sel.select(timeout=max(0.0, deadline - time.monotonic())):
+            proc.kill()
+            proc.wait()
+            proc.returncode = None
+            return done
+        line = proc.stdout.readline()
+        if not line:
+            proc.wait()
+            return done
+        record = json.loads(line)
+        results[record["outcome"]].append(record)
+        done += 1
+        deadline = time.monotonic() + timeout
+
+
+def main() -> int:
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        child(sys.argv[2], sys.argv[3:])
+        return 0
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("artifact", type=Path)
+    p.add_argument("--flips", type=int, default=1000)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--timeout", type=float, default=30.0, help="seconds per case")
+    p.add_argument("--workdir", type=Path, default=None)
+    p.add_argument("--json", type=Path, default=None, help="write every case's outcome here")
+    args = p.parse_args()
+    with tempfile.TemporaryDirectory(dir=args.workdir) as tmp:
+        t0 = time.perf_counter()
+        cases = make_cases(args.artifact, args.flips, args.seed, Path(tmp))
+        results = run(args.artifact.resolve(), cases, args.timeout)
+        seconds = time.perf_counter() - t0
+    counts = {k: len(v) for k, v in results.items()}
+    print(f"{args.flips} re-sealed byte flips of {args.artifact} ({seconds:.0f} s): "
+          + ", ".join(f"{k} {n}" for k, n in counts.items()))  # fmt: skip
+    reasons: dict[str, int] = {}
+    for record in results["refused"]:
+        key = record["detail"].split(" (")[0][:60]
+        reasons[key] = reasons.get(key, 0) + 1
+    for reason, n in sorted(reasons.items(), key=lambda kv: -kv[1])[:12]:
+        print(f"  refused {n:5d}: {reason}")
+    for outcome in ("changed", "uncaught", "crashed", "hung"):
+        for record in results[outcome][:10]:
+            print(f"  {outcome}: {record}")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return 1 if counts["uncaught"] + counts["crashed"] + counts["hung"] else 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    sys.exit(main())

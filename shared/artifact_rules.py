@@ -1,0 +1,365 @@
+"""What the values of an artifact must satisfy before the runtime may use them.
+
+A valid checksum says a file is what its writer wrote, not that the writer was
+honest or correct: anyone can recompute it. The runtime's numba kernels do no
+bounds checks and a haptic motor renders whatever force comes out, so every
+value the runtime uses is checked here, once, at load:
+
+- field rules, named in :data:`~hapticrom.shared.artifact.SCHEMA` (``checks``):
+  every float dataset is finite; ``index:S`` values lie in [0, S); ``unit`` rows
+  have norm 1; ``orthonormal`` rows; ``symmetric`` matrices; signs;
+- attribute kinds and rules (a number is a finite number, a JSON attribute
+  parses, not too deep);
+- rules across fields (:data:`CROSS_RULES`): the depth grid is uniform from 0,
+  force curves start at 0 and increase, the chart agrees with the sample
+  points, no degenerate triangle, every POD-ANM section increases in depth and
+  force and follows its predecessor, and the series agree with the stored
+  full-order curves (two independent records of the same response).
+
+Each failure raises :class:`ArtifactError` naming the dataset or attribute.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+
+import numpy as np
+from numpy.polynomial import polynomial as poly
+
+from hapticrom.shared.errors import ArtifactError
+
+# Bounds on attributes (the writer's are a few hundred bytes; a JSON campaign a few kB).
+MAX_ATTRIBUTE_ITEMS = 1 << 14
+MAX_TEXT = 1 << 22
+MAX_JSON_DEPTH = 32
+# Tolerances (relative): rounding of values the trainer computed in float64.
+UNIT_TOL = 1e-6
+SYMMETRY_TOL = 1e-6
+# POD-ANM series against the full-order curves, relative to the sample's largest force: the
+# two agree to 0.1 % on the trained models (docs: ARTIFACT.md); a tampered or broken series is
+# off by far more.
+ANM_CURVE_TOL = 0.05
+# A section starts where its predecessor ends up to the reduced Newton correction at its start
+# (measured up to 1.4e-6 of the force scale on the test model).
+ANM_JUMP_TOL = 1e-3
+
+
+# -- attributes ----------------------------------------------------------------------
+def attribute_value(attrs, spec, fail: Callable[[str], ArtifactError], where: str):
+    """The attribute ``spec.name`` of ``attrs`` (an h5py AttributeManager), typed and checked."""
+    shape = attrs.get_id(spec.name).shape
+    if shape and int(np.prod(shape, dtype=np.int64)) > MAX_ATTRIBUTE_ITEMS:
+        raise fail(f"{where} has {shape} items, too many")
+    raw = attrs[spec.name]
+    value = _KINDS[spec.kind](raw)
+    if value is None:
+        raise fail(f"{where} must be {_KIND_NAMES[spec.kind]}, got {_show(raw)}")
+    for check in spec.checks:
+        name, _, arg = check.partition(":")
+        problem = _ATTRIBUTE_CHECKS[name](value, arg)
+        if problem:
+            raise fail(f"{where} {problem}, got {_show(value)}")
+    return value
+
+
+def _show(value) -> str:
+    text = repr(value)
+    return text if len(text) < 80 else text[:77] + "..."
+
+
+def _as_text(raw):
+    if isinstance(raw, bytes | np.bytes_):
+        try:
+            raw = bytes(raw).decode("utf-8")
+        except UnicodeDecodeError:
+            return None
+    if not isinstance(raw, str) or len(raw) > MAX_TEXT:
+        return None
+    try:
+        raw.encode("utf-8")  # h5py hands undecodable bytes over as surrogates
+    except UnicodeEncodeError:
+        return None
+    return str(raw)
+
+
+def _as_json(raw):
+    text = _as_text(raw)
+    if text is None:
+        return None
+    try:
+        value = json.loads(text)
+    except (ValueError, RecursionError):
+        return None
+    if not isinstance(value, dict | list) or _depth(value) > MAX_JSON_DEPTH:
+        return None
+    return value
+
+
+def _depth(value, level: int = 0) -> int:
+    if level > MAX_JSON_DEPTH:
+        return level
+    children = value.values() if isinstance(value, dict) else value
+    if isinstance(value, dict | list):
+        return max((_depth(c, level + 1) for c in children), default=level + 1)
+    return level
+
+
+def _as_number(raw, integer: bool):
+    a = np.asarray(raw)
+    if a.shape != () or a.dtype.kind not in ("iu" if integer else "iuf"):
+        return None
+    value = int(a) if integer else float(a)
+    return value if integer or np.isfinite(value) else None
+
+
+def _as_numbers(raw, integer: bool):
+    a = np.asarray(raw)
+    if a.ndim > 1 or a.dtype.kind not in ("iu" if integer else "iuf"):
+        return None
+    a = a.reshape(-1)
+    if not integer and not np.all(np.isfinite(a)):
+        return None
+    return tuple(int(v) for v in a) if integer else tuple(float(v) for v in a)
+
+
+_KINDS = {
+    "str": _as_text,
+    "json": _as_json,
+    "float": lambda raw: _as_number(raw, integer=False),
+    "int": lambda raw: _as_number(raw, integer=True),
+    "floats": lambda raw: _as_numbers(raw, integer=False),
+    "ints": lambda raw: _as_numbers(raw, integer=True),
+}
+_KIND_NAMES = {
+    "str": "a UTF-8 string",
+    "json": f"a JSON object or list (at most {MAX_JSON_DEPTH} levels deep)",
+    "float": "a finite number",
+    "int": "an integer",
+    "floats": "a list of finite numbers",
+    "ints": "a list of integers",
+}
+
+
+def _choice(value, arg: str) -> str | None:
+    options = arg.split(",")
+    return None if value in options else f"must be one of {', '.join(options)}"
+
+
+def _range(value, arg: str) -> str | None:
+    lo, hi = (int(v) for v in arg.split(","))
+    return None if lo <= value <= hi else f"must lie in [{lo}, {hi}]"
+
+
+_ATTRIBUTE_CHECKS = {
+    "positive": lambda v, _: None if v > 0 else "must be positive",
+    "nonnegative": lambda v, _: None if v >= 0 else "must not be negative",
+    "pair": lambda v, _: None if len(v) == 2 and min(v) >= 0 else "must be [major, minor]",
+    "length": lambda v, n: None if len(v) == int(n) else f"must have {n} values",
+    "choice": _choice,
+    "range": _range,
+}
+
+
+# -- datasets, one at a time ------------------------------------------------------------
+def _index(a, arg, symbols):
+    size = symbols[arg]
+    bad = (a < 0) | (a >= size)
+    return f"has indices outside [0, {size})" if np.any(bad) else None
+
+
+def _unit(a, arg, symbols):
+    norms = np.linalg.norm(a, axis=-1)
+    return "has rows that are not unit vectors" if np.any(abs(norms - 1) > UNIT_TOL) else None
+
+
+def _orthonormal(a, arg, symbols):
+    gram = a @ a.T
+    return "is not orthonormal" if np.max(abs(gram - np.eye(len(a)))) > UNIT_TOL else None
+
+
+def _symmetric(a, arg, symbols):
+    scale = np.max(abs(a), initial=0.0)
+    asym = np.max(abs(a - np.swapaxes(a, -1, -2)), initial=0.0)
+    return "is not symmetric" if asym > SYMMETRY_TOL * scale else None
+
+
+def _choice_values(a, arg, symbols):
+    allowed = np.array([int(v) for v in arg.split(",")])
+    return f"has values other than {arg}" if not np.all(np.isin(a, allowed)) else None
+
+
+FIELD_RULES = {
+    "index": _index,
+    "distinct": lambda a, arg, s: None if len(np.unique(a)) == len(a) else "has repeated values",
+    "unit": _unit,
+    "orthonormal": _orthonormal,
+    "symmetric": _symmetric,
+    "choice": _choice_values,
+    "positive": lambda a, arg, s: None if np.all(a > 0) else "has values that are not positive",
+    "negative": lambda a, arg, s: None if np.all(a < 0) else "has values that are not negative",
+    "nonnegative": lambda a, arg, s: None if np.all(a >= 0) else "has negative values",
+}
+
+
+def _check_fields(artifact) -> None:
+    from hapticrom.shared.artifact import SCHEMA
+
+    for group in SCHEMA:
+        arrays = artifact.groups.get(group.name, {})
+        for spec in group.fields:
+            if spec.name not in arrays:
+                continue
+            a = arrays[spec.name]
+            if spec.dtype == "f" and not np.all(np.isfinite(a)):
+                raise _fail(artifact, f"{group.name}/{spec.name} has NaN or infinite values")
+            for check in spec.checks:
+                name, _, arg = check.partition(":")
+                problem = FIELD_RULES[name](a, arg, artifact.symbols)
+                if problem:
+                    raise _fail(artifact, f"{group.name}/{spec.name} {problem}")
+
+
+def _fail(artifact, message: str) -> ArtifactError:
+    return ArtifactError(f"{artifact.path}: {message}")
+
+
+# -- rules across fields ----------------------------------------------------------------
+def _depth_grid(artifact) -> None:
+    depth = artifact["samples"]["depth"]
+    steps = np.diff(depth)
+    if len(depth) < 2 or depth[0] != 0.0 or steps[0] <= 0:
+        raise _fail(artifact, "samples/depth must start at 0 and increase")
+    if not np.allclose(steps, steps[0], rtol=1e-9, atol=0):
+        raise _fail(artifact, "samples/depth must be uniform")
+
+
+def _force_curves(artifact) -> None:
+    force = artifact["samples"]["force"]
+    scale = np.max(force, axis=1)
+    if np.any(scale <= 0):
+        raise _fail(artifact, "samples/force: a sample whose force never rises above 0")
+    if np.any(abs(force[:, 0]) > 1e-6 * scale):
+        raise _fail(artifact, "samples/force must be 0 at depth 0")
+    if np.any(np.diff(force, axis=1) < 0):
+        raise _fail(artifact, "samples/force is not increasing with depth")
+
+
+def _chart(artifact) -> None:
+    s = artifact["samples"]
+    chart = (s["points"] - s["chart_origin"]) @ s["chart_axes"].T
+    extent = max(np.ptp(s["chart_points"], axis=0).max(initial=0.0), 1e-300)
+    if np.max(abs(chart - s["chart_points"])) > 1e-6 * extent:
+        raise _fail(artifact, "samples/chart_points do not match the sample points in the chart")
+    a, b, c = (s["chart_points"][s["triangles"][:, k]] for k in range(3))
+    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
+    if len(det) == 0 or np.any(abs(det) <= 1e-9 * extent**2):
+        raise _fail(artifact, "samples/triangles has a degenerate (zero-area) triangle")
+
+
+def _surface(artifact) -> None:
+    s = artifact["surface"]
+    v, t = s["vertices"], s["triangles"]
+    extent = max(np.ptp(v, axis=0).max(initial=0.0), 1e-300)
+    area = np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    if len(t) == 0 or np.any(area <= 1e-12 * extent**2):
+        raise _fail(artifact, "surface/triangles has a degenerate (zero-area) triangle")
+    if len(np.unique(t)) != len(v):
+        raise _fail(artifact, "surface/vertices has vertices that no triangle uses")
+
+
+def _anm_sections(artifact) -> None:
+    if "anm" not in artifact.groups:
+        return
+    a, samples = artifact["anm"], artifact["samples"]
+    offsets, a_max = a["section_offsets"], a["a_max"]
+    Z, P = len(a_max), len(samples["points"])
+    if len(offsets) != P + 1 or a["depth"].shape[1] != artifact.group_attrs["anm"]["order"] + 1:
+        raise _fail(artifact, "anm: section_offsets or the series' order do not fit the samples")
+    if offsets[0] != 0 or offsets[-1] != Z or np.any(np.diff(offsets) < 1):
+        raise _fail(artifact, f"anm/section_offsets must rise from 0 to {Z}, one or more each")
+    sample = np.repeat(np.arange(P), np.diff(offsets))
+    depth_scale = samples["depth"][-1]
+    force_scale = samples["force"].max(axis=1)[sample]
+    for name, scale in (("depth", depth_scale), ("force", force_scale)):
+        series = a[name]
+        end = _horner(series, a_max[:, None])[:, 0]
+        previous = np.r_[0.0, end[:-1]]
+        previous[offsets[:-1]] = 0.0  # each sample's first section starts at 0
+        jump = np.flatnonzero(abs(series[:, 0] - previous) > ANM_JUMP_TOL * scale)
+        if len(jump):
+            raise _fail(
+                artifact, f"anm section {jump[0]} does not start where its predecessor ends"
+            )
+        slope = _min_slope(series, a_max) * a_max
+        # depth strictly increasing; force non-decreasing up to rounding
+        bad = np.flatnonzero(slope <= 0 if name == "depth" else slope < -1e-6 * scale)
+        if len(bad):
+            raise _fail(artifact, f"anm/{name} decreases along section {bad[0]}")
+        if name == "depth" and np.any(end[offsets[1:] - 1] < depth_scale * (1 - 1e-6)):
+            raise _fail(artifact, "anm: the sections of a sample end before the trained depth")
+
+
+def _horner(c: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Row-wise polynomials c (Z, N1), coefficients in increasing order, at x (Z, m)."""
+    out = np.broadcast_to(c[:, -1:], x.shape).copy()
+    for k in range(c.shape[1] - 2, -1, -1):
+        out = out * x + c[:, k : k + 1]
+    return out
+
+
+def _min_slope(c: np.ndarray, a_max: np.ndarray) -> np.ndarray:
+    """Each row's smallest derivative on [0, a_max]: at the ends or a real critical point."""
+    n1 = c.shape[1]
+    d1 = c[:, 1:] * np.arange(1, n1)
+    points = [np.zeros((len(c), 1)), a_max[:, None]]
+    if n1 > 3:
+        roots = _roots(d1[:, 1:] * np.arange(1, n1 - 1))  # of the second derivative
+        inside = (abs(roots.imag) <= 1e-9 * (1 + abs(roots))) & (roots.real > 0)
+        inside &= roots.real < a_max[:, None]
+        points.append(np.where(inside, roots.real, 0.0))
+    return _horner(d1, np.hstack(points)).min(axis=1)
+
+
+def _roots(c: np.ndarray) -> np.ndarray:
+    """Roots of each row's polynomial (companion matrices, batched); a row whose leading
+    coefficient is zero gets its roots one by one."""
+    m = c.shape[1] - 1
+    roots = np.zeros((len(c), m), dtype=complex)
+    lead = c[:, -1]
+    full = lead != 0
+    companion = np.zeros((int(full.sum()), m, m))
+    companion[:, np.arange(1, m), np.arange(m - 1)] = 1.0
+    companion[:, :, -1] = -c[full, :-1] / lead[full, None]
+    roots[full] = np.linalg.eigvals(companion)
+    for z in np.flatnonzero(~full):
+        r = poly.polyroots(np.trim_zeros(c[z], "b")) if np.any(c[z]) else np.zeros(0)
+        roots[z] = np.r_[r, np.zeros(m - len(r))]  # padding: 0, an end point anyway
+    return roots
+
+
+def _anm_against_curves(artifact) -> None:
+    """The series' force at the trained depths against the stored full-order curves."""
+    if "anm" not in artifact.groups:
+        return
+    a, s = artifact["anm"], artifact["samples"]
+    offsets = a["section_offsets"]
+    x = np.linspace(0.0, 1.0, 33) * a["a_max"][:, None]
+    depth, force = _horner(a["depth"], x), _horner(a["force"], x)
+    for p in range(len(s["points"])):
+        rows = slice(offsets[p], offsets[p + 1])
+        series = np.interp(s["depth"], depth[rows].ravel(), force[rows].ravel())
+        if np.max(abs(series - s["force"][p])) > ANM_CURVE_TOL * s["force"][p].max():
+            raise _fail(
+                artifact, f"anm/force of sample {p} disagrees with samples/force (over 5 %)"
+            )
+
+
+CROSS_RULES = (_depth_grid, _force_curves, _chart, _surface, _anm_sections, _anm_against_curves)
+
+
+def check_values(artifact) -> None:
+    """Every rule of this module on a read artifact; the first failure is raised."""
+    _check_fields(artifact)
+    for rule in CROSS_RULES:
+        rule(artifact)

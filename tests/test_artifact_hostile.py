@@ -1,0 +1,352 @@
+"""Hostile artifacts: every damaged or crafted file is refused with one ArtifactError.
+
+The attacks recompute every checksum (tests/tamper.py), so they reach the
+reader's structure and value checks; the fuzz test flips bytes with no such
+help. Loading goes through ``hapticrom.online.load`` (reader, model set-up and
+kernel warm-up) wherever the runtime would, so nothing escapes as another
+exception, crashes the interpreter or hands a NaN to a kernel.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+from tamper import copy, mutate, rewrite, set_attribute
+
+from hapticrom.online import load
+from hapticrom.shared.artifact import SCHEMA, ArtifactError, read_artifact
+from hapticrom.shared.checksum import array_digest
+from hapticrom.shared.envelope import USERBLOCK
+
+pytestmark = pytest.mark.serial
+
+
+def refused(path, match: str) -> None:
+    with pytest.raises(ArtifactError, match=match):
+        load(path)
+
+
+def present_fields(artifact_path, dtype: str):
+    with h5py.File(artifact_path, "r") as f:
+        return [
+            f"{g.name}/{spec.name}"
+            for g in SCHEMA
+            if g.name in f
+            for spec in g.fields
+            if spec.dtype == dtype and spec.name in f[g.name]
+        ]
+
+
+# -- values (checksums recomputed) -------------------------------------------------------
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_non_finite_values_are_refused_in_every_float_dataset(small_artifact, tmp_path, value):
+    for name in present_fields(small_artifact, "f"):
+        path = copy(small_artifact, tmp_path)
+
+        def poison(a):
+            a.reshape(-1)[a.size // 2] = value
+            return a
+
+        rewrite(path, name, poison)
+        refused(path, f"{name} has NaN or infinite values")
+
+
+def _bad_integers(spec, symbols):
+    """Values that break each rule of an integer field ("repeat": a value twice)."""
+    for check in spec.checks:
+        rule, _, arg = check.partition(":")
+        if rule == "index":
+            yield from (-1, symbols[arg])
+        elif rule == "choice":
+            yield from (-1, max(int(v) for v in arg.split(",")) + 1)
+        elif rule == "nonnegative":
+            yield -1
+        elif rule == "distinct":
+            yield "repeat"
+
+
+def test_every_rule_of_every_integer_dataset_is_enforced(small_artifact, tmp_path):
+    symbols = read_artifact(small_artifact).symbols
+    tried = 0
+    for group in SCHEMA:
+        for spec in group.fields:
+            name = f"{group.name}/{spec.name}"
+            if spec.dtype != "i" or name not in present_fields(small_artifact, "i"):
+                continue
+            for bad in _bad_integers(spec, symbols):
+                path = copy(small_artifact, tmp_path)
+
+                def set_bad(a, bad=bad):
+                    flat = a.reshape(-1)
+                    flat[-1] = flat[0] if bad == "repeat" else bad
+                    return a
+
+                rewrite(path, name, set_bad)
+                refused(path, name)
+                tried += 1
+    assert tried >= 10
+
+
+@pytest.mark.parametrize(
+    "name, change, match",
+    [
+        ("samples/force", lambda a: -a, "samples/force has negative values"),
+        ("samples/force", lambda a: a[:, ::-1].copy(), "samples/force"),
+        ("samples/force", lambda a: 1000 * a, "anm/force of sample 0 disagrees"),
+        ("samples/stiffness", lambda a: -a, "samples/stiffness has negative values"),
+        ("samples/normals", lambda a: 0 * a, "samples/normals has rows that are not unit"),
+        ("samples/chart_axes", lambda a: 2 * a, "samples/chart_axes is not orthonormal"),
+        ("samples/chart_points", lambda a: a[::-1].copy(), "chart_points do not match"),
+        ("samples/depth", lambda a: 0 * a, "samples/depth must start at 0 and increase"),
+        ("samples/depth", lambda a: a**2, "samples/depth must be uniform"),
+        ("samples/reduced_stiffness", lambda a: a + np.triu(a, 1), "is not symmetric"),
+        ("anm/force", lambda a: -a, "anm/force"),
+        ("anm/force", lambda a: 1000 * a, "anm"),
+        ("anm/depth", lambda a: -a, "anm"),
+        ("anm/a_max", lambda a: -a, "anm/a_max has values that are not positive"),
+        ("anm/section_offsets", lambda a: a[::-1].copy(), "anm/section_offsets"),
+        ("surface/groups", lambda a: a + 3, "surface/groups has values other than 0,1,2"),
+        ("grassmann/reference", lambda a: np.int64(-1), "grassmann/reference has indices"),
+    ],
+)
+def test_semantic_attacks_with_valid_checksums_are_refused(
+    small_artifact, tmp_path, name, change, match
+):
+    path = copy(small_artifact, tmp_path)
+    rewrite(path, name, change)
+    refused(path, match)
+
+
+def test_degenerate_geometry_is_refused(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+
+    def collapse_sample(f):  # sample 1 moved onto sample 0: a zero-area chart triangle
+        for key in ("points", "chart_points"):
+            a = f[f"samples/{key}"][()]
+            a[1] = a[0]
+            del f[f"samples/{key}"]
+            d = f["samples"].create_dataset(key, data=a)
+            d.attrs["units"], d.attrs["sha256"] = "mm", array_digest(a)
+
+    mutate(path, collapse_sample)
+    refused(path, "degenerate")
+    path = copy(small_artifact, tmp_path)
+    rewrite(path, "surface/triangles", lambda t: np.column_stack([t[:, 0], t[:, 0], t[:, 2]]))
+    refused(path, "surface/triangles has a degenerate")
+
+
+# -- attributes ----------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "obj, key, value, match",
+    [
+        ("/", "format_version", "1.4", "attribute format_version of root must be a list"),
+        ("/", "format_version", np.array([1, 4, 0]), "format_version of root must be"),
+        ("samples", "version", np.array([1.5, 0.0]), "version of samples must be a list of int"),
+        ("model", "contact_radius", np.nan, "contact_radius of model must be a finite number"),
+        ("model", "contact_radius", -0.5, "contact_radius of model must be positive"),
+        ("model", "contact_radius", "0.5", "contact_radius of model must be a finite number"),
+        ("model", "mode", "magnetic", "mode of model must be one of displacement, force"),
+        ("model", "material", "[" * 100000 + "]" * 100000, "material of model must be a JSON"),
+        ("model", "material", "not json", "material of model must be a JSON"),
+        ("model", "name", b"\xff\xfe", "name of model must be a UTF-8 string"),
+        ("anm", "order", 0, "order of anm must lie in"),
+        ("anm", "order", 7, "series' order do not fit"),
+        ("samples", "type", "contact-samples-v9", "group samples has type"),
+        ("samples", "pressure_modes", np.array([[1, 2]]), "pressure_modes of samples must be"),
+    ],
+)
+def test_hostile_attributes_are_refused(small_artifact, tmp_path, obj, key, value, match):
+    path = copy(small_artifact, tmp_path)
+    set_attribute(path, obj, key, value)
+    refused(path, match)
+
+
+def test_units_are_compared_with_the_schema(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    set_attribute(path, "samples/force", "units", "kN")
+    refused(path, "samples/force has units 'kN', expected 'N'")
+
+
+def test_huge_attribute_is_refused_before_it_is_read(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    set_attribute(path, "model", "modes", np.zeros(1 << 15, dtype=np.int8))
+    refused(path, "attribute modes of model has")
+
+
+# -- structure ----------------------------------------------------------------------------
+def _replace(f, name, make):
+    parent, _, key = name.rpartition("/")
+    del f[name]
+    make(f[parent or "/"], key)
+
+
+def test_a_group_where_a_dataset_belongs_is_refused(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    mutate(path, lambda f: _replace(f, "samples/force", lambda g, k: g.create_group(k)))
+    refused(path, "samples/force is not a dataset")
+    path = copy(small_artifact, tmp_path)
+    mutate(path, lambda f: _replace(f, "anm", lambda g, k: g.create_dataset(k, data=[1.0])))
+    refused(path, "anm is not a group")
+
+
+@pytest.mark.parametrize("kind", ["soft", "external", "external-loop"])
+def test_links_are_refused(small_artifact, tmp_path, kind):
+    path = copy(small_artifact, tmp_path)
+    other = tmp_path / "other.h5"
+    with h5py.File(other, "w") as o:
+        o["force"] = read_artifact(small_artifact)["samples"]["force"]
+    make = {
+        "soft": lambda g, k: g.__setitem__(k, h5py.SoftLink("/samples/stiffness")),
+        "external": lambda g, k: g.__setitem__(k, h5py.ExternalLink(str(other), "/force")),
+        "external-loop": lambda g, k: g.__setitem__(k, h5py.ExternalLink(str(path), "/x")),
+    }[kind]
+    mutate(path, lambda f: _replace(f, "samples/force", make))
+    refused(path, "samples/force is a (SoftLink|ExternalLink): only data inside the file")
+
+
+@pytest.mark.parametrize("target", ["file", "fifo", "proc"])
+def test_external_raw_storage_is_refused_without_opening_it(small_artifact, tmp_path, target):
+    path = copy(small_artifact, tmp_path)
+    force = read_artifact(small_artifact)["samples"]["force"]
+    source = {"file": tmp_path / "raw.bin", "fifo": tmp_path / "fifo", "proc": None}[target]
+    if target == "file":
+        source.write_bytes(force.tobytes())
+    elif target == "fifo":
+        os.mkfifo(source)  # opening it for reading would block forever
+    name = "/proc/self/environ" if source is None else str(source)
+
+    def external(g, k):
+        d = g.create_dataset(k, shape=force.shape, dtype=force.dtype, external=[(name, 0, 4096)])
+        d.attrs["units"], d.attrs["sha256"] = "N", array_digest(force)
+
+    mutate(path, lambda f: _replace(f, "samples/force", external))
+    refused(path, "samples/force is stored outside the file")
+
+
+def test_virtual_datasets_are_refused(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    force = read_artifact(small_artifact)["samples"]["force"]
+    other = tmp_path / "source.h5"
+    with h5py.File(other, "w") as o:
+        o["force"] = force
+
+    def virtual(g, k):
+        layout = h5py.VirtualLayout(shape=force.shape, dtype=force.dtype)
+        layout[...] = h5py.VirtualSource(str(other), "force", shape=force.shape)
+        d = g.create_virtual_dataset(k, layout)
+        d.attrs["units"], d.attrs["sha256"] = "N", array_digest(force)
+
+    mutate(path, lambda f: _replace(f, "samples/force", virtual))
+    refused(path, "samples/force is stored outside the file")
+
+
+def test_size_bomb_is_refused_before_allocation(small_artifact, tmp_path):
+    """256 GiB declared, nothing stored: refused from the metadata, nothing allocated."""
+    path = copy(small_artifact, tmp_path)
+    P = len(read_artifact(small_artifact)["samples"]["points"])
+
+    def bomb(g, k):  # M is first defined by this dataset, so its shape fits the schema
+        d = g.create_dataset(k, shape=(P, (1 << 38) // (8 * P)), dtype="<f8")
+        d.attrs["units"], d.attrs["sha256"] = "mm^2", "0" * 64
+
+    mutate(path, lambda f: _replace(f, "samples/eigenvalues", bomb))
+    refused(path, "samples/eigenvalues declares .* bytes but stores 0")
+
+
+def test_chunked_or_compressed_data_is_refused(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    force = read_artifact(small_artifact)["samples"]["force"]
+
+    def compressed(g, k):
+        d = g.create_dataset(k, data=force, compression="gzip")
+        d.attrs["units"], d.attrs["sha256"] = "N", array_digest(force)
+
+    mutate(path, lambda f: _replace(f, "samples/force", compressed))
+    refused(path, "samples/force is chunked or filtered")
+
+
+@pytest.mark.parametrize("dtype", ["<f2", ">f8", "complex128", "S8"])
+def test_unexpected_dtypes_are_refused(small_artifact, tmp_path, dtype):
+    path = copy(small_artifact, tmp_path)
+    rewrite(path, "samples/force", lambda a: a.astype(dtype))
+    refused(path, "samples/force has dtype")
+
+
+# -- the file itself --------------------------------------------------------------------------
+def test_what_is_not_a_regular_file_is_refused_without_reading(tmp_path):
+    fifo = tmp_path / "model.h5"
+    os.mkfifo(fifo)
+    refused(fifo, "is not a regular file")
+    refused(tmp_path, "is not a regular file")
+    link = tmp_path / "environ.h5"
+    link.symlink_to("/proc/self/environ")
+    refused(link, "not a hapticrom artifact")
+
+
+def test_appended_bytes_are_refused(small_artifact, tmp_path):
+    path = copy(small_artifact, tmp_path)
+    with open(path, "ab") as fh:
+        fh.write(b"\0" * 16)
+    refused(path, "truncated or appended to")
+
+
+def test_fuzz_1000_byte_flips_over_the_whole_file(small_artifact, tmp_path):
+    """Random single-byte flips anywhere (envelope included): each one is refused.
+
+    The flips are not re-sealed: this is damage, which the whole-file digest
+    catches before h5py parses anything (crafted files are the tests above;
+    ``bench/fuzz_artifact.py`` flips bytes behind a re-sealed envelope).
+    """
+    data = small_artifact.read_bytes()
+    rng = np.random.default_rng(2026)
+    positions = np.concatenate(
+        [rng.integers(0, USERBLOCK, 100), rng.integers(USERBLOCK, len(data), 900)]
+    )
+    path = tmp_path / "fuzz.h5"
+    outcomes = {}
+    for position in positions:
+        damaged = bytearray(data)
+        damaged[position] ^= int(rng.integers(1, 256))
+        path.write_bytes(bytes(damaged))
+        try:
+            load(path, warm_up=False)
+            outcome = "loaded"
+        except ArtifactError as exc:
+            outcome = str(exc).split(": ", 1)[-1].split(" (")[0][:40]
+        outcomes[outcome] = outcomes.get(outcome, 0) + 1
+    assert "loaded" not in outcomes, outcomes
+    assert sum(outcomes.values()) == 1000
+
+
+def test_a_crafted_file_cannot_crash_the_interpreter(small_artifact, tmp_path):
+    """Flips behind a re-sealed envelope, loaded in a child process: refused or loaded, never a
+    crash, a hang or another exception (bench/fuzz_artifact.py runs many more)."""
+    script = os.path.join(os.path.dirname(__file__), "..", "bench", "fuzz_artifact.py")
+    result = subprocess.run(
+        [sys.executable, script, str(small_artifact), "--flips", "60", "--seed", "3",
+         "--workdir", str(tmp_path)],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "uncaught 0, crashed 0, hung 0" in result.stdout, result.stdout
+
+
+def test_the_smallest_slope_rule_matches_dense_sampling():
+    """The exact minimum of p' on [0, a] (ends and critical points) against 200,001 samples."""
+    from numpy.polynomial import polynomial as poly
+
+    from hapticrom.shared.artifact_rules import _min_slope
+
+    rng = np.random.default_rng(0)
+    c = rng.standard_normal((100, 7))
+    a = rng.uniform(0.1, 2.0, 100)
+    c[5, -1], c[6, -2:] = 0.0, 0.0  # lower-degree rows take the one-by-one path
+    dense = [
+        poly.polyval(np.linspace(0, a[z], 200_001), poly.polyder(c[z])).min() for z in range(100)
+    ]
+    np.testing.assert_allclose(_min_slope(c, a), dense, atol=1e-8)
