@@ -102,6 +102,8 @@ def _fields(*rows, required: bool = True) -> tuple[Field, ...]:
     return tuple(Field(*row[:5], required=required, checks=tuple(row[5:])) for row in rows)
 
 
+# One row per dataset, as the tables of ARTIFACT.md.
+# fmt: off
 SCHEMA: tuple[Group, ...] = (
     Group(
         "model",
@@ -109,12 +111,12 @@ SCHEMA: tuple[Group, ...] = (
         (1, 0),
         (),
         attrs=(
-            Attr("name", "str", "campaign name", required=True),
+            Attr("name", "str", "campaign name", True),
             Attr("mode", "str", "control of the training", True, ("choice:displacement,force",)),
             Attr("contact_radius", "float", "tool tip radius (mm)", True, ("positive",)),
-            Attr("surface_group", "str", "surface group the tool touches", required=True),
-            Attr("material", "json", "law and parameters (MPa)", required=True),
-            Attr("campaign_hash", "str", "SHA-256 of the campaign", required=True),
+            Attr("surface_group", "str", "surface group the tool touches", True),
+            Attr("material", "json", "law and parameters (MPa)", True),
+            Attr("campaign_hash", "str", "SHA-256 of the campaign", True),
             Attr("mesh_file", "str", "the mesh trained on"),
             Attr("mesh_sha256", "str", "its SHA-256"),
             Attr("element", "str", "finite element of the training"),
@@ -129,25 +131,12 @@ SCHEMA: tuple[Group, ...] = (
         (1, 0),
         _fields(
             ("vertices", "f", ("V", 3), "mm", "reference positions of the surface vertices"),
-            (
-                "triangles",
-                "i",
-                ("T", 3),
-                "1",
-                "vertex indices, outward (counter-clockwise)",
-                "index:V",
-            ),
-            (
-                "nodes",
-                "i",
-                ("V",),
-                "1",
-                "canonical node of each vertex (DOFs 3 i + c)",
-                "nonnegative",
-                "distinct",
-            ),
+            ("triangles", "i", ("T", 3), "1", "vertex indices, outward (counter-clockwise)",
+             "index:V"),
+            ("nodes", "i", ("V",), "1", "canonical node of each vertex (DOFs 3 i + c)",
+             "nonnegative", "distinct"),
             ("groups", "i", ("T",), "1", "0 clamped, 1 loadable, 2 free", "choice:0,1,2"),
-        ),  # fmt: skip
+        ),
     ),
     Group(
         "samples",
@@ -157,47 +146,25 @@ SCHEMA: tuple[Group, ...] = (
             ("points", "f", ("P", 3), "mm", "tool positions of the training samples"),
             ("normals", "f", ("P", 3), "1", "outward unit surface normals there", "unit"),
             ("chart_origin", "f", (3,), "mm", "origin of the 2-D interpolation chart"),
-            (
-                "chart_axes",
-                "f",
-                (2, 3),
-                "1",
-                "orthonormal chart axes (chart = axes (x - o))",
-                "orthonormal",
-            ),
+            ("chart_axes", "f", (2, 3), "1", "orthonormal chart axes (chart = axes (x - o))",
+             "orthonormal"),
             ("chart_points", "f", ("P", 2), "mm", "samples in chart coordinates"),
             ("triangles", "i", ("S", 3), "1", "Delaunay triangles of the chart points", "index:P"),
             ("depth", "f", ("K",), "mm", "indentation grid, uniform, depth[0] = 0"),
-            (
-                "force",
-                "f",
-                ("P", "K"),
-                "N",
-                "normal reaction force on the tool at each depth",
-                "nonnegative",
-            ),
-            (
-                "stiffness",
-                "f",
-                ("P", "K"),
-                "N/mm",
-                "d force / d depth (monotone cubic)",
-                "nonnegative",
-            ),
+            ("force", "f", ("P", "K"), "N", "normal contact force F_n at each depth (>= 0)",
+             "nonnegative"),
+            ("stiffness", "f", ("P", "K"), "N/mm", "d force / d depth (monotone cubic)",
+             "nonnegative"),
             ("surface_basis", "f", ("P", "3V", "n"), "1", "POD basis rows at the vertices"),
             ("coefficients", "f", ("P", "K", "n"), "mm", "reduced coordinates at each depth"),
-            (
-                "reduced_stiffness",
-                "f",
-                ("P", "n", "n"),
-                "N/mm",
-                "A^T K0 A, reduced pressure",
-                "symmetric",
-            ),
+            ("reduced_stiffness", "f", ("P", "n", "n"), "N/mm", "A^T K0 A, reduced pressure",
+             "symmetric"),
             ("contact_rows", "f", ("P", 3, "n"), "1", "mean basis rows at the contact nodes"),
             ("eigenvalues", "f", ("P", "M"), "mm^2", "POD eigenvalues (M snapshots)"),
-        ),  # fmt: skip
-        attrs=(Attr("pressure_modes", "ints", "size of each reduced pressure basis"),),
+        ),
+        attrs=(
+            Attr("pressure_modes", "ints", "size of each reduced pressure basis"),
+        ),
     ),
     Group(
         "grassmann",
@@ -217,26 +184,14 @@ SCHEMA: tuple[Group, ...] = (
         "anm-series",
         (1, 0),
         _fields(
-            (
-                "section_offsets",
-                "i",
-                ("P1",),
-                "1",
-                "sample i's sections: offsets[i]:[i+1]",
-                "nonnegative",
-            ),
-            (
-                "a_max",
-                "f",
-                ("Z",),
-                "1",
-                "validity radius of each section (path parameter)",
-                "positive",
-            ),
+            ("section_offsets", "i", ("P1",), "1", "sample i's sections: offsets[i]:[i+1]",
+             "nonnegative"),
+            ("a_max", "f", ("Z",), "1", "validity radius of each section (path parameter)",
+             "positive"),
             ("depth", "f", ("Z", "N1"), "mm", "series of the depth in a, order 0..N"),
-            ("force", "f", ("Z", "N1"), "N", "series of the normal force on the tool"),
+            ("force", "f", ("Z", "N1"), "N", "series of the normal contact force F_n"),
             ("coefficients", "f", ("Z", "N1", "n"), "mm", "series of the reduced coordinates"),
-        ),  # fmt: skip
+        ),
         required=False,
         attrs=(
             Attr("order", "int", "series order N", True, ("range:1,30",)),
@@ -249,61 +204,29 @@ SCHEMA: tuple[Group, ...] = (
         "cut-region",
         (1, 1),
         _fields(
-            (
-                "nodes",
-                "i",
-                ("Rn",),
-                "1",
-                "canonical node of each region node",
-                "nonnegative",
-                "distinct",
-            ),
+            ("nodes", "i", ("Rn",), "1", "canonical node of each region node",
+             "nonnegative", "distinct"),
             ("coordinates", "f", ("Rn", 3), "mm", "reference positions of the region nodes"),
             ("cells", "i", ("Rc", 8), "1", "region hexahedra, region node indices", "index:Rn"),
             ("element_stiffness", "f", ("Rc", 24, 24), "N/mm", "cell matrices at K0", "symmetric"),
             ("basis", "f", ("3Rn", "G"), "1", "global POD basis rows at the region nodes"),
-            (
-                "fixed",
-                "i",
-                ("Rn",),
-                "1",
-                "1: node keeps the reduced field (boundary)",
-                "choice:0,1",
-            ),
-            (
-                "reduced_stiffness",
-                "f",
-                ("G", "G"),
-                "N/mm",
-                "A^T K0 A, element pressure",
-                "symmetric",
-            ),
-        )  # fmt: skip
-        # 1.1 (format 1.3): an element-wise pressure, for a locking-free coupling.
-        + _fields(
-            (
-                "element_displacement_stiffness",
-                "f",
-                ("Rc", 24, 24),
-                "N/mm",
-                "cell K_uu",
-                "symmetric",
-            ),
+            ("fixed", "i", ("Rn",), "1", "1: node keeps the reduced field (boundary)",
+             "choice:0,1"),
+            ("reduced_stiffness", "f", ("G", "G"), "N/mm", "A^T K0 A, element pressure",
+             "symmetric"),
+        ) + _fields(
+            # group version 1.1 (format 1.3): element-wise pressure, locking-free
+            ("element_displacement_stiffness", "f", ("Rc", 24, 24), "N/mm", "cell K_uu",
+             "symmetric"),
             ("element_pressure_coupling", "f", ("Rc", 24), "mm^2", "cell k_up"),
             ("element_pressure_stiffness", "f", ("Rc",), "mm^3/MPa", "cell k_pp (< 0)", "negative"),
             ("pressure_basis", "f", ("Rc", "Gp"), "1", "reduced pressure modes' cell values"),
             ("reduced_displacement_stiffness", "f", ("G", "G"), "N/mm", "A^T K_uu A", "symmetric"),
             ("reduced_pressure_coupling", "f", ("G", "Gp"), "mm^2", "A^T K_up P"),
-            (
-                "reduced_pressure_stiffness",
-                "f",
-                ("Gp", "Gp"),
-                "mm^3/MPa",
-                "P^T K_pp P",
-                "symmetric",
-            ),
+            ("reduced_pressure_stiffness", "f", ("Gp", "Gp"), "mm^3/MPa", "P^T K_pp P",
+             "symmetric"),
             required=False,
-        ),  # fmt: skip
+        ),
         required=False,
         attrs=(
             Attr("centre", "floats", "centre of the region (mm)", checks=("length:3",)),
@@ -320,18 +243,14 @@ SCHEMA: tuple[Group, ...] = (
         _fields(
             ("surface_basis", "f", ("3V", "G"), "1", "global POD basis rows at the vertices"),
             ("eigenvalues", "f", ("Mg",), "mm^2", "global POD eigenvalues"),
-            (
-                "reduced_stiffness",
-                "f",
-                ("G", "G"),
-                "N/mm",
-                "A^T K0 A, reduced pressure",
-                "symmetric",
-            ),
+            ("reduced_stiffness", "f", ("G", "G"), "N/mm", "A^T K0 A, reduced pressure",
+             "symmetric"),
         ),
         required=False,
     ),
 )
+# fmt: on
+# fmt: on
 
 
 def _encode(value):
