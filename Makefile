@@ -62,7 +62,7 @@ DEMO_MODEL ?= out/cornea-soft.h5
 demo: venv meshes/cornea.msh
 	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom train $(DEMO_CAMPAIGN) --out $(DEMO_MODEL)
 	$(VENV)/bin/hapticrom play $(DEMO_MODEL)
-	$(VENV)/bin/mpirun -n $(NP) $(PY) bench/accuracy.py $(DEMO_MODEL) --json out/accuracy.json
+	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom accuracy $(DEMO_MODEL) --json out/accuracy.json
 	$(VENV)/bin/hapticrom report $(DEMO_MODEL) --out out/report --accuracy out/accuracy.json
 	$(PY) bench/cutting_latency.py $(DEMO_MODEL)
 	$(PY) bench/cutting_runtime_accuracy.py $(DEMO_MODEL) --out out/cutting-runtime

@@ -1,9 +1,10 @@
 """Fuzz the artifact reader behind a re-sealed envelope: crafted bytes reach h5py.
 
 Random damage never reaches h5py (the whole-file digest refuses it first; see
-tests/test_artifact_hostile.py). A hostile writer can re-seal, though, so this
-flips random bytes *after* the user block, re-seals the envelope, and loads
-each file with ``hapticrom.online.load`` in a child process, counting:
+tests/test_artifact_hostile.py; ``--damage`` measures it here). A hostile writer
+can re-seal, though, so by default this flips random bytes *after* the user
+block, re-seals the envelope, and loads each file with ``hapticrom.online.load``
+in a child process, counting:
 
   refused    ArtifactError (the promise)
   identical  loaded, every array equal to the original's
@@ -33,7 +34,8 @@ import numpy as np
 OUTCOMES = ("refused", "identical", "changed", "uncaught", "crashed", "hung")
 
 
-def make_cases(source: Path, flips: int, seed: int, workdir: Path) -> list[Path]:
+def make_cases(source: Path, flips: int, seed: int, workdir: Path, reseal: bool) -> list[Path]:
+    """Files with one random byte flipped: behind a re-sealed envelope, or anywhere (damage)."""
     from hapticrom.shared.envelope import USERBLOCK, seal
 
     data = source.read_bytes()
@@ -41,11 +43,12 @@ def make_cases(source: Path, flips: int, seed: int, workdir: Path) -> list[Path]
     cases = []
     for i in range(flips):
         damaged = bytearray(data)
-        position = int(rng.integers(USERBLOCK, len(data)))
+        position = int(rng.integers(USERBLOCK if reseal else 0, len(data)))
         damaged[position] ^= int(rng.integers(1, 256))
         path = workdir / f"flip-{i:05d}-{position}.h5"
         path.write_bytes(bytes(damaged))
-        seal(path)
+        if reseal:
+            seal(path)
         cases.append(path)
     return cases
 
@@ -123,14 +126,18 @@ def main() -> int:
     p.add_argument("--timeout", type=float, default=30.0, help="seconds per case")
     p.add_argument("--workdir", type=Path, default=None)
     p.add_argument("--json", type=Path, default=None, help="write every case's outcome here")
+    p.add_argument(
+        "--damage", action="store_true", help="flip anywhere, no re-seal (the envelope's job)"
+    )
     args = p.parse_args()
     with tempfile.TemporaryDirectory(dir=args.workdir) as tmp:
         t0 = time.perf_counter()
-        cases = make_cases(args.artifact, args.flips, args.seed, Path(tmp))
+        cases = make_cases(args.artifact, args.flips, args.seed, Path(tmp), not args.damage)
         results = run(args.artifact.resolve(), cases, args.timeout)
         seconds = time.perf_counter() - t0
     counts = {k: len(v) for k, v in results.items()}
-    print(f"{args.flips} re-sealed byte flips of {args.artifact} ({seconds:.0f} s): "
+    kind = "damaging" if args.damage else "re-sealed"
+    print(f"{args.flips} {kind} byte flips of {args.artifact} ({seconds:.0f} s): "
           + ", ".join(f"{k} {n}" for k, n in counts.items()))  # fmt: skip
     reasons: dict[str, int] = {}
     for record in results["refused"]:

@@ -54,11 +54,18 @@ from hapticrom.offline.organ import load_organ
 from hapticrom.offline.positions import (
     PositionsSpec,
     ToolPosition,
-    plan_positions,
+    plan_with_report,
     positions_from_dict,
     positions_table,
 )
 from hapticrom.offline.progress import ProgressBar
+from hapticrom.offline.sanity import (
+    campaign_summary,
+    dumps,
+    summary_lines,
+    warning_lines,
+    write_json,
+)
 from hapticrom.offline.store import FORMAT, VERSION, SnapshotStore, csr_datasets
 from hapticrom.shared.checksum import file_digest
 from hapticrom.shared.errors import HapticromError, InputError, SolverError
@@ -165,13 +172,21 @@ class CampaignConfig:
         meta = r.table(data, "campaign")
         r.keys(meta, "campaign", {"name", "description"})
         name = meta.get("name", Path(source).stem)
+        anm = _anm(r, r.table(data, "anm"))
+        if anm.enabled and problem.material.params.get("fibre_tension_only") is True:
+            r.fail(
+                "anm",
+                "the POD-ANM series need an analytic energy and fibre_tension_only = true "
+                "switches the fibres on and off: set [anm] enabled = false or "
+                "fibre_tension_only = false",
+            )
         return cls(
             name=str(name),
             problem=problem,
             load=_campaign_load(r, r.table(data, "load", required=True)),
             positions=positions_from_dict(r.table(data, "positions", required=True)),
             pod=_pod(r, r.table(data, "pod")),
-            anm=_anm(r, r.table(data, "anm")),
+            anm=anm,
             cutting=_cutting(r, data["cutting"]) if "cutting" in data else None,
             raw=data,
         )
@@ -260,6 +275,7 @@ class CampaignReport:
     ranks: int
     ranks_per_solve: int
     redone: list[int] = field(default_factory=list)  # stored damaged or failed: solved again
+    sanity: dict | None = None  # physics sanity of every stored position (sanity.json)
 
 
 def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str, Any]:
@@ -278,6 +294,8 @@ def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str
                 "normal": list(p.normal),
                 "node_tag": int(p.node_tag),
                 "source": p.source,
+                "asked": None if p.asked is None else list(p.asked),
+                "snap_distance": p.snap_distance,
             }
             for p in positions
         ],
@@ -287,14 +305,62 @@ def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str
     }
 
 
-def _plan(config: CampaignConfig, store: SnapshotStore, restart: bool):
-    """Positions, whether resuming, the intact solved ones, and why others are redone."""
+@dataclass
+class _Plan:
+    positions: list[ToolPosition]
+    resumed: bool
+    done: list[int]  # solved and intact
+    redo: dict[int, str]  # stored but damaged or failed: why they are solved again
+    snapping: str  # the snapping report of the positions
+    note: str = ""  # the directory's earlier campaign, discarded since nothing was solved
+
+
+def _plan(config: CampaignConfig, store: SnapshotStore, restart: bool) -> _Plan:
+    """Check the whole campaign, then open (or create) its directory; see :class:`_Plan`."""
     surface = read_surface(config.problem.mesh.file, config.load.surface)
-    positions = plan_positions(surface, config.positions)
-    resumed = store.open_or_create(_manifest(config, positions), restart=restart)
+    positions, snapping = plan_with_report(surface, config.positions)
+    validate_campaign(config)  # before the directory exists
+    manifest = _manifest(config, positions)
+    note = ""
+    if not restart and _holds_another_campaign_unsolved(store, manifest):
+        restart = True
+        note = (
+            f"{store.root} held another campaign with no position solved: starting over "
+            "(no --restart needed)"
+        )
+    resumed = store.open_or_create(manifest, restart=restart)
     done, redo = store.audit()
     planned = {p.index for p in positions}
-    return positions, resumed, done, {i: why for i, why in redo.items() if i in planned}
+    redo = {i: why for i, why in redo.items() if i in planned}
+    return _Plan(positions, resumed, done, redo, snapping, note)
+
+
+def _holds_another_campaign_unsolved(store: SnapshotStore, manifest: dict) -> bool:
+    """The directory holds an intact manifest of another campaign and no position record."""
+    if not store.manifest_path.is_file() or store.completed():
+        return False
+    return store.manifest()["campaign_hash"] != manifest["campaign_hash"]
+
+
+def validate_campaign(config: CampaignConfig) -> None:
+    """What the configuration alone cannot tell: the law, element and fibres against the mesh.
+
+    Reads the mesh's sidecar only (no DOLFINx mesh): InputError before any
+    directory or solve.
+    """
+    from hapticrom.meshes.msh import read_sidecar
+    from hapticrom.offline.formulation import choose_element
+    from hapticrom.offline.materials import make_law
+
+    problem = config.problem
+    info = read_sidecar(problem.mesh.file)
+    law = make_law(problem.material.law, **problem.material.params)
+    choose_element(str(info.get("cell_type")), problem.discretisation.element)
+    if law.requires_fibres and not info.get("fibres"):
+        raise InputError(
+            f"material '{law.name}' needs fibre directions, and mesh "
+            f"{Path(problem.mesh.file).name} has none: choose a mesh with fibres or another law"
+        )
 
 
 def _operators_damage(store: SnapshotStore) -> str | None:
@@ -407,6 +473,7 @@ def _solve_position(config, position, organ, group):
         datasets["load_vector"] = f
     if pressure_order is not None:  # element-wise pressure (MPa), canonical cell order
         datasets["pressure"] = np.array(pressures).reshape(-1, pressure_order.num_dofs)
+    datasets.update(_sanity_datasets(model.sanity))
     direction = config.load.unit_direction(position)
     attrs = {
         "status": status,
@@ -418,8 +485,35 @@ def _solve_position(config, position, organ, group):
         "magnitude": config.load.magnitude,
         "units": "displacement mm, force N (tool on tissue), load_vector N",
         "seconds": time.perf_counter() - t0,
+        "sanity": dumps(model.sanity.summary()),
     }
     return datasets, attrs
+
+
+def _sanity_datasets(report) -> dict[str, np.ndarray]:
+    """The per-step sanity measures of a position (offline/sanity.py), one value per record."""
+    steps = report.steps
+    return {
+        "sanity/j_min": np.array([s.j_min for s in steps], dtype=float),
+        "sanity/stretch_min": np.array([s.stretch_min for s in steps], dtype=float),
+        "sanity/inverted": np.array([s.inverted for s in steps], dtype=np.int64),
+        "sanity/u_max": np.array([s.u_max for s in steps], dtype=float),
+        "sanity/tangent_negative": np.array([s.tangent_negative for s in steps], dtype=np.int64),
+    }
+
+
+def campaign_sanity(store: SnapshotStore) -> dict:
+    """The physics sanity of the stored positions (:func:`sanity.campaign_summary`); rank 0."""
+    import h5py
+
+    manifest = store.manifest()
+    records = []
+    for index in store.completed():
+        with h5py.File(store.position_path(index), "r") as f:
+            raw = f.attrs.get("sanity")
+            point = [float(c) for c in f.attrs["point"]]
+        records.append((index, point, json.loads(raw) if raw is not None else None))
+    return campaign_summary(records, len(manifest["positions"]))
 
 
 def run_campaign(
@@ -438,7 +532,8 @@ def run_campaign(
         )
     say = (lambda s: print0(comm, s)) if verbose else (lambda s: None)
     store = SnapshotStore(out_dir)
-    positions, resumed, done, redo = on_rank_zero(comm, _plan, config, store, restart)
+    plan = on_rank_zero(comm, _plan, config, store, restart)
+    positions, resumed, done, redo = plan.positions, plan.resumed, plan.done, plan.redo
     n_groups = comm.size // ranks_per_solve
     group_index = comm.rank // ranks_per_solve
     group = comm.Split(color=group_index, key=comm.rank)
@@ -450,10 +545,7 @@ def run_campaign(
         f"{'mm' if config.load.mode == 'displacement' else 'N'} in {config.load.steps} steps; "
         f"{comm.size} rank(s) in {n_groups} group(s) of {ranks_per_solve}"
     )
-    if verbose and comm.rank == 0 and not done:
-        print(positions_table(positions), flush=True)
-    for index, why in sorted(redo.items()):
-        say(f"position {index}: {why}; solving it again")
+    _announce_plan(plan, say)
 
     organ = load_organ(config.problem.mesh.file, group)
     _ensure_operators(config, organ, comm, group, group_index, store, say)
@@ -476,6 +568,8 @@ def run_campaign(
             f"{report['seconds']:.1f} s{state}"
         )
         print(line, file=bar.stream, flush=True)
+        for warning in report["warnings"]:
+            print(f"  warning: {warning}", file=bar.stream, flush=True)
         bar.advance()
         reports.append(report)
 
@@ -510,6 +604,9 @@ def run_campaign(
                     "seconds": attrs["seconds"],
                     "status": attrs["status"],
                     "message": attrs["message"],
+                    "warnings": warning_lines(
+                        json.loads(attrs["sanity"]), f"position {position.index}"
+                    ),
                 }
                 if comm.rank == 0:
                     announce(report)
@@ -528,6 +625,7 @@ def run_campaign(
         raise HapticromError("; ".join(errors))
 
     failed = on_rank_zero(comm, _failed_positions, store)
+    sanity = on_rank_zero(comm, _write_campaign_sanity, store)
     wall = time.perf_counter() - t_start
     if comm.rank == 0 and verbose:
         solved = [r for r in reports if r["status"] == "solved"]
@@ -536,6 +634,8 @@ def run_campaign(
             f"campaign done: {len(reports)} solve(s) this run ({len(done)} resumed), "
             f"{len(failed)} failed, {wall:.1f} s wall, {per_solve:.1f} s per solve "
             f"(one group), {comm.size} rank(s), {ranks_per_solve} per solve",
+            *summary_lines(sanity),
+            sep="\n",
             flush=True,
         )
     return CampaignReport(
@@ -547,7 +647,27 @@ def run_campaign(
         ranks=comm.size,
         ranks_per_solve=ranks_per_solve,
         redone=sorted(redo),
+        sanity=sanity,
     )
+
+
+def _announce_plan(plan: _Plan, say) -> None:
+    """The positions and how snapping moved them (a new campaign), what is solved again."""
+    if plan.note:
+        say(plan.note)
+    if not plan.done:
+        say(positions_table(plan.positions))
+        if plan.snapping:
+            say(plan.snapping)
+    for index, why in sorted(plan.redo.items()):
+        say(f"position {index}: {why}; solving it again")
+
+
+def _write_campaign_sanity(store: SnapshotStore) -> dict:
+    """Summarise the stored positions' sanity into ``sanity.json`` of the campaign; rank 0."""
+    summary = campaign_sanity(store)
+    write_json(store.root / "sanity.json", summary)
+    return summary
 
 
 def _failed_positions(store: SnapshotStore) -> list[int]:

@@ -242,6 +242,14 @@ def _material(r: _Reader, t: dict) -> MaterialConfig:
     if not isinstance(t.get("law"), str):
         r.fail("material", 'missing law = "svk" | "neo-hookean" | "hgo"')
     params = {k: v for k, v in t.items() if k != "law"}
+    # The law and its parameters are checked here, before any mesh is read or any
+    # output directory created (ufl is pure Python: still no DOLFINx or PETSc).
+    from hapticrom.offline.materials import make_law
+
+    try:
+        make_law(t["law"], **params)
+    except InputError as exc:
+        r.fail("material", str(exc))
     return MaterialConfig(law=t["law"], params=params)
 
 

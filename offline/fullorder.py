@@ -24,7 +24,9 @@ from hapticrom.offline.materials import make_law
 from hapticrom.offline.mpi import print0
 from hapticrom.offline.organ import OrganMesh, load_organ
 from hapticrom.offline.output import CurveWriter, FieldWriter
+from hapticrom.offline.sanity import SanityMonitor, SanityReport, write_json
 from hapticrom.offline.solver import IncrementalLoading, NewtonSolver, StepRecord
+from hapticrom.shared.errors import SolverError
 
 
 @dataclass
@@ -39,6 +41,7 @@ class SolveResult:
     setup_seconds: float  # mesh, spaces, patch (no compilation)
     jit_seconds: float  # form compilation (FFCx/CFFI, or the JIT cache)
     solve_seconds: float
+    sanity: SanityReport | None = None  # physics sanity of the load path (offline/sanity.py)
 
     @property
     def newton_iterations(self) -> int:
@@ -89,6 +92,9 @@ class FullOrderModel:
             self.patch_displacement = WeightedMean(
                 self.model.u, self.patch.weight(), self.model.ds(self.model.LOAD_TAG)
             )
+        self.monitor = SanityMonitor(self)
+        self.sanity: SanityReport | None = None
+        self.history = ([], [], [])
         self.jit_seconds = time.perf_counter() - t0
 
     # -- load ------------------------------------------------------------------
@@ -158,30 +164,38 @@ class FullOrderModel:
         integral = self.patch_displacement.integral
         return f"{where} ({self.patch.num_facets} facets, int w dA {integral:.4g} mm^2)"
 
+    def _open_outputs(self, out_dir):
+        """curve.csv and fields.xdmf writers in ``out_dir`` (None, None without one)."""
+        if out_dir is None:
+            return None, None
+        out_dir = Path(out_dir)
+        if self.comm.rank == 0:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        self.comm.barrier()
+        curve = CurveWriter(out_dir / "curve.csv", self.comm)
+        fields = None
+        if self.config.output.xdmf:
+            fields = FieldWriter(
+                out_dir / "fields.xdmf", self.model.u, self.model.p, self.model.fibres
+            )
+            fields.write(0.0)
+        return curve, fields
+
     def solve(self, out_dir: str | Path | None = None, on_step=None) -> SolveResult:
-        """Run the incremental loading; write curve.csv and fields.xdmf into ``out_dir``.
+        """Run the incremental loading; write curve.csv, sanity.json, fields.xdmf in ``out_dir``.
 
         ``on_step(record, force, disp)`` is called after every converged
         increment, on every rank. If the solve fails, ``self.history`` still holds
-        the converged increments (records, forces, displacements).
+        the converged increments (records, forces, displacements) and
+        ``self.sanity`` their physics sanity (:mod:`hapticrom.offline.sanity`).
         """
         comm, load = self.comm, self.config.load
         log = (lambda s: print0(comm, s)) if self.verbose else (lambda s: None)
         log(self.describe())
-        curve = fields = None
-        if out_dir is not None:
-            out_dir = Path(out_dir)
-            if comm.rank == 0:
-                out_dir.mkdir(parents=True, exist_ok=True)
-            comm.barrier()
-            curve = CurveWriter(out_dir / "curve.csv", comm)
-            if self.config.output.xdmf:
-                fields = FieldWriter(
-                    out_dir / "fields.xdmf", self.model.u, self.model.p, self.model.fibres
-                )
-                fields.write(0.0)
+        curve, fields = self._open_outputs(out_dir)
         records, forces, disps = [], [], []
         self.history = (records, forces, disps)
+        self.monitor.steps = []
         user_hook = on_step
 
         def on_step(record: StepRecord) -> None:
@@ -190,19 +204,14 @@ class FullOrderModel:
             records.append(record)
             forces.append(force)
             disps.append(disp)
+            self.monitor.measure(record, force, disp)
             if user_hook is not None:
                 user_hook(record, force, disp)
             if curve is not None:
                 curve.write(record, force, disp)
             if fields is not None:
                 fields.write(record.load_factor)
-            cut = f", {record.step_cuts} cut(s)" if record.step_cuts else ""
-            log(
-                f"step {record.step:3d}  load factor {record.load_factor:.4f}  "
-                f"force [{force[0]: .4e} {force[1]: .4e} {force[2]: .4e}] N  "
-                f"disp [{disp[0]: .4e} {disp[1]: .4e} {disp[2]: .4e}] mm  "
-                f"{record.newton_iterations} Newton its{cut}  {record.seconds:.2f} s"
-            )
+            log(self._step_line(record, force, disp))
 
         stepper = IncrementalLoading(
             self.newton,
@@ -216,14 +225,38 @@ class FullOrderModel:
         t0 = time.perf_counter()
         try:
             stepper.run(on_step)
+        except SolverError as exc:
+            self._finish_sanity(out_dir, failure=str(exc))
+            raise
         finally:
             if curve is not None:
                 curve.close()
             if fields is not None:
                 fields.close()
-        solve_seconds = time.perf_counter() - t0
-        result = SolveResult(
-            records=records,
+        result = self.partial_result(time.perf_counter() - t0)
+        self._finish_sanity(out_dir)
+        result.sanity = self.sanity
+        log(
+            f"done: {len(records)} increments, {result.newton_iterations} Newton iterations, "
+            f"{result.solve_seconds:.2f} s solving (+{self.jit_seconds:.2f} s compiling forms)"
+        )
+        return result
+
+    @staticmethod
+    def _step_line(record: StepRecord, force, disp) -> str:
+        cut = f", {record.step_cuts} cut(s)" if record.step_cuts else ""
+        return (
+            f"step {record.step:3d}  load factor {record.load_factor:.4f}  "
+            f"force [{force[0]: .4e} {force[1]: .4e} {force[2]: .4e}] N  "
+            f"disp [{disp[0]: .4e} {disp[1]: .4e} {disp[2]: .4e}] mm  "
+            f"{record.newton_iterations} Newton its{cut}  {record.seconds:.2f} s"
+        )
+
+    def partial_result(self, solve_seconds: float = 0.0) -> SolveResult:
+        """The converged increments so far (``self.history``) as a :class:`SolveResult`."""
+        records, forces, disps = self.history
+        return SolveResult(
+            records=list(records),
             force=np.array(forces).reshape(-1, 3),
             displacement=np.array(disps).reshape(-1, 3),
             load_factor=np.array([r.load_factor for r in records]),
@@ -231,12 +264,19 @@ class FullOrderModel:
             setup_seconds=self.setup_seconds,
             jit_seconds=self.jit_seconds,
             solve_seconds=solve_seconds,
+            sanity=self.sanity,
         )
-        log(
-            f"done: {len(records)} increments, {result.newton_iterations} Newton iterations, "
-            f"{solve_seconds:.2f} s solving (+{self.jit_seconds:.2f} s compiling forms)"
-        )
-        return result
+
+    def _finish_sanity(self, out_dir, failure: str | None = None) -> None:
+        """Judge the load path; write sanity.json into ``out_dir``; print the warnings."""
+        self.sanity = self.monitor.report(failure)
+        if self.comm.rank != 0:
+            return
+        if out_dir is not None:
+            write_json(Path(out_dir) / "sanity.json", self.sanity.to_dict())
+        if self.verbose:
+            for line in self.sanity.warnings("warning"):
+                print(line, flush=True)
 
 
 def solve_config(config: ProblemConfig, out_dir=None, comm=MPI.COMM_WORLD, verbose=True):

@@ -43,10 +43,11 @@ from mpi4py import MPI
 
 from hapticrom import __version__
 from hapticrom.meshes.msh import read_surface
-from hapticrom.offline.campaign import CampaignConfig
+from hapticrom.offline.campaign import CampaignConfig, campaign_sanity
 from hapticrom.offline.dofs import owned_canonical_rows
 from hapticrom.offline.mpi import on_rank_zero, print0
 from hapticrom.offline.pod import PODResult, Truncation, pod
+from hapticrom.offline.sanity import dumps
 from hapticrom.offline.store import SnapshotStore
 from hapticrom.shared.artifact import write_artifact
 from hapticrom.shared.errors import HapticromError, InputError
@@ -474,6 +475,7 @@ def reduce_campaign(
             "units": json.dumps({"length": "mm", "force": "N", "stiffness": "N/mm"}),
             "campaign": json.dumps(manifest["campaign"], default=str),
             "description": f"contact ROM of campaign '{config.name}'",
+            "sanity": dumps(campaign_sanity(store)),  # physics sanity (offline/sanity.py)
         }
         error = _write_model(out, content, root)
     if comm.rank == 0 and error is None:

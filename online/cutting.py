@@ -1,7 +1,8 @@
 """Cuts at run time: a cut region's topology and its patch coupled with the reduced model.
 
-numpy only (the runtime's dependencies). The offline side exports, for a
-cuttable region of the organ, its cells, their element stiffness matrices at
+numpy only at import (the scalpel's placement uses numba kernels of
+:mod:`hapticrom.online.kernels`, imported by :class:`Scalpel`). The offline side
+exports, for a cuttable region of the organ, its cells, their element stiffness matrices at
 the reference tangent, the reduced basis rows at its nodes and which nodes
 must stay continuous (the region's boundary and the supports). Here:
 
@@ -29,6 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hapticrom.shared.errors import HapticromError, InputError
+
+_F8 = np.dtype(np.float64)
 HEX_FACES = np.array(
     [[0, 3, 2, 1], [4, 5, 6, 7], [0, 1, 5, 4], [2, 3, 7, 6], [0, 4, 7, 3], [1, 2, 6, 5]]
 )
@@ -299,7 +303,7 @@ class CutPatch:
 
 
 # -- the scalpel ------------------------------------------------------------------------
-class ScalpelInputError(ValueError):
+class ScalpelInputError(HapticromError, ValueError):
     """A scalpel position off the organ or a degenerate blade; the cut state is unchanged."""
 
 
@@ -341,7 +345,7 @@ class Scalpel:
     def __init__(self, model, cut_depth: float | None = None, layers: int | None = None):
         region = model.cut_region
         if region is None:
-            raise ValueError("this artifact has no cuttable region (format 1.2 'cutting' group)")
+            raise InputError("this artifact has no cuttable region (format 1.2 'cutting' group)")
         attrs = model.artifact.group_attrs["cutting"]
         self.model, self.region = model, region
         self.cut_force = float(attrs["cut_force"])
@@ -367,7 +371,9 @@ class Scalpel:
         canonical = np.asarray(model.artifact["cutting"]["nodes"])
         surface_nodes = np.asarray(model.artifact["surface"]["nodes"])
         local = {int(n): i for i, n in enumerate(canonical)}
-        self.surface_region = np.array([local.get(int(n), -1) for n in surface_nodes])
+        self.surface_region = np.array([local.get(int(n), -1) for n in surface_nodes],
+                                       dtype=np.int64)  # fmt: skip
+        self.surface_region.flags.writeable = False
         self.ratio = np.ones(len(surface_nodes))  # cut / intact stiffness per surface vertex
         self.extra_compliance = np.zeros(len(surface_nodes))  # cut - intact compliance, mm/N
         self._loads = (np.zeros(0, dtype=np.int64), None, None, None)
@@ -376,16 +382,50 @@ class Scalpel:
         self._pending: list = []  # futures of background cuts, in order
         self._fast_switch = [False]  # whether this scalpel holds the short GIL switch interval
         self.normals = _vertex_normals(model.vertices, model.triangles)  # outward, per vertex
+        self.normals.flags.writeable = False
+        # Where the scalpel is placed: the surface vertex nearest a point, by a grid (exact).
+        from hapticrom.online import kernels  # numba: only once a scalpel is made
+
+        self._kernels = kernels
+        # What placing the scalpel reads (kernels.place_scalpel), packed once.
+        self.tables = kernels.scalpel_tables(model.vertices, self.normals, self.surface_region,
+                                              self.cell_size, 2.0 * self.cell_size,
+                                              self.cell_size)  # fmt: skip
         self._region_triangles(self.topology)  # cached now: workers only read it
 
-    def region_vertex(self, point: np.ndarray) -> int:
-        """The surface vertex of the region nearest ``point``, or -1 if none is within a cell."""
-        if not hasattr(self, "_region_vertices"):
-            self._region_vertices = np.flatnonzero(self.surface_region >= 0)
-            self._region_xyz = self.model.vertices[self._region_vertices]
-        d = np.sum((self._region_xyz - point) ** 2, axis=1)
-        k = int(np.argmin(d))
-        return int(self._region_vertices[k]) if d[k] <= self.cell_size**2 else -1
+    def region_vertex(self, point) -> int:
+        """The surface vertex of the region nearest ``point`` (3,), or -1 if none is within
+        a cell, or not 3 finite numbers (no allocation for a 1-D float64 array)."""
+        if type(point) is not np.ndarray or point.dtype is not _F8 or point.ndim != 1:
+            point = np.asarray(point, dtype=np.float64).reshape(-1)
+        floats, ints = self.tables
+        return self._kernels.region_vertex(point, floats, ints)
+
+    def placement_error(self, status: int, position, blade_direction) -> ScalpelInputError:
+        """The error of a refused placement (a status of ``kernels.place_scalpel``),
+        naming what is wrong."""
+        k = self._kernels
+        p, b = np.asarray(position), np.asarray(blade_direction)
+        if status in (k.WRONG_SHAPE, k.BLADE_SHAPE):
+            what, value = ("scalpel position", p) if status == k.WRONG_SHAPE else ("blade", b)
+            return ScalpelInputError(f"{what} must be 3 numbers, shape (3,); got shape "
+                                     f"{value.shape}")  # fmt: skip
+        if status == k.POSITION_NOT_FINITE:
+            return ScalpelInputError(
+                f"scalpel position must be 3 finite numbers (mm), got {p.tolist()}"
+            )
+        if status == k.BLADE_NOT_FINITE:
+            return ScalpelInputError(f"blade direction must be 3 finite numbers, got {b.tolist()}")
+        if status == k.OFF_ORGAN:
+            gap = np.min(np.linalg.norm(self.model.vertices - p, axis=1))
+            return ScalpelInputError(
+                f"scalpel position {p.tolist()} mm is off the organ ({gap:.3g} mm from its "
+                f"surface; at most {2 * self.cell_size:.3g} mm)"
+            )
+        return ScalpelInputError(
+            f"blade direction {b.tolist()} is zero or along the surface normal: it must have "
+            "a component along the surface"
+        )
 
     def surface_layout(self):
         """(surface vertices in the region, their region nodes, lip copies, the vertices the
@@ -462,33 +502,6 @@ class Scalpel:
         centred = x - x.mean(axis=0)
         n = np.linalg.svd(centred, full_matrices=False)[2][-1]
         return float(np.ptp(centred @ n))
-
-    def check(self, position, blade_direction, normal: np.ndarray):
-        """Validated (position, unit blade direction in the tangent plane); state untouched."""
-        p = np.asarray(position, dtype=float)
-        b = np.asarray(blade_direction, dtype=float)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise ScalpelInputError(
-                f"scalpel position must be 3 finite numbers (mm), got {position!r}"
-            )
-        if b.shape != (3,) or not np.all(np.isfinite(b)):
-            raise ScalpelInputError(
-                f"blade direction must be 3 finite numbers, got {blade_direction!r}"
-            )
-        gap = np.min(np.linalg.norm(self.model.vertices - p, axis=1))
-        if gap > 2.0 * self.cell_size:
-            raise ScalpelInputError(
-                f"scalpel position {p.tolist()} mm is off the organ ({gap:.3g} mm from its surface)"
-            )
-        size = np.linalg.norm(b)
-        b = b - (b @ normal) * normal  # the blade lies in the tangent plane
-        # Within ~6 degrees of the normal a blade has no direction along the surface.
-        if size == 0.0 or np.linalg.norm(b) <= 0.1 * size:
-            raise ScalpelInputError(
-                f"blade direction {np.asarray(blade_direction).tolist()} is zero or along the "
-                "surface normal: it must have a component along the surface"
-            )
-        return p, b / np.linalg.norm(b)
 
     def faces_under(self, position: np.ndarray, blade: np.ndarray, normal: np.ndarray):
         """Region interior faces under the blade: facing across its plane, within its depth."""

@@ -3,10 +3,18 @@
 Every kernel has an explicit signature, so it is compiled (or loaded from the
 on-disk cache, ``cache=True``) when this module is imported: nothing compiles
 inside the haptic loop. None allocates except ``prepare_grassmann`` (small
-eigendecompositions, run by ``set_contact`` only). Units: mm, N, N/mm.
+eigendecompositions, run by ``set_contact`` only). Units: mm, N, N/mm. Besides them,
+numpy helpers run once at set-up pack what a call reads into few arrays
+(:func:`contact_table`, :func:`scalpel_tables`): a kernel call costs per array passed.
 
-Status codes returned by the steps: 0 ok, 1 an input is NaN or infinite,
-2 an input is absurdly large (see the limits), in which case nothing is written.
+Status codes returned by the steps (nothing is written unless 0): 0 ok, 1 an input is
+NaN or infinite, 2 an input is absurdly large (beyond the simulator's limit), 3 an input
+has not 3 elements (read no further than its end), 4 a force step's displacement would
+pass the displacement limit (``buf[MAX_DEPTH]``).
+
+The model's arrays are read only here: every parameter a kernel only reads accepts a
+read-only array (``flags.writeable`` False), so a shared model may be frozen. A step input
+may be any 1-D float64 array (any strides, read-only or not).
 Flags (``buf[FLAGS]``, a bit field): 1 depth beyond the trained range
 (extrapolated linearly), 2 no contact (the tool pulls away: zero force),
 4 contact point outside the trained region (clamped to its boundary).
@@ -30,9 +38,20 @@ f8_4d = "float64[:, :, :, ::1]"
 f4_3d = "float32[:, :, ::1]"
 i8_1d = "int64[::1]"
 i8_2d = "int64[:, ::1]"
+# Read only (a mutable array converts to these at the call).
+ro_f8_1d = "Array(float64, 1, 'C', readonly=True)"
+ro_f8_2d = "Array(float64, 2, 'C', readonly=True)"
+ro_f8_3d = "Array(float64, 3, 'C', readonly=True)"
+ro_f8_4d = "Array(float64, 4, 'C', readonly=True)"
+ro_f4_3d = "Array(float32, 3, 'C', readonly=True)"
+ro_i8_1d = "Array(int64, 1, 'C', readonly=True)"
+ro_i8_2d = "Array(int64, 2, 'C', readonly=True)"
+vec = "Array(float64, 1, 'A', readonly=True)"  # a caller's vector: any 1-D float64 array
+
+OK, NOT_FINITE, BEYOND_LIMIT, WRONG_SHAPE, DISPLACEMENT_LIMIT = 0, 1, 2, 3, 4
 
 
-@njit(f"int64({f8_1d}, {f8_2d}, {i8_2d}, {f8_1d}, {i8_1d})", cache=True, nogil=True)
+@njit(f"int64({f8_1d}, {ro_f8_2d}, {ro_i8_2d}, {f8_1d}, {i8_1d})", cache=True, nogil=True)
 def locate(chart_x, chart_points, triangles, out_weights, out_vertices):
     """Barycentric weights of the chart point in the sample triangulation.
 
@@ -86,7 +105,7 @@ def locate(chart_x, chart_points, triangles, out_weights, out_vertices):
 
 
 @njit(
-    f"void({f8_1d}, {i8_1d}, {f8_2d}, {f8_2d}, {f8_2d}, {f8_1d}, {f8_1d}, {f8_1d})",
+    f"void({f8_1d}, {i8_1d}, {ro_f8_2d}, {ro_f8_2d}, {ro_f8_2d}, {f8_1d}, {f8_1d}, {f8_1d})",
     cache=True,
     nogil=True,
 )
@@ -129,7 +148,11 @@ def hermite(force, slope, step, depth):
 NORMAL, FORCE, DISPLACEMENT, DEPTH, FLAGS = 0, 3, 6, 9, 10
 STEP, MAX_DISPLACEMENT, MAX_FORCE, KNOTS = 11, 12, 13, 14
 ANM_BASE, ANM_N1, ANM_SMAX, ANM_SLOPE, ANM_BEYOND = 15, 16, 17, 18, 19  # POD-ANM (below)
-CURVE = 20
+MAX_DEPTH = 20  # the largest depth a force step may return (mm): see step_force
+# The contact's chart coordinates (2) and barycentric weights (3); the scalpel's unit blade
+# and unit normal of its plane (6), its surface vertex and region vertex (2, as floats).
+CHART, WEIGHTS, FRAME, PLACED = 21, 23, 26, 32
+CURVE = 34
 
 # POD-ANM region, at buf[ANM_BASE]: three neighbour blocks of 4 + SMAX * stride floats,
 # [weight, section count, section found (artifact row), a found, records...], one record
@@ -150,17 +173,19 @@ def buffer_size(knots: int, n1: int = 0, smax: int = 0) -> int:
     return CURVE + 2 * knots + (3 * anm_block_size(n1, smax) if n1 else 0)
 
 
-@njit(f"int64({f8_1d}, float64)", cache=True, nogil=True)
+@njit(f"int64({vec}, float64)", cache=True, nogil=True)
 def check_input(v, limit):
-    """0 if v (3,) is finite and |v| <= limit; else the step's status code (1 or 2)."""
+    """0 if v (3,) is finite and |v| <= limit; else the step's status code (3, 1 or 2)."""
+    if v.shape[0] != 3:
+        return WRONG_SHAPE  # before reading: a shorter array is never read past its end
     if not (math.isfinite(v[0]) and math.isfinite(v[1]) and math.isfinite(v[2])):
         return 1
-    if v[0] * v[0] + v[1] * v[1] + v[2] * v[2] > limit * limit:
+    if not (v[0] * v[0] + v[1] * v[1] + v[2] * v[2] <= limit * limit):  # a NaN limit refuses
         return 2
     return 0
 
 
-@njit(f"float64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+@njit(f"float64({vec}, {f8_1d})", cache=True, nogil=True)
 def inward(v, buf):
     """-v . normal: the component of v into the tissue."""
     return -(v[0] * buf[NORMAL] + v[1] * buf[NORMAL + 1] + v[2] * buf[NORMAL + 2])
@@ -184,7 +209,7 @@ def write_displacement(buf, depth, flags):
     buf[FLAGS] = flags
 
 
-@njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+@njit(f"int64({vec}, {f8_1d})", cache=True, nogil=True)
 def step_displacement(d, buf):
     """Prescribed tool displacement d (mm) in, reaction force on the tool (N) into buf.
 
@@ -212,9 +237,13 @@ def step_displacement(d, buf):
     return 0
 
 
-@njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+@njit(f"int64({vec}, {f8_1d})", cache=True, nogil=True)
 def step_force(f, buf):
-    """Force the tool applies (N) in, tool displacement (mm) into buf (inverse of the curve)."""
+    """Force the tool applies (N) in, tool displacement (mm) into buf (inverse of the curve).
+
+    A force whose depth passes ``buf[MAX_DEPTH]`` is refused (status 4, nothing written),
+    as a displacement step refuses a displacement beyond the limit.
+    """
     status = check_input(f, buf[MAX_FORCE])
     if status:
         return status
@@ -260,6 +289,8 @@ def step_force(f, buf):
             )
             trial = depth - r / dF if dF > 0 else 0.5 * (a + b)
             depth = trial if a < trial < b else 0.5 * (a + b)
+    if not (depth <= buf[MAX_DEPTH]):
+        return DISPLACEMENT_LIMIT
     write_displacement(buf, depth, flags)
     return 0
 
@@ -275,7 +306,7 @@ def depth_weights(depth, step, last, out):
 
 
 @njit(
-    f"void(float64, float64, {f8_1d}, {i8_1d}, {f4_3d}, {f8_3d}, {f8_1d}, {f8_2d})",
+    f"void(float64, float64, {f8_1d}, {i8_1d}, {ro_f4_3d}, {ro_f8_3d}, {f8_1d}, {f8_2d})",
     cache=True,
     nogil=True,
     fastmath=True,
@@ -304,8 +335,8 @@ def surface_podi(depth, step, weights, vertices, basis_t, coefficients, scratch,
 
 
 @njit(
-    f"void(float64, float64, {f8_1d}, {i8_1d}, int64, {f4_3d}, {f4_3d}, {f8_3d}, {f8_3d}, "
-    f"{f8_1d}, {f8_2d})",
+    f"void(float64, float64, {f8_1d}, {i8_1d}, int64, {ro_f4_3d}, {ro_f4_3d}, {f8_3d}, "
+    f"{ro_f8_3d}, {f8_1d}, {f8_2d})",
     cache=True,
     nogil=True,
     fastmath=True,
@@ -406,7 +437,7 @@ def symmetric_eigen(G):
     return values, V
 
 
-@njit(f"void({f8_1d}, {i8_1d}, {f8_4d}, {f8_4d}, {f8_3d}, {f8_3d})", cache=True)
+@njit(f"void({f8_1d}, {i8_1d}, {ro_f8_4d}, {ro_f8_4d}, {ro_f8_3d}, {f8_3d})", cache=True)
 def prepare_grassmann(weights, vertices, gtt, gtb, grb, frames):
     """Grassmann interpolation (Amsallem-Farhat; thesis §2.3.1) at the contact, in n x n.
 
@@ -533,7 +564,7 @@ def anm_force(buf, depth):
     return total
 
 
-@njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+@njit(f"int64({vec}, {f8_1d})", cache=True, nogil=True)
 def step_displacement_anm(d, buf):
     """As :func:`step_displacement`, the force from the POD-ANM series of the neighbours."""
     status = check_input(d, buf[MAX_DISPLACEMENT])
@@ -554,9 +585,12 @@ def step_displacement_anm(d, buf):
     return 0
 
 
-@njit(f"int64({f8_1d}, {f8_1d})", cache=True, nogil=True)
+@njit(f"int64({vec}, {f8_1d})", cache=True, nogil=True)
 def step_force_anm(f, buf):
-    """As :func:`step_force`: the depth whose blended series force equals the push."""
+    """As :func:`step_force`: the depth whose blended series force equals the push.
+
+    A refused force (status 4) leaves the sections of the previous depth in the buffer.
+    """
     status = check_input(f, buf[MAX_FORCE])
     if status:
         return status
@@ -602,6 +636,9 @@ def step_force_anm(f, buf):
             depth = trial if lo < trial < hi else 0.5 * (lo + hi)
             if hi - lo <= 1e-15 * hi:
                 break
+        if not (depth <= buf[MAX_DEPTH]):
+            anm_force(buf, buf[DEPTH])  # the sections of the state before: unchanged
+            return DISPLACEMENT_LIMIT
         anm_force(buf, depth)  # leave the sections of the returned depth in the buffer
         if buf[ANM_BEYOND] != 0.0:
             flags |= FLAG_BEYOND_DEPTH
@@ -609,7 +646,7 @@ def step_force_anm(f, buf):
     return 0
 
 
-@njit(f"void({f8_1d}, {i8_1d}, {i8_1d}, {f8_2d}, {f8_1d})", cache=True, nogil=True)
+@njit(f"void({f8_1d}, {i8_1d}, {ro_i8_1d}, {ro_f8_2d}, {f8_1d})", cache=True, nogil=True)
 def prepare_anm(weights, vertices, offsets, records, buf):
     """Copy the three neighbours' section records and weights into the buffer (set_contact)."""
     base = int(buf[ANM_BASE])
@@ -630,7 +667,7 @@ def prepare_anm(weights, vertices, offsets, records, buf):
 
 
 @njit(
-    f"void({i8_1d}, {i8_1d}, {f8_1d}, {f8_3d}, {f4_3d}, {f8_1d}, {f8_2d})",
+    f"void({i8_1d}, {ro_i8_1d}, {f8_1d}, {ro_f8_3d}, {ro_f4_3d}, {f8_1d}, {f8_2d})",
     cache=True,
     nogil=True,
     fastmath=True,
@@ -665,3 +702,204 @@ def surface_anm(vertices, offsets, buf, coefficients, basis_t, scratch, out):
             c = scratch[m]
             for r in range(flat.shape[0]):
                 flat[r] += c * row[r]
+
+
+# -- contact points and the scalpel's placement ------------------------------------------
+@njit(f"int64({vec}, {ro_f8_1d}, {ro_f8_2d}, {f8_1d})", cache=True, nogil=True)
+def chart_coordinates(point, origin, axes, out):
+    """The contact point (3,) in the samples' 2-D chart, into out (2,); or a status (3, 1)."""
+    if point.shape[0] != 3:
+        return WRONG_SHAPE
+    if not (math.isfinite(point[0]) and math.isfinite(point[1]) and math.isfinite(point[2])):
+        return NOT_FINITE
+    for r in range(2):
+        out[r] = (
+            axes[r, 0] * (point[0] - origin[0])
+            + axes[r, 1] * (point[1] - origin[1])
+            + axes[r, 2] * (point[2] - origin[2])
+        )
+    return OK
+
+
+def contact_table(origin, axes, chart_points, normals, forces, slopes) -> np.ndarray:
+    """The model's arrays ``set_contact`` reads, packed into one read-only float64 array for
+    :func:`prepare_contact` (a kernel call costs per array passed): [chart origin (3),
+    chart axes (2, 3), chart points (P, 2), sample normals (P, 3), forces (P, K), slopes
+    (P, K)], row-major."""
+    parts = (origin, axes, chart_points, normals, forces, slopes)
+    table = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in parts])
+    table.flags.writeable = False
+    return table
+
+
+@njit(f"int64({vec}, {ro_f8_1d}, {ro_i8_2d}, {i8_1d}, {f8_1d})", cache=True, nogil=True)
+def prepare_contact(point, table, triangles, vertices, buf):
+    """set_contact in one call: chart coordinates, :func:`locate`, :func:`prepare_curves`
+    (chart, weights, normal and curves into buf, the samples into ``vertices``) and
+    buf[FLAGS], from the :func:`contact_table`. Returns 0, or -(status) of a point that is
+    not 3 finite numbers (then nothing is written)."""
+    chart, weights = buf[CHART : CHART + 2], buf[WEIGHTS : WEIGHTS + 3]
+    knots = int(buf[KNOTS])
+    samples = (table.shape[0] - 9) // (5 + 2 * knots)
+    a, b = 9 + 2 * samples, 9 + 5 * samples
+    c, e = b + samples * knots, b + 2 * samples * knots
+    status = chart_coordinates(point, table[0:3], table[3:9].reshape((2, 3)), chart)
+    if status:
+        return -status
+    flag = locate(chart, table[9:a].reshape((samples, 2)), triangles, weights, vertices)
+    prepare_curves(weights, vertices, table[a:b].reshape((samples, 3)),
+                   table[b:c].reshape((samples, knots)), table[c:e].reshape((samples, knots)),
+                   buf[NORMAL : NORMAL + 3], buf[CURVE : CURVE + knots],
+                   buf[CURVE + knots : CURVE + 2 * knots])  # fmt: skip
+    buf[FLAGS] = flag
+    return OK
+
+
+def point_grid(points: np.ndarray, spacing: float, max_cells: int = 2_000_000) -> tuple:
+    """A uniform grid over ``points`` (N, 3) for :func:`nearest_point`, built once (numpy).
+
+    Returns (grid_i, grid_f): grid_i = [nx, ny, nz, cell starts (nx ny nz + 1), point ids
+    by cell], grid_f = [origin (3), cell size]. The cell size is ``spacing`` or larger if
+    the box would need more than ``max_cells`` cells.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    extent = np.maximum(hi - lo, 1e-12)
+    h = max(float(spacing), float(np.prod(extent) / max_cells) ** (1 / 3), 1e-9 * extent.max())
+    dims = np.minimum(np.floor(extent / h).astype(np.int64) + 1, max_cells)
+    index = np.minimum(((points - lo) / h).astype(np.int64), dims - 1)
+    cell = (index[:, 0] * dims[1] + index[:, 1]) * dims[2] + index[:, 2]
+    order = np.argsort(cell, kind="stable")
+    starts = np.searchsorted(cell[order], np.arange(int(np.prod(dims)) + 1))
+    grid_i = np.concatenate([dims, starts, order]).astype(np.int64)
+    grid_f = np.concatenate([lo, [h]]).astype(np.float64)
+    for a in (grid_i, grid_f):
+        a.flags.writeable = False
+    return grid_i, grid_f
+
+
+@njit(
+    f"int64({vec}, float64, {ro_i8_1d}, {ro_f8_1d}, {ro_f8_2d}, {ro_i8_1d}, boolean)",
+    cache=True,
+    nogil=True,
+)
+def nearest_point(p, limit, grid_i, grid_f, points, key, keyed):
+    """Index of the point nearest ``p`` within ``limit`` (mm, inclusive), -1 if none (or
+    if p is not 3 finite numbers).
+
+    Only points with ``key[i] >= 0`` count if ``keyed``. Exact (the brute-force argmin's
+    point, the lowest index on ties): rings of grid cells around p's cell, until the
+    ring reaches past the best distance found or past ``limit``.
+    """
+    if p.shape[0] != 3 or not (math.isfinite(p[0]) and math.isfinite(p[1])
+                               and math.isfinite(p[2])):  # fmt: skip
+        return -1
+    nx, ny, nz = grid_i[0], grid_i[1], grid_i[2]
+    ids = 3 + nx * ny * nz + 1  # where the point ids start
+    h = grid_f[3]
+    cx = int(min(max((p[0] - grid_f[0]) / h, 0.0), nx - 1.0))
+    cy = int(min(max((p[1] - grid_f[1]) / h, 0.0), ny - 1.0))
+    cz = int(min(max((p[2] - grid_f[2]) / h, 0.0), nz - 1.0))
+    best, found = limit * limit, -1
+    rings = min(int(limit / h) + 1, max(nx, ny, nz))
+    for k in range(rings + 1):
+        for ix in range(max(cx - k, 0), min(cx + k, nx - 1) + 1):
+            for iy in range(max(cy - k, 0), min(cy + k, ny - 1) + 1):
+                for iz in range(max(cz - k, 0), min(cz + k, nz - 1) + 1):
+                    if max(abs(ix - cx), abs(iy - cy), abs(iz - cz)) != k:
+                        continue  # an inner ring's cell: seen already
+                    cell = 3 + (ix * ny + iy) * nz + iz
+                    for j in range(grid_i[cell], grid_i[cell + 1]):
+                        i = grid_i[ids + j]
+                        if keyed and key[i] < 0:
+                            continue
+                        dx, dy, dz = points[i, 0] - p[0], points[i, 1] - p[1], points[i, 2] - p[2]
+                        d = dx * dx + dy * dy + dz * dz
+                        if d < best or (d == best and (found < 0 or i < found)):
+                            best, found = d, i
+        # Points not seen yet are at least k h away.
+        if found >= 0 and best < (k * h) * (k * h):
+            break
+    return found
+
+
+# place_scalpel's status codes (besides OK and WRONG_SHAPE, which is the position's)
+BLADE_SHAPE, POSITION_NOT_FINITE, BLADE_NOT_FINITE, OFF_ORGAN, BLADE_ALONG_NORMAL = 5, 6, 7, 8, 9
+
+
+def scalpel_tables(vertices, normals, region_of, spacing: float, reach: float,
+                   region_reach: float) -> tuple:  # fmt: skip
+    """What :func:`place_scalpel` reads, packed (read only): (floats, ints) = ([reach,
+    region_reach, grid_f (4), vertices (V, 3), normals (V, 3)], [grid_i, region_of (V)]),
+    with the :func:`point_grid` of the vertices."""
+    grid_i, grid_f = point_grid(vertices, spacing)
+    floats = np.concatenate([[reach, region_reach], grid_f, np.ravel(vertices), np.ravel(normals)])
+    floats = floats.astype(np.float64, copy=False)
+    ints = np.concatenate([grid_i, np.asarray(region_of, dtype=np.int64)])
+    for a in (floats, ints):
+        a.flags.writeable = False
+    return floats, ints
+
+
+@njit(
+    f"int64({vec}, {vec}, {ro_f8_1d}, {ro_i8_1d}, {ro_f8_1d}, {ro_i8_2d}, {i8_1d}, {f8_1d})",
+    cache=True,
+    nogil=True,
+)
+def place_scalpel(p, b, floats, ints, table, triangles, vertices, buf):
+    """A scalpel at ``p`` (mm) with its blade along ``b``: its frame and the contact there
+    (one call: ``scalpel()`` every servo tick), or a status.
+
+    The surface vertex nearest p (within ``reach``, else OFF_ORGAN) gives the normal n;
+    the blade is b's part in the tangent plane (BLADE_ALONG_NORMAL if it is within ~6
+    degrees of n). Writes buf[FRAME:] = [unit blade (3), unit normal of the blade's plane
+    (3)], buf[PLACED:] = [that vertex, the nearest vertex of the cut region within
+    ``region_reach`` or -1] and then :func:`prepare_contact` at p; nothing if the status
+    is not OK. ``floats``, ``ints``: the :func:`scalpel_tables`.
+    """
+    reach, region_reach = floats[0], floats[1]
+    count = (floats.shape[0] - 6) // 6
+    grid_f = floats[2:6]
+    points = floats[6 : 6 + 3 * count].reshape((count, 3))
+    normals = floats[6 + 3 * count : 6 + 6 * count].reshape((count, 3))
+    grid_end = 3 + ints[0] * ints[1] * ints[2] + 1 + count
+    grid_i, region_of = ints[:grid_end], ints[grid_end : grid_end + count]
+    if p.shape[0] != 3:
+        return WRONG_SHAPE
+    if b.shape[0] != 3:
+        return BLADE_SHAPE
+    if not (math.isfinite(p[0]) and math.isfinite(p[1]) and math.isfinite(p[2])):
+        return POSITION_NOT_FINITE
+    if not (math.isfinite(b[0]) and math.isfinite(b[1]) and math.isfinite(b[2])):
+        return BLADE_NOT_FINITE
+    vertex = nearest_point(p, reach, grid_i, grid_f, points, region_of, False)
+    if vertex < 0:
+        return OFF_ORGAN
+    n0, n1, n2 = normals[vertex, 0], normals[vertex, 1], normals[vertex, 2]
+    size = math.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
+    bn = b[0] * n0 + b[1] * n1 + b[2] * n2
+    t0, t1, t2 = b[0] - bn * n0, b[1] - bn * n1, b[2] - bn * n2  # in the tangent plane
+    tangent = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+    if size == 0.0 or tangent <= 0.1 * size:
+        return BLADE_ALONG_NORMAL
+    t0, t1, t2 = t0 / tangent, t1 / tangent, t2 / tangent
+    a0, a1, a2 = t1 * n2 - t2 * n1, t2 * n0 - t0 * n2, t0 * n1 - t1 * n0  # blade x normal
+    across = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+    region = nearest_point(p, region_reach, grid_i, grid_f, points, region_of, True)
+    prepare_contact(p, table, triangles, vertices, buf)  # p is 3 finite numbers: it succeeds
+    f = FRAME
+    buf[f], buf[f + 1], buf[f + 2] = t0, t1, t2
+    buf[f + 3], buf[f + 4], buf[f + 5] = a0 / across, a1 / across, a2 / across
+    buf[PLACED], buf[PLACED + 1] = vertex, region
+    return OK
+
+
+@njit(f"int64({vec}, {ro_f8_1d}, {ro_i8_1d})", cache=True, nogil=True)
+def region_vertex(p, floats, ints):
+    """The surface vertex of the cut region nearest p within ``region_reach`` (mm), or -1
+    (also if p is not 3 finite numbers). ``floats``, ``ints``: the :func:`scalpel_tables`."""
+    count = (floats.shape[0] - 6) // 6
+    vertices = floats[6 : 6 + 3 * count].reshape((count, 3))
+    grid_end = 3 + ints[0] * ints[1] * ints[2] + 1 + count
+    grid_i, region_of = ints[:grid_end], ints[grid_end : grid_end + count]
+    return nearest_point(p, floats[1], grid_i, floats[2:6], vertices, region_of, True)

@@ -64,6 +64,15 @@ class ReducedModel:
         if self.grassmann is not None:
             tangents = self.grassmann["tangents"]
             self.grassmann["tangents_t"] = np.ascontiguousarray(tangents.transpose(0, 2, 1))
+        self._freeze()
+
+    def _freeze(self) -> None:
+        """Every array read-only: simulators share the model, none may change it."""
+        tables = [vars(self), self.grassmann or {}, self.anm or {}]
+        for table in tables:
+            for value in table.values():
+                if isinstance(value, np.ndarray):
+                    value.flags.writeable = False
 
     @classmethod
     def from_artifact(cls, artifact: Artifact) -> ReducedModel:

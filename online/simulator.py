@@ -17,35 +17,123 @@ contact point (``set_contact`` every step is fine: it is microseconds).
 
 Work that depends only on the contact point happens in ``set_contact``. The
 steps allocate nothing: they write into buffers owned by the simulator and
-return those (``step_displacement`` returns the same (3,) array every call:
-copy it to keep it). Pass float64 arrays of shape (3,) to avoid conversions.
+return read-only views of those (``step_displacement`` returns the same (3,)
+array every call: copy it to keep it).
+
+Inputs (points, displacements, forces, the scalpel's position and blade): a 1-D
+float64 numpy array of 3 elements goes straight to the kernel (any strides,
+read-only or not: the fast path). Anything else that holds 3 numbers (a list, a
+tuple, a float32 or integer array) takes a slower path: it is copied into a
+(3,) float64 buffer of the simulator first (``np.asarray`` for a list or tuple:
+about a microsecond more, and that allocates). Any other shape ((2,), (4,),
+(3, 1), a scalar) or anything not numbers (strings, complex, bool, objects)
+raises :class:`StepInputError` (``ScalpelInputError`` for the scalpel) naming
+it, and changes nothing.
+
+Threads: a simulator is driven by one thread at a time. Calls from a second
+thread while one is inside a step, ``set_contact``, ``scalpel`` or
+``surface_displacement`` raise :class:`SimulatorBusyError` (they are not queued:
+a servo loop must not wait). Simulators on one shared :class:`ReducedModel` may
+run on as many threads as you like, in parallel: the model is only read (the
+step kernels release the GIL).
 """
 
 from __future__ import annotations
 
+import math
+import numbers
 import warnings
 
 import numpy as np
 
 from hapticrom.online import kernels
+from hapticrom.online.cutting import Scalpel, ScalpelInputError
 from hapticrom.online.model import INTERPOLATIONS, RESPONSES, ReducedModel
+from hapticrom.shared.errors import HapticromError, InputError
 
 
-class StepInputError(ValueError):
-    """A step input was NaN, infinite or absurd; the simulator state is unchanged."""
+class StepInputError(HapticromError, ValueError):
+    """A step input was of a wrong shape, not numbers, NaN, infinite or absurd; the
+    simulator state is unchanged."""
 
 
-_STATUS = {
-    1: "is not finite (NaN or infinite)",
-    2: "is beyond the simulator's input limit",
-}
+class SimulatorBusyError(HapticromError, RuntimeError):
+    """Another thread is inside this simulator: one simulator, one thread at a time."""
+
+
+_NDARRAY, _F8 = np.ndarray, np.dtype(np.float64)
+_KEPT = "state unchanged"
+
+
+def _as_vector(value, out: np.ndarray, what: str, error: type[Exception]) -> np.ndarray:
+    """``value`` (3 numbers) copied into ``out`` (3,) float64: the inputs' slower path."""
+    try:
+        a = value if isinstance(value, np.ndarray) else np.asarray(value)
+    except (TypeError, ValueError):  # e.g. a ragged list
+        raise error(f"{what} must be 3 numbers, shape (3,); got {value!r:.80}; {_KEPT}") from None
+    if a.dtype.kind not in "iuf":
+        raise error(
+            f"{what} must be 3 numbers, shape (3,); got {value!r:.80} (dtype {a.dtype}); {_KEPT}"
+        )
+    if a.shape != (3,):
+        raise error(f"{what} must be 3 numbers, shape (3,); got shape {a.shape}; {_KEPT}")
+    out[:] = a
+    return out
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    """A view of ``a`` that cannot be written through."""
+    view = a.view()
+    view.flags.writeable = False
+    return view
+
+
+def _limit(value, default: float, name: str, unit: str) -> float:
+    """A simulator limit: None (the default) or a finite positive number."""
+    if value is None:
+        if not (math.isfinite(default) and default > 0):  # a model trained to nothing
+            raise InputError(f"the model gives no default {name} ({default!r} {unit}); pass one")
+        return float(default)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(f"{name} must be a positive number ({unit}) or None, got {value!r}")
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(
+            f"{name} must be finite and positive ({unit}), or None for the default "
+            f"({default:.3g} {unit}); got {value!r}"
+        )
+    return float(value)
+
+
+def _check_config(model: ReducedModel, interpolation: str, response: str | None) -> str:
+    """The response to use (the model's default if None); InputError if they do not fit."""
+    if response is None:
+        response = "anm" if model.anm is not None else "curves"
+    if response not in RESPONSES:
+        raise InputError(f"response must be one of {RESPONSES}, got {response!r}")
+    if response == "anm" and model.anm is None:
+        raise InputError("this artifact carries no POD-ANM series (format 1.1 'anm' group)")
+    if response == "anm" and interpolation == "grassmann":
+        raise InputError("the POD-ANM response blends fields by PODI; use interpolation='podi'")
+    if interpolation not in INTERPOLATIONS:
+        raise InputError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
+    if interpolation == "grassmann" and model.grassmann is None:
+        raise InputError("this artifact carries no Grassmann tangents")
+    return response
 
 
 class Simulator:
     """Mutable contact state on an immutable :class:`ReducedModel`.
 
-    Limits (absurd inputs are rejected): ``max_displacement`` (mm, default 10x
-    the trained depth) and ``max_force`` (N, default 10x the trained force).
+    Limits (absurd inputs are refused with :class:`StepInputError`, the state
+    unchanged): ``max_displacement`` (mm, default 10x the trained depth) bounds the
+    tool displacement a displacement step takes and the one a force step returns (a
+    force that would push the tool further is refused); ``max_force`` (N, default
+    10x the trained force) bounds the force a force step takes. Each is None (the
+    default) or a finite positive number; anything else raises ``InputError``.
+
+    Threads: one simulator is stepped by one thread at a time (a call while another
+    thread is inside one raises :class:`SimulatorBusyError`); simulators sharing one
+    model may step on parallel threads.
     """
 
     def __init__(
@@ -56,23 +144,12 @@ class Simulator:
         max_force: float | None = None,
         response: str | None = None,
     ):
-        if response is None:
-            response = "anm" if model.anm is not None else "curves"
-        if response not in RESPONSES:
-            raise ValueError(f"response must be one of {RESPONSES}, got {response!r}")
-        if response == "anm" and model.anm is None:
-            raise ValueError("this artifact carries no POD-ANM series (format 1.1 'anm' group)")
-        if response == "anm" and interpolation == "grassmann":
-            raise ValueError("the POD-ANM response blends fields by PODI; use interpolation='podi'")
-        if interpolation not in INTERPOLATIONS:
-            raise ValueError(
-                f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}"
-            )
-        if interpolation == "grassmann" and model.grassmann is None:
-            raise ValueError("this artifact carries no Grassmann tangents")
+        response = _check_config(model, interpolation, response)
         self.model, self.interpolation, self.response = model, interpolation, response
-        self.max_displacement = float(max_displacement or 10 * model.trained_depth)
-        self.max_force = float(max_force or 10 * model.force[:, -1].max())
+        max_displacement = _limit(
+            max_displacement, 10 * model.trained_depth, "max_displacement", "mm"
+        )
+        max_force = _limit(max_force, 10 * model.force[:, -1].max(), "max_force", "N")
         K, n = model.force.shape[1], model.num_modes
         k = kernels
         anm = model.anm if response == "anm" else None
@@ -83,33 +160,69 @@ class Simulator:
             self._buf[k.ANM_N1] = n1
             self._buf[k.ANM_SMAX] = smax
         self._buf[k.STEP] = model.depth_step
-        self._buf[k.MAX_DISPLACEMENT] = self.max_displacement
-        self._buf[k.MAX_FORCE] = self.max_force
+        self._buf[k.MAX_DISPLACEMENT] = self._buf[k.MAX_DEPTH] = max_displacement
+        self._buf[k.MAX_FORCE] = max_force
         self._buf[k.KNOTS] = K
         self._normal = self._buf[k.NORMAL : k.NORMAL + 3]  # views into the buffer
         self._force = self._buf[k.FORCE : k.FORCE + 3]
         self._displacement = self._buf[k.DISPLACEMENT : k.DISPLACEMENT + 3]
         self._curve = self._buf[k.CURVE : k.CURVE + K]
         self._slope = self._buf[k.CURVE + K : k.CURVE + 2 * K]
-        self._chart = np.zeros(2)
-        self._weights = np.zeros(3)
+        # What the caller sees: views that cannot be written through (made once).
+        self._normal_out = _readonly(self._normal)
+        self._force_out = _readonly(self._force)
+        self._displacement_out = _readonly(self._displacement)
+        self._input = np.zeros(3)  # the slower path's copy of a step input
+        self._point, self._blade_input = np.zeros(3), np.zeros(3)  # ... of a point, a blade
+        self._chart = self._buf[k.CHART : k.CHART + 2]
+        self._weights = self._buf[k.WEIGHTS : k.WEIGHTS + 3]
         self._vertices = np.zeros(3, dtype=np.int64)
+        # The model's arrays set_contact reads, in one read-only array (one to pass).
+        self._table = k.contact_table(
+            model.chart_origin, model.chart_axes, model.chart_points, model.sample_normals,
+            model.force, model.stiffness,
+        )  # fmt: skip
         # bound once: no lookups per step
         self._step_displacement = k.step_displacement_anm if anm else k.step_displacement
         self._step_force = k.step_force_anm if anm else k.step_force
         self._scratch = np.zeros(3 + 3 * n)  # depth weights + three n-vectors
         self._frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
         self._contact = False
+        # True while a thread is inside a call. A flag, not a lock: a lock's acquire and
+        # release cost more than half a step. Under CPython's GIL nothing runs between its
+        # test and its setting, so a second thread always sees it (the steps' kernels let
+        # the GIL go; a free-threaded Python could miss a race).
+        self._inside = False
+        self._init_cutting()
+
+    def _init_cutting(self) -> None:
         self._cutting = None  # online.cutting.Scalpel once the scalpel is used
-        self._blade = None  # unit blade direction while the scalpel is in contact
-        self._across = None  # unit normal of the blade's plane
+        f = kernels.FRAME  # the scalpel's unit blade direction, unit normal of its plane
+        self._blade, self._across = self._buf[f : f + 3], self._buf[f + 3 : f + 6]
         self._armed = False  # the blade may still cut at this placement
         self._background = False  # cut events on a worker thread (scalpel(background=True))
         self._vertex = -1  # region surface vertex at the contact (while cutting), or -1
+        self._scalpel_vertex = -1  # the surface vertex under the scalpel
         self.last_cut = None  # the last CutEvent
         self.cut_error = None  # the last cut that failed (an exception), if any
         self._lips = (np.zeros((0, 3)), np.zeros(0, dtype=np.int64))  # second lip, rendered
         self._controlled = "displacement"  # the last step's control: the cut's field needs it
+
+    @property
+    def max_displacement(self) -> float:
+        """The displacement limit (mm): of a displacement step's input, a force step's output."""
+        return float(self._buf[kernels.MAX_DISPLACEMENT])
+
+    @property
+    def max_force(self) -> float:
+        """The force limit (N) of a force step's input."""
+        return float(self._buf[kernels.MAX_FORCE])
+
+    def _busy(self, call: str):
+        raise SimulatorBusyError(
+            f"{call}: another thread is inside this simulator; a simulator is driven by one "
+            "thread at a time (give each thread its own simulator: they may share the model)"
+        )
 
     # -- contact -----------------------------------------------------------------
     def set_contact(self, point) -> None:
@@ -118,18 +231,39 @@ class Simulator:
         Outside the trained region the contact is clamped to the nearest trained
         point (``outside_trained_region`` is then True).
         """
+        if self._inside:
+            self._busy("set_contact")
+        self._inside = True
+        try:
+            p = point
+            if type(p) is not _NDARRAY or p.dtype is not _F8 or p.ndim != 1:
+                p = _as_vector(p, self._point, "contact point (mm)", StepInputError)
+            self._contact_at(p, point)
+            if self._cutting is not None:
+                self._armed = False  # a plain contact; scalpel() arms the blade again
+                self._vertex = self._cutting.region_vertex(p)
+        finally:
+            self._inside = False
+
+    def _contact_at(self, p: np.ndarray, point) -> None:
+        """The contact at ``p`` (a 1-D float64 array): everything that depends on it only."""
         m = self.model
-        p = np.asarray(point, dtype=np.float64)
-        if p.shape != (3,) or not np.all(np.isfinite(p)):
-            raise StepInputError(f"contact point must be 3 finite numbers (mm), got {point!r}")
-        np.dot(m.chart_axes, p - m.chart_origin, out=self._chart)
-        flag = kernels.locate(
-            self._chart, m.chart_points, m.sample_triangles, self._weights, self._vertices
+        status = kernels.prepare_contact(
+            p, self._table, m.sample_triangles, self._vertices, self._buf
         )
-        kernels.prepare_curves(
-            self._weights, self._vertices, m.sample_normals, m.force, m.stiffness,
-            self._normal, self._curve, self._slope,
-        )  # fmt: skip
+        if status == -kernels.WRONG_SHAPE:
+            raise StepInputError(
+                f"contact point (mm) must be 3 numbers, shape (3,); got shape {p.shape}; {_KEPT}"
+            )
+        if status:
+            raise StepInputError(
+                f"contact point (mm) must be 3 finite numbers, got {point!r}; {_KEPT}"
+            )
+        self._contact_series()
+
+    def _contact_series(self) -> None:
+        """What else depends on the contact: the POD-ANM sections, the Grassmann frames."""
+        m = self.model
         if self.response == "anm":
             a = m.anm
             kernels.prepare_anm(
@@ -141,33 +275,59 @@ class Simulator:
             kernels.prepare_grassmann(
                 self._weights, self._vertices, g["gtt"], g["gtb"], g["grb"], self._frames
             )
-        self._buf[kernels.FLAGS] = flag
         self._contact = True
-        if self._cutting is not None:
-            self._armed = False  # a plain contact; scalpel() arms the blade again
-            self._vertex = self._cutting.region_vertex(p)
 
     # -- steps -------------------------------------------------------------------
-    def _check(self, status: int, what: str, value) -> None:
+    def _refuse(self, status: int, what: str, value, limit: float) -> None:
+        """Raise the error of a step's status (the state is unchanged)."""
         if status == -1:
             raise RuntimeError("call set_contact(point) before stepping")
-        raise StepInputError(f"{what} {value!r} {_STATUS[status]}; state unchanged")
+        if status == kernels.WRONG_SHAPE:
+            raise StepInputError(
+                f"{what} must be 3 numbers, shape (3,); got shape {np.shape(value)}; {_KEPT}"
+            )
+        if status == kernels.DISPLACEMENT_LIMIT:
+            raise StepInputError(
+                f"{what} {value!r} would push the tool beyond the displacement limit "
+                f"({self.max_displacement:.3g} mm); {_KEPT}"
+            )
+        if status == kernels.BEYOND_LIMIT:
+            raise StepInputError(
+                f"{what} {value!r} is longer than the simulator's limit ({limit:.3g}); {_KEPT}"
+            )
+        raise StepInputError(f"{what} {value!r} is not finite (NaN or infinite); {_KEPT}")
 
     def step_displacement(self, d) -> np.ndarray:
         """Tool displacement ``d`` (mm, from the contact point) -> reaction force on the tool (N).
 
         The force points out of the tissue (along the outward normal). The
-        returned array is reused by the next call.
+        returned array (read only) is reused by the next call. A displacement
+        longer than ``max_displacement`` is refused (StepInputError).
         """
-        status = self._step_displacement(d, self._buf) if self._contact else -1
-        if status:
-            self._check(status, "displacement", d)
-        self._controlled = "displacement"
-        if self._cutting is not None:
-            self._cut_step(self._force)
-            if self._vertex >= 0:
-                self._force *= self._cutting.ratio[self._vertex]
-        return self._force
+        if self._inside:
+            self._busy("step_displacement")
+        self._inside = True
+        try:
+            if not self._contact:
+                self._refuse(-1, "displacement (mm)", d, 0.0)
+            x = d
+            if type(x) is not _NDARRAY or x.dtype is not _F8:  # the slower path
+                x = _as_vector(x, self._input, "displacement (mm)", StepInputError)
+            try:
+                status = self._step_displacement(x, self._buf)
+            except TypeError:  # a float64 array of another dimension: refused here
+                x = _as_vector(x, self._input, "displacement (mm)", StepInputError)
+                status = self._step_displacement(x, self._buf)
+            if status:
+                self._refuse(status, "displacement (mm)", d, self.max_displacement)
+            self._controlled = "displacement"
+            if self._cutting is not None:
+                self._cut_step(self._force)
+                if self._vertex >= 0:
+                    self._force *= self._cutting.ratio[self._vertex]
+            return self._force_out
+        finally:
+            self._inside = False
 
     # -- cutting -------------------------------------------------------------------
     def scalpel(self, position, blade_direction, background: bool = False) -> None:
@@ -181,23 +341,42 @@ class Simulator:
         on with the cut state before it, until a step finds the new one ready
         (``cut_pending`` says whether one is on its way). A position off the
         organ or a blade along the normal raises ``ScalpelInputError``; nothing
-        changes then.
+        changes then. The first call sets the scalpel up (milliseconds); placing
+        it again, e.g. every servo tick, costs a few microseconds and allocates
+        nothing (float64 (3,) arrays in).
         """
-        from hapticrom.online.cutting import Scalpel
-
-        m = self.model
-        # Scalpel() raises ValueError for an artifact without a cuttable region.
-        scalpel = self._cutting if self._cutting is not None else Scalpel(m)
-        p = np.asarray(position, dtype=float)
-        vertex = int(np.argmin(np.sum((m.vertices - p) ** 2, axis=1))) if p.shape == (3,) else 0
-        normal = scalpel.normals[vertex]
-        blade = scalpel.check(position, blade_direction, normal)[1]
-        self._cutting = scalpel
-        self.set_contact(p)
-        self._vertex, self._scalpel_vertex = scalpel.region_vertex(p), vertex
-        across = np.cross(blade, normal)
-        self._blade, self._across = blade, across / np.linalg.norm(across)
-        self._armed, self._background = True, bool(background)
+        if self._inside:
+            self._busy("scalpel")
+        self._inside = True
+        try:
+            # Scalpel() raises InputError for an artifact without a cuttable region.
+            scalpel = self._cutting if self._cutting is not None else Scalpel(self.model)
+            p, b = position, blade_direction
+            if type(p) is not _NDARRAY or p.dtype is not _F8 or p.ndim != 1:
+                p = _as_vector(p, self._point, "scalpel position (mm)", ScalpelInputError)
+            if type(b) is not _NDARRAY or b.dtype is not _F8 or b.ndim != 1:
+                b = _as_vector(b, self._blade_input, "blade direction", ScalpelInputError)
+            floats, ints = scalpel.tables
+            status = kernels.place_scalpel(
+                p,
+                b,
+                floats,
+                ints,
+                self._table,
+                self.model.sample_triangles,
+                self._vertices,
+                self._buf,
+            )  # the blade's frame and the contact in one call; nothing written if refused
+            if status:
+                raise scalpel.placement_error(status, p, b)
+            self._cutting = scalpel
+            self._contact_series()
+            placed = kernels.PLACED
+            self._scalpel_vertex = int(self._buf[placed])
+            self._vertex = int(self._buf[placed + 1])
+            self._armed, self._background = True, bool(background)
+        finally:
+            self._inside = False
 
     def _cut_step(self, force) -> None:
         """After a step while cutting: install a ready background cut; cut if the force
@@ -246,10 +425,17 @@ class Simulator:
     def finish_cuts(self) -> None:
         """Wait for the background cuts and put them in force (e.g. before rendering a frame
         that must show them)."""
-        if self._cutting is not None:
+        if self._cutting is None:
+            return
+        if self._inside:
+            self._busy("finish_cuts")
+        self._inside = True
+        try:
             event = self._cutting.finish()
             if event is not None:
                 self.last_cut = event
+        finally:
+            self._inside = False
 
     @property
     def cut_events(self) -> list:
@@ -257,17 +443,51 @@ class Simulator:
         return [] if self._cutting is None else list(self._cutting.events)
 
     def step_force(self, f) -> np.ndarray:
-        """Force the tool applies to the tissue ``f`` (N) -> tool displacement (mm)."""
-        status = self._step_force(f, self._buf) if self._contact else -1
-        if status:
-            self._check(status, "force", f)
-        self._controlled = "force"
-        if self._cutting is not None:
-            self._cut_step(f)
-            if self._vertex >= 0:
-                # Linear scaling: the cut tissue yields 1 / ratio times more under the same force.
-                self._displacement /= self._cutting.ratio[self._vertex]
-        return self._displacement
+        """Force the tool applies to the tissue ``f`` (N) -> tool displacement (mm).
+
+        The returned array (read only) is reused by the next call. A force longer
+        than ``max_force``, or one that would push the tool further than
+        ``max_displacement`` (cuts included), is refused (StepInputError). Only a cut
+        made by this very step can soften the tissue past the limit: the displacement
+        is then held at it.
+        """
+        if self._inside:
+            self._busy("step_force")
+        self._inside = True
+        try:
+            if not self._contact:
+                self._refuse(-1, "force (N)", f, 0.0)
+            x = f
+            if type(x) is not _NDARRAY or x.dtype is not _F8:  # the slower path
+                x = _as_vector(x, self._input, "force (N)", StepInputError)
+            if self._cutting is not None:  # cut tissue yields 1 / ratio times more: less depth
+                ratio = self._cutting.ratio[self._vertex] if self._vertex >= 0 else 1.0
+                self._buf[kernels.MAX_DEPTH] = self._buf[kernels.MAX_DISPLACEMENT] * ratio
+            try:
+                status = self._step_force(x, self._buf)
+            except TypeError:  # a float64 array of another dimension: refused here
+                x = _as_vector(x, self._input, "force (N)", StepInputError)
+                status = self._step_force(x, self._buf)
+            if status:
+                self._refuse(status, "force (N)", f, self.max_force)
+            self._controlled = "force"
+            if self._cutting is not None:
+                self._cut_step(x)
+                if self._vertex >= 0:
+                    self._scale_displacement(self._cutting.ratio[self._vertex])
+            return self._displacement_out
+        finally:
+            self._inside = False
+
+    def _scale_displacement(self, ratio: float) -> None:
+        """Linear scaling: the cut tissue yields 1 / ratio times more under the same force;
+        held at the displacement limit (a cut of this step may have softened it past)."""
+        d = self._displacement
+        d /= ratio
+        size = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+        limit = self._buf[kernels.MAX_DISPLACEMENT]
+        if size > limit:
+            d *= limit / size
 
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:
         """Fill ``out`` (V, 3) float64 with the surface vertices' displacement (mm)."""
@@ -277,6 +497,17 @@ class Simulator:
                 f"out must be a C-contiguous float64 array of shape {m.vertices.shape}, "
                 f"got {out.dtype} {out.shape}"
             )
+        if self._inside:
+            self._busy("surface_displacement")
+        self._inside = True
+        try:
+            self._surface(out)
+        finally:
+            self._inside = False
+        return out
+
+    def _surface(self, out: np.ndarray) -> None:
+        m = self.model
         if self.response == "anm":
             a = m.anm
             kernels.surface_anm(
@@ -297,7 +528,6 @@ class Simulator:
             )  # fmt: skip
         if self._cutting is not None and self._cutting.patch is not None:
             self._add_cut_field(out)
-        return out
 
     def _add_cut_field(self, out: np.ndarray) -> None:
         """The cuts' displacement (per unit force, times the current force) and the lips.
@@ -324,26 +554,27 @@ class Simulator:
     def cut_surface(self) -> tuple[np.ndarray, np.ndarray]:
         """(vertices, triangles) to render with the cut open: the model's surface vertices,
         then the lip copies (``lip_vertices`` order), and the triangles re-indexed so each lip
-        uses its own vertices. Without a cut, the model's surface."""
+        uses its own vertices. Without a cut, the model's surface. Read only."""
         m = self.model
         if self._cutting is None or self._cutting.patch is None:
-            return m.vertices, m.triangles
+            return _readonly(m.vertices), _readonly(m.triangles)
         _, _, _, duplicated = self._cutting.surface_layout()
         vertices = np.vstack([m.vertices, m.vertices[duplicated]])
-        return vertices, self._cutting.surface_triangles()
+        return _readonly(vertices), _readonly(self._cutting.surface_triangles())
 
     @property
     def lip_vertices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The cut's second lip for rendering: (surface vertex each copies, its reference
         position (mm), its displacement (mm) at the last ``surface_displacement``)."""
         displacement, vertices = self._lips
-        return vertices, self.model.vertices[vertices], displacement
+        return _readonly(vertices), self.model.vertices[vertices], _readonly(displacement)
 
     # -- what the simulator can read ---------------------------------------------
     @property
     def contact_normal(self) -> np.ndarray:
-        """Outward unit surface normal at the contact (interpolated)."""
-        return self._normal
+        """Outward unit surface normal at the contact (interpolated; read only, and it
+        changes with the contact: copy it to keep it)."""
+        return self._normal_out
 
     @property
     def depth(self) -> float:

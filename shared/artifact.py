@@ -90,6 +90,7 @@ ROOT_ATTRS: tuple[Attr, ...] = (
     Attr("units", "json", "the unit system (mm, N, MPa)"),
     Attr("campaign", "json", "the training campaign's configuration"),
     Attr("description", "str", "free text"),
+    Attr("sanity", "json", "physics sanity of the training: worst J, compression, jumps"),
 )
 GROUP_ATTRS: tuple[Attr, ...] = (
     Attr("type", "str", "the group's type", required=True),

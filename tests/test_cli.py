@@ -103,7 +103,9 @@ def test_mesh_command_writes_mesh_and_sidecar(tmp_path):
     assert proc.returncode == 2 and "unknown mesh 'kidney'" in proc.stderr
 
 
-@pytest.mark.parametrize("command", [["mesh", "cornea"], ["solve", "x.toml", "--out", "o"]])
+@pytest.mark.parametrize(
+    "command", [["mesh", "cornea"], ["solve", "x.toml", "--out", "o"], ["accuracy", "m.h5"]]
+)
 def test_offline_commands_say_the_extra_is_missing(tmp_path, command):
     proc = run_cli(*command, cwd=tmp_path, prelude=BLOCK_OFFLINE)
     assert proc.returncode == 3, proc.stderr
@@ -367,3 +369,75 @@ def test_reduce_onto_a_full_disk_leaves_nothing_behind(
     ), line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.h5"]
     assert out.read_bytes() == b"the previous model\n"
+
+
+# -- hapticrom accuracy: bad input is one line, before any solve --------------------------------
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--positions", "0"], "argument --positions: must lie in [1, 1,000], got 0"),
+        (["--positions", str(10**9)], "must lie in [1, 1,000], got 1,000,000,000"),
+        (["--positions", "many"], "argument --positions: expected an integer, got 'many'"),
+        (["--seed", "-1"], "argument --seed: must lie in [0, 4,294,967,295], got -1"),
+        (["--seed", "1.5"], "argument --seed: expected an integer, got '1.5'"),
+    ],
+)
+def test_accuracy_numbers_are_bounded(small_artifact, tmp_path, capsys, monkeypatch, args, message):
+    monkeypatch.chdir(tmp_path)
+    line = main_error(capsys, "accuracy", small_artifact, *args)
+    assert line.startswith("hapticrom: error: accuracy: ") and message in line, line
+    assert not any(tmp_path.iterdir())
+
+
+def test_accuracy_inputs_and_outputs_are_checked_first(
+    small_artifact, tmp_path, capsys, no_expensive_work, read_only_dir
+):
+    missing = tmp_path / "nope.h5"
+    line = main_error(capsys, "accuracy", missing)
+    assert line == f"hapticrom: error: artifact {missing} not found"
+    damaged = tmp_path / "damaged.h5"
+    damaged.write_bytes(small_artifact.read_bytes()[:-100])
+    line = main_error(capsys, "accuracy", damaged, "--work", tmp_path / "w")
+    assert line.startswith(f"hapticrom: error: {damaged} "), line  # the artifact's own check
+    out = read_only_dir / "a.json"
+    line = main_error(capsys, "accuracy", small_artifact, "--json", out)
+    assert f"accuracy --json {out}: cannot write in {read_only_dir} (" in line, line
+    out = tmp_path / "missing" / "a.json"
+    line = main_error(capsys, "accuracy", small_artifact, "--json", out)
+    assert line.endswith(f"accuracy --json {out}: directory {out.parent} does not exist"), line
+    blocker = tmp_path / "work"
+    blocker.write_text("not a directory\n")
+    line = main_error(capsys, "accuracy", small_artifact, "--work", blocker)
+    assert line == f"hapticrom: error: accuracy --work {blocker} exists and is not a directory"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["damaged.h5", "read-only", "work"]
+    assert not any(read_only_dir.iterdir()) and blocker.read_text() == "not a directory\n"
+    assert not small_artifact.with_suffix(".heldout-8").exists()
+
+
+def test_accuracy_needs_the_mesh_the_model_was_trained_on(
+    small_artifact, tmp_path, capsys, no_expensive_work, monkeypatch
+):
+    """A model whose mesh is gone or changed cannot be checked: one line saying so."""
+    import hapticrom.shared.artifact
+
+    read_artifact = hapticrom.shared.artifact.read_artifact
+    mesh = tmp_path / "mesh.msh"  # the model's mesh, as seen by the check: a copy to spoil
+
+    def read_with_mesh_here(path, *args, **kwargs):
+        artifact = read_artifact(path, *args, **kwargs)
+        artifact.group_attrs["model"]["mesh_file"] = str(mesh)
+        return artifact
+
+    monkeypatch.setattr(hapticrom.shared.artifact, "read_artifact", read_with_mesh_here)
+    work = tmp_path / "w"
+    mesh.write_text("")  # present but changed: not the bytes the model was trained on
+    line = main_error(capsys, "accuracy", small_artifact, "--work", work)
+    assert line == (
+        f"hapticrom: error: {mesh} has changed since {small_artifact} was trained on it "
+        "(SHA-256 differs): held-out solves on it would not test this model"
+    )
+    mesh.unlink()
+    mesh.mkdir()  # not a file
+    line = main_error(capsys, "accuracy", small_artifact, "--work", work)
+    assert f"{small_artifact} was trained on {mesh}, which is not found" in line, line
+    assert not work.exists()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
 import numpy as np
@@ -251,3 +252,296 @@ def test_kernels_compile_with_numpy_numba_h5py_only(small_artifact, tmp_path):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                           timeout=600)  # fmt: skip
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+
+
+# -- the runtime's inputs, outputs, limits and threads (issue "the artifact is a trust boundary")
+def _contact(model, response="curves", **limits):
+    sim = model.simulator(response=response, **limits)
+    sim.set_contact(model.sample_points[0])
+    return sim
+
+
+def test_step_inputs_of_other_types_take_the_slower_path_to_the_same_result(model):
+    """Lists, tuples, float32, integers, read-only and strided arrays: the same force as
+    the float64 (3,) array (converted into the simulator's own buffer)."""
+    sim = _contact(model)
+    d = np.round(-512 * model.trained_depth * sim.contact_normal) / 1024  # exact in float32
+    expected = sim.step_displacement(d).copy()
+    assert np.linalg.norm(expected) > 0
+    frozen = d.copy()
+    frozen.flags.writeable = False
+    strided = np.repeat(d, 2)[::2]
+    assert not strided.flags.c_contiguous
+    for same in (d.tolist(), tuple(d), d.astype(np.float32).astype(np.float64), frozen, strided):
+        np.testing.assert_array_equal(sim.step_displacement(same), expected)
+    integers = np.array([0, 0, -1])
+    f_int = sim.step_displacement(integers).copy()
+    np.testing.assert_array_equal(sim.step_displacement(integers.astype(float)), f_int)
+    f32 = d.astype(np.float32)
+    np.testing.assert_array_equal(
+        sim.step_displacement(f32), sim.step_displacement(f32.astype(np.float64))
+    )
+    push = -0.5 * model.trained_force * sim.contact_normal
+    expected = sim.step_force(push).copy()
+    np.testing.assert_array_equal(sim.step_force(push.tolist()), expected)
+    sim.set_contact(tuple(model.sample_points[1]))
+    normal = sim.contact_normal.copy()
+    sim.set_contact(model.sample_points[1].astype(np.float32))
+    np.testing.assert_allclose(sim.contact_normal, normal, atol=1e-6)
+
+
+BAD_SHAPES = {
+    "2": [0.0, -0.1],
+    "4": np.array([0.0, 0.0, -0.1, 0.0]),
+    "2-array": np.array([0.0, -0.1]),
+    "3x1": np.zeros((3, 1)),
+    "scalar": -0.1,
+    "empty": np.zeros(0),
+}
+
+
+@pytest.mark.parametrize("bad", BAD_SHAPES.values(), ids=BAD_SHAPES.keys())
+@pytest.mark.parametrize("response", ["curves", "anm"])
+def test_wrong_shapes_are_refused_naming_the_shape(model, bad, response):
+    """A (2,) array is never read past its end, a (4,) one never truncated: refused."""
+    sim = _contact(model, response)
+    sim.step_displacement(-0.1 * sim.contact_normal)
+    buf = sim._buf.copy()
+    shape = str(np.shape(bad))
+    for step in (sim.step_displacement, sim.step_force, sim.set_contact):
+        with pytest.raises(StepInputError, match=f"shape {re.escape(shape)}"):
+            step(bad)
+        np.testing.assert_array_equal(sim._buf, buf)  # state unchanged
+
+
+@pytest.mark.parametrize(
+    "bad",
+    ["abc", None, [1.0, "a", 2.0], [[1.0], [2.0, 3.0]], np.zeros(3, complex), [True] * 3],
+    ids=["str", "none", "mixed", "ragged", "complex", "bool"],
+)
+def test_non_numbers_are_refused(model, bad):
+    sim = _contact(model)
+    buf = sim._buf.copy()
+    for step in (sim.step_displacement, sim.step_force, sim.set_contact):
+        with pytest.raises(StepInputError, match="must be 3 numbers"):
+            step(bad)
+    np.testing.assert_array_equal(sim._buf, buf)
+
+
+def test_kernels_check_the_length_before_reading(model):
+    """Called directly, a step kernel refuses a short or long array (status 3), writes
+    nothing, whatever lies after the array's end."""
+    from hapticrom.online import kernels
+
+    sim = _contact(model)
+    for step in (kernels.step_displacement, kernels.step_force):
+        for n in (0, 1, 2, 4):
+            memory = np.full(8, -1e3)  # what a reader past the end would find
+            buf = sim._buf.copy()
+            assert step(memory[:n], buf) == kernels.WRONG_SHAPE
+            np.testing.assert_array_equal(buf, sim._buf)
+
+
+def test_errors_of_the_runtime_are_hapticrom_errors():
+    from hapticrom.online.cutting import ScalpelInputError
+    from hapticrom.online.simulator import SimulatorBusyError
+    from hapticrom.shared.errors import HapticromError
+
+    for error in (StepInputError, ScalpelInputError):
+        assert issubclass(error, HapticromError) and issubclass(error, ValueError)
+    assert issubclass(SimulatorBusyError, HapticromError)
+
+
+def test_what_the_simulator_returns_cannot_be_written(model):
+    """contact_normal and the steps' results are views of the state: read only."""
+    sim = _contact(model)
+    n = sim.contact_normal.copy()
+    d = -0.5 * model.trained_depth * n
+    force = sim.step_displacement(d)
+    before = force.copy()
+    displacement = sim.step_force(-before)
+    for view in (sim.contact_normal, force, displacement):
+        assert not view.flags.writeable
+        with pytest.raises(ValueError, match="read-only"):
+            view[0] = np.nan
+    for leaked in (sim.contact_normal.view(), np.asarray(force)):
+        with pytest.raises(ValueError):
+            leaked[:] = np.nan
+    np.testing.assert_array_equal(sim.contact_normal, n)
+    np.testing.assert_array_equal(sim.step_displacement(d), before)
+    vertices, triangles = sim.cut_surface()  # no scalpel: the model's own surface
+    assert not vertices.flags.writeable and not triangles.flags.writeable
+
+
+@pytest.mark.parametrize(
+    "limit",
+    [np.nan, np.inf, -np.inf, 0, 0.0, -1.0, "1", True, [1.0]],
+    ids=["nan", "inf", "-inf", "0", "0.0", "negative", "str", "bool", "list"],
+)
+def test_limits_must_be_finite_positive_numbers(model, limit):
+    from hapticrom.shared.errors import InputError
+
+    for name in ("max_displacement", "max_force"):
+        with pytest.raises(InputError, match=f"{name} must be"):
+            model.simulator(**{name: limit})
+
+
+def test_limits_default_and_explicit(model):
+    sim = model.simulator()
+    assert sim.max_displacement == pytest.approx(10 * model.trained_depth)
+    assert sim.max_force == pytest.approx(10 * model.force[:, -1].max())
+    sim = model.simulator(max_displacement=0.25 * model.trained_depth, max_force=np.float32(2))
+    assert sim.max_displacement == 0.25 * model.trained_depth and sim.max_force == 2.0
+    sim.set_contact(model.sample_points[0])
+    with pytest.raises(StepInputError, match="limit"):
+        sim.step_displacement(-0.3 * model.trained_depth * sim.contact_normal)
+    with pytest.raises(AttributeError):
+        sim.max_displacement = np.nan  # read only: the kernels' copy is the one in force
+
+
+@pytest.mark.parametrize("response", ["curves", "anm"])
+def test_step_force_never_returns_a_displacement_beyond_the_limit(model, response):
+    """A force whose depth passes max_displacement is refused as a displacement past it
+    is: StepInputError, and the state (depth, series sections, surface) unchanged."""
+    limit = 0.5 * model.trained_depth
+    sim = _contact(model, response, max_displacement=limit)
+    n = sim.contact_normal.copy()
+    inside = sim.step_displacement(-0.9 * limit * n)  # a force whose depth is within
+    d = sim.step_force(-inside).copy()
+    assert np.linalg.norm(d) == pytest.approx(0.9 * limit, rel=1e-9)
+    depth, buf = sim.depth, sim._buf.copy()
+    surface = sim.surface_displacement(np.zeros_like(model.vertices)).copy()
+    too_far = model.simulator(response=response)
+    too_far.set_contact(model.sample_points[0])
+    push = too_far.step_displacement(-1.2 * limit * n).copy()  # its depth: 1.2 x the limit
+    assert np.linalg.norm(push) < sim.max_force  # an acceptable force in itself
+    with pytest.raises(StepInputError, match="beyond the displacement limit"):
+        sim.step_force(-push)
+    assert sim.depth == depth
+    np.testing.assert_array_equal(sim._buf, buf)
+    np.testing.assert_array_equal(sim.surface_displacement(np.zeros_like(model.vertices)),
+                                  surface)  # fmt: skip
+    for f in np.linspace(0, np.linalg.norm(push), 50):
+        try:
+            d = sim.step_force(-f * n)
+        except StepInputError:
+            continue
+        assert np.linalg.norm(d) <= limit
+
+
+def _model_arrays(model) -> dict:
+    """Every array of the model a simulator reads (name: array)."""
+    arrays = {k: v for k, v in vars(model).items() if isinstance(v, np.ndarray)}
+    for group in ("anm", "grassmann"):
+        for k, v in (getattr(model, group) or {}).items():
+            if isinstance(v, np.ndarray):
+                arrays[f"{group}.{k}"] = v
+    return arrays
+
+
+def test_simulators_on_threads_share_a_model_and_step_as_serially(model):
+    """Two threads, each stepping its own simulator on one model, at the same time: the
+    forces and surfaces of a serial run, and the model unchanged."""
+    import threading
+
+    before = {k: v.copy() for k, v in _model_arrays(model).items()}
+    points = points_in_region(model, 40)
+    depths = np.linspace(0.0, 1.1 * model.trained_depth, 25)
+
+    def run(response, results, start=None):
+        sim = model.simulator(response=response)
+        out = np.zeros_like(model.vertices)
+        if start is not None:
+            start.wait()
+        for point in points:
+            sim.set_contact(point)
+            for depth in depths:
+                results.append(sim.step_displacement(-depth * sim.contact_normal).copy())
+                results.append(sim.step_force(-results[-1]).copy())
+            results.append(sim.surface_displacement(out).copy())
+
+    serial = {r: [] for r in ("curves", "anm")}
+    for response, results in serial.items():
+        run(response, results)
+    for pair in (("curves", "anm"), ("anm", "anm")):
+        threaded = [[], []]
+        start = threading.Barrier(2)
+        threads = [threading.Thread(target=run, args=(r, out, start))
+                   for r, out in zip(pair, threaded, strict=True)]  # fmt: skip
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for response, results in zip(pair, threaded, strict=True):
+            assert len(results) == len(serial[response])
+            for a, b in zip(results, serial[response], strict=True):
+                np.testing.assert_array_equal(a, b)
+    for name, array in _model_arrays(model).items():
+        np.testing.assert_array_equal(array, before[name], err_msg=name)
+
+
+def test_one_simulator_on_two_threads_is_refused(model):
+    """While one thread is inside a step, every call of another thread raises
+    SimulatorBusyError (without waiting); the first step ends normally."""
+    import threading
+
+    from hapticrom.online.simulator import SimulatorBusyError
+
+    sim = _contact(model)
+    d = -0.5 * model.trained_depth * sim.contact_normal
+    expected = sim.step_displacement(d).copy()
+    inside, release = threading.Event(), threading.Event()
+    kernel = sim._step_displacement
+
+    def slow_kernel(x, buf):  # a step that takes its time
+        inside.set()
+        release.wait(30)
+        return kernel(x, buf)
+
+    sim._step_displacement = slow_kernel
+    results = []
+    worker = threading.Thread(target=lambda: results.append(sim.step_displacement(d).copy()))
+    worker.start()
+    try:
+        assert inside.wait(30)
+        out = np.zeros_like(model.vertices)
+        for call in (lambda: sim.step_displacement(d), lambda: sim.step_force(-expected),
+                     lambda: sim.set_contact(model.sample_points[1]),
+                     lambda: sim.surface_displacement(out)):  # fmt: skip
+            with pytest.raises(SimulatorBusyError, match="another thread"):
+                call()
+    finally:
+        release.set()
+        worker.join()
+    np.testing.assert_array_equal(results[0], expected)
+    sim._step_displacement = kernel
+    with pytest.raises(StepInputError):  # an error inside a call leaves the simulator free
+        sim.step_displacement([np.nan, 0, 0])
+    np.testing.assert_array_equal(sim.step_displacement(d), expected)
+
+
+@pytest.mark.parametrize("interpolation,response", COMBINATIONS)
+def test_a_read_only_model_steps_as_a_writable_one(small_artifact, interpolation, response):
+    """Every kernel takes the model's arrays read only: a frozen model works the same."""
+    frozen = online.load(small_artifact)
+    for array in _model_arrays(frozen).values():
+        array.flags.writeable = False
+    writable = online.load(small_artifact)
+    sims = [m.simulator(interpolation, response) for m in (frozen, writable)]
+    outs = [np.zeros_like(frozen.vertices) for _ in sims]
+    for point in points_in_region(frozen, 5):
+        for depth in (0.2, 1.0):
+            results = []
+            for sim, out in zip(sims, outs, strict=True):
+                sim.set_contact(point)
+                f = sim.step_displacement(-depth * frozen.trained_depth * sim.contact_normal)
+                results.append((f.copy(), sim.step_force(-f).copy(),
+                                sim.surface_displacement(out).copy()))  # fmt: skip
+            for a, b in zip(*results, strict=True):
+                np.testing.assert_array_equal(a, b)
+
+
+def test_a_loaded_model_is_read_only(model):
+    """A simulator cannot change the model other simulators share."""
+    writable = [name for name, a in _model_arrays(model).items() if a.flags.writeable]
+    assert writable == []

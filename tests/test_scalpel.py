@@ -358,3 +358,139 @@ def test_cut_softening_matches_the_full_order_with_the_cut_meshed(hgo_model, tmp
 
     # Coarse mesh, a cut that softens by a third: measured 15 % with it, 39 % blind.
     assert error(sim) < 0.2 and error(sim) < 0.5 * error(blind)
+
+
+def test_placing_the_scalpel_again_allocates_nothing(model):
+    """scalpel() every servo tick: after the first call no allocation at all (tracemalloc
+    sees every Python and numpy allocation: none per call, none kept)."""
+    import sys
+    import tracemalloc
+
+    sim = model.simulator()
+    blade = np.array([0.0, 1.0, 0.0])
+    start = on_surface(4.6)
+    near = [np.ascontiguousarray(start + 0.3 * np.array([np.cos(a), np.sin(a), 0.0]))
+            for a in np.linspace(0.0, 2.0 * np.pi, 50)]  # fmt: skip
+    sim.scalpel(start, blade)
+    for p in near:
+        sim.scalpel(p, blade)
+    tracemalloc.start()
+    try:
+        base, _ = tracemalloc.get_traced_memory()
+        blocks = sys.getallocatedblocks()
+        for _ in range(20):
+            sim.scalpel(start, blade)  # the same position
+            for p in near:  # and nearby ones
+                sim.scalpel(p, blade)
+        kept = sys.getallocatedblocks() - blocks
+        current, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert kept < 50
+    # A few hundred bytes of the interpreter's own (the call's argument tuples); one
+    # array over the surface vertices alone would be len(vertices) x 24 bytes.
+    assert current - base < 1024 and peak - base < 2048 < 24 * len(model.vertices)
+    assert sim.cut_events == []  # placing never cuts: only a step pressing the blade does
+
+
+def test_the_scalpel_finds_the_nearest_vertex_exactly(model):
+    """The placement's grid search against a brute-force search over every vertex."""
+    from hapticrom.online.cutting import ScalpelInputError
+
+    sim = model.simulator()
+    sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
+    scalpel = sim._cutting
+    V = model.vertices
+    rng = np.random.default_rng(3)
+    reach = 2.0 * scalpel.cell_size
+    points = V[rng.integers(len(V), size=300)] + rng.normal(0.0, 0.5 * reach, (300, 3))
+    placed = refused = 0
+    for p in np.vstack([points, V[:20]]):
+        gap2 = np.sum((V - p) ** 2, axis=1)
+        in_region = np.where(scalpel.surface_region >= 0, gap2, np.inf)
+        region = int(np.argmin(in_region))
+        region = region if in_region[region] <= scalpel.cell_size**2 else -1
+        assert scalpel.region_vertex(p) == region
+        if gap2.min() > reach**2:
+            with pytest.raises(ScalpelInputError, match="off the organ"):
+                sim.scalpel(p, [0.0, 1.0, 0.0])
+            refused += 1
+            continue
+        vertex = int(np.argmin(gap2))
+        normal = scalpel.normals[vertex]
+        blade = np.cross(normal, np.eye(3)[np.argmin(np.abs(normal))])  # in the tangent plane
+        sim.scalpel(p, blade)
+        placed += 1
+        assert sim._scalpel_vertex == vertex and sim._vertex == region
+        np.testing.assert_allclose(sim._blade, blade / np.linalg.norm(blade), atol=1e-12)
+        across = np.cross(sim._blade, scalpel.normals[vertex])
+        np.testing.assert_allclose(sim._across, across / np.linalg.norm(across), atol=1e-12)
+    assert placed > 100 and refused > 10
+
+
+def test_scalpel_inputs_of_other_types_and_shapes(model):
+    from hapticrom.online.cutting import ScalpelInputError
+
+    sim = model.simulator()
+    point = on_surface(4.6)
+    sim.scalpel(point, np.array([0.0, 1.0, 0.0]))
+    frame = (sim._scalpel_vertex, sim._blade.copy(), sim._across.copy())
+    for p, b in ((point.tolist(), (0, 1, 0)), (point.astype(np.float32), np.array([0, 1, 0]))):
+        sim.scalpel(p, b)
+        assert sim._scalpel_vertex == frame[0]
+        np.testing.assert_allclose(sim._blade, frame[1], atol=1e-6)
+    sim.scalpel(point, np.array([0.0, 1.0, 0.0]))
+    before = (sim.contact_normal.copy(), sim._blade.copy(), sim._vertex)
+    for p, b, message in (
+        (point[:2], [0.0, 1.0, 0.0], r"shape \(2,\)"),
+        (np.r_[point, 0.0], [0.0, 1.0, 0.0], r"shape \(4,\)"),
+        (point, [0.0, 1.0], r"shape \(2,\)"),
+        (point.reshape(3, 1), [0.0, 1.0, 0.0], r"shape \(3, 1\)"),
+        ("abc", [0.0, 1.0, 0.0], "3 numbers"),
+        (point, [0.0, np.inf, 0.0], "finite"),
+    ):
+        with pytest.raises(ScalpelInputError, match=message):
+            sim.scalpel(p, b)
+        np.testing.assert_array_equal(sim.contact_normal, before[0])
+        np.testing.assert_array_equal(sim._blade, before[1])
+        assert sim._vertex == before[2]
+
+
+def test_a_force_step_with_a_cut_stays_within_the_displacement_limit(model):
+    """The cut tissue yields 1 / ratio times more: a force whose displacement with the cut
+    would pass max_displacement is refused, though without the cut it would not."""
+    from hapticrom.online.simulator import StepInputError
+
+    point = on_surface(4.6)
+    sim = model.simulator(max_displacement=0.5 * model.trained_depth)
+    sim.scalpel(point, [0.0, 1.0, 0.0])
+    n = sim.contact_normal.copy()
+    for depth in (0.01, 0.02, 0.04):
+        sim.step_displacement(-depth * n)
+    ratio = sim.cut_stiffness_ratio
+    assert sim.cut_events and ratio < 0.99
+    intact = model.simulator()
+    intact.set_contact(point)
+    # A push whose intact depth is a little under the limit: with the cut, past it.
+    push = -intact.step_displacement(-0.5 * (1 + ratio) / 2 * model.trained_depth * n).copy()
+    assert np.linalg.norm(intact.step_force(push)) < sim.max_displacement
+    depth = sim.depth
+    with pytest.raises(StepInputError, match="beyond the displacement limit"):
+        sim.step_force(push)
+    assert sim.depth == depth
+    d = sim.step_force(0.5 * ratio * push)  # within it, cut and all
+    assert np.linalg.norm(d) <= sim.max_displacement
+
+
+def test_the_rendered_cut_cannot_be_written(model):
+    sim = model.simulator()
+    sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
+    for depth in (0.01, 0.02, 0.04):
+        sim.step_displacement(-depth * sim.contact_normal)
+    assert sim.cut_events
+    sim.surface_displacement(np.zeros_like(model.vertices))
+    vertices, positions, displacement = sim.lip_vertices
+    all_vertices, triangles = sim.cut_surface()
+    for internal in (vertices, displacement, triangles, all_vertices):
+        with pytest.raises(ValueError, match="read-only"):
+            internal[...] = 0

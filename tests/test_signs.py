@@ -40,7 +40,10 @@ def test_artifact_forces_and_depths_are_positive_when_pushing_in(small_artifact,
     samples, anm = a["samples"], a["anm"]
     assert samples["depth"][-1] > 0 and np.all(np.diff(samples["depth"]) > 0)
     assert np.all(samples["force"][:, 1:] > 0)
-    end = [np.polynomial.polynomial.polyval(a, c) for a, c in zip(anm["a_max"], anm["force"])]
+    end = [
+        np.polynomial.polynomial.polyval(a, c)
+        for a, c in zip(anm["a_max"], anm["force"], strict=True)
+    ]
     assert np.all(np.array(end) > 0) and np.all(anm["force"][:, 0] >= -1e-12)  # series values
     data, attrs = store.read_position(0)
     n = samples["normals"][0]

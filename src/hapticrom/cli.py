@@ -1,8 +1,8 @@
 """The ``hapticrom`` command line.
 
-Offline commands (mesh, solve) need the ``offline`` extra and say so when it is
-missing; they run under ``mpirun -n N``. PETSc options go at the end, or after
-``--``, and reach PETSc unchanged::
+Offline commands (mesh, solve, campaign, reduce, train, anm, accuracy) need the
+``offline`` extra and say so when it is missing; they run under ``mpirun -n N``.
+PETSc options go at the end, or after ``--``, and reach PETSc unchanged::
 
     mpirun -n 2 hapticrom solve examples/cornea-hgo-indent.toml --out out/cornea \\
         -hapticrom_snes_rtol 1e-10 -hapticrom_snes_monitor
@@ -32,6 +32,10 @@ MAX_RATE_HZ = 100_000.0
 MAX_SECONDS = 3600.0
 MAX_TICKS = 3_600_000  # an hour at 1 kHz
 MAX_TIMED_STEPS = 2_000_000
+# Held-out positions of `hapticrom accuracy`: each is a full-order solve (minutes on the
+# default cornea).
+DEFAULT_HELD_OUT = 8
+MAX_HELD_OUT = 1000
 
 
 class _Parser(argparse.ArgumentParser):
@@ -225,9 +229,15 @@ def cmd_solve(args, petsc_args) -> int:
     result = solve_config(config, out_dir=out)
     if _rank() == 0:
         print(
-            f"wrote {out / 'curve.csv'}"
+            f"wrote {out / 'curve.csv'}, {out / 'sanity.json'}"
             + (f" and {out / 'fields.xdmf'}" if config.output.xdmf else "")
         )
+    if args.refinement_check:
+        from mpi4py import MPI
+
+        from hapticrom.offline.sanity import check_refinement
+
+        check_refinement(config, result, out, MPI.COMM_WORLD)
     return 0 if result.records else 1
 
 
@@ -313,6 +323,23 @@ def cmd_anm(args, petsc_args) -> int:
     return 0
 
 
+def cmd_accuracy(args, petsc_args) -> int:
+    from hapticrom.offline import require_offline
+
+    require_offline()
+    from hapticrom.offline.accuracy import default_work, plan_held_out
+
+    json_path = _check_out_file(args.json, f"accuracy --json {args.json}") if args.json else None
+    plan = plan_held_out(args.model, args.positions, args.seed)  # the model, its mesh
+    work = args.work or str(default_work(args.model, args.positions, args.seed))
+    work = _check_campaign_dir(work, f"accuracy --work {work}", args.restart)
+    _init_petsc(petsc_args)
+    from hapticrom.offline.accuracy import run_accuracy
+
+    result = run_accuracy(plan, work, restart=args.restart, json_path=json_path)
+    return 1 if result is not None and result.failed else 0  # a held-out solve failed
+
+
 def cmd_play(args, petsc_args) -> int:
     ticks = int(args.rate * args.seconds)
     if not 1 <= ticks <= MAX_TICKS:
@@ -356,6 +383,19 @@ def cmd_report(args, petsc_args) -> int:
     return 0
 
 
+def _accuracy_description() -> str:
+    from hapticrom.shared.accuracy import FIELD_TARGET, FORCE_TARGETS
+
+    return (
+        "Solve the full-order model at held-out tool positions as in the model's training "
+        "campaign, and compare the reduced model there at every load step: normal force and "
+        f"surface displacement. Targets: force {100 * FORCE_TARGETS['anm']:g} % (POD-ANM) and "
+        f"{100 * FORCE_TARGETS['curves']:g} % (curves), surface field {100 * FIELD_TARGET:g} "
+        "% (relative L2). Exit status 0 when the check ran, whatever the verdicts; 1 if a "
+        "held-out solve failed; 2 for bad input."
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="hapticrom",
@@ -384,7 +424,15 @@ def build_parser() -> argparse.ArgumentParser:
         "solve", help="full-order nonlinear solve of a TOML configuration [offline, mpirun]"
     )
     p.add_argument("config", help="problem configuration (.toml)")
-    p.add_argument("--out", required=True, help="output directory (curve.csv, fields.xdmf)")
+    p.add_argument(
+        "--out", required=True, help="output directory (curve.csv, sanity.json, fields.xdmf)"
+    )
+    p.add_argument(
+        "--refinement-check",
+        action="store_true",
+        help="solve again on the next finer built-in mesh (in OUT/refinement) and report "
+        "the difference at the last step",
+    )
     p.set_defaults(func=cmd_solve)
 
     def campaign_options(p):
@@ -437,6 +485,39 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="do not print the Newton steps")
     p.set_defaults(func=cmd_anm)
 
+    p = sub.add_parser(
+        "accuracy",
+        help="the reduced model against full-order solves at held-out positions [offline, mpirun]",
+        description=_accuracy_description(),
+    )
+    p.add_argument("model", help="reduced-model artifact (.h5)")
+    p.add_argument(
+        "--positions",
+        type=_int_in(1, MAX_HELD_OUT),
+        default=DEFAULT_HELD_OUT,
+        metavar="N",
+        help=f"held-out positions, one full-order solve each (default {DEFAULT_HELD_OUT}, "
+        f"at most {MAX_HELD_OUT:,})",
+    )
+    p.add_argument(
+        "--seed",
+        type=_int_in(0, 2**32 - 1),
+        metavar="S",
+        help="random surface nodes of the trained region, reproducible from S "
+        "(default: centroids of the sample triangles, snapped to surface nodes)",
+    )
+    p.add_argument(
+        "--work",
+        metavar="DIR",
+        help="held-out campaign directory, resumed if it exists "
+        "(default: MODEL with suffix .heldout-N or .heldout-N-seedS)",
+    )
+    p.add_argument("--restart", action="store_true", help="discard what the work directory holds")
+    p.add_argument(
+        "--json", metavar="FILE", help="also write the errors here (hapticrom report --accuracy)"
+    )
+    p.set_defaults(func=cmd_accuracy)
+
     p = sub.add_parser("play", help="drive a scripted tool path through the runtime [online]")
     p.add_argument("model", help="reduced-model artifact (.h5)")
     p.add_argument(
@@ -476,7 +557,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="HTML report on a reduced model: spectra, curves, latency")
     p.add_argument("model", help="reduced-model artifact (.h5)")
     p.add_argument("--out", required=True, help="output directory (report.html and its PNGs)")
-    p.add_argument("--accuracy", metavar="JSON", help="held-out errors: bench/accuracy.py --json")
+    p.add_argument(
+        "--accuracy", metavar="JSON", help="held-out errors: hapticrom accuracy MODEL --json JSON"
+    )
     p.add_argument(
         "--latency-steps",
         type=_int_in(1, MAX_TIMED_STEPS),

@@ -2,8 +2,9 @@
 
 What a computational-mechanics user checks before trusting a model: what the file holds,
 how fast the POD spectra decay, whether the runtime reproduces the full-order
-load-displacement curves, the force error at held-out positions (measured by
-``bench/accuracy.py``), how long a haptic step takes, and what the deformed organ looks like.
+load-displacement curves, the force and surface-field errors at held-out positions (measured
+by ``hapticrom accuracy``, against the targets of :mod:`hapticrom.shared.accuracy`), how long
+a haptic step takes, and what the deformed organ looks like.
 The figures are PNGs saved next to ``report.html`` and embedded in it (base64), so the HTML
 file can be sent on its own. Units: mm, N, MPa; latencies in microseconds.
 
@@ -29,21 +30,19 @@ import numpy as np
 from hapticrom.online.latency import TARGETS as LATENCY_TARGETS
 from hapticrom.online.latency import _time_calls  # the same timing loop as `hapticrom bench`
 from hapticrom.online.model import ReducedModel, load
+from hapticrom.shared.accuracy import target, verdict
 from hapticrom.shared.artifact import SCHEMA
 from hapticrom.shared.errors import HapticromError
 
 SUMMARY = "Model summary"
 EIGENVALUES = "POD eigenvalue decay"
 CURVES = "Load-displacement curves: ROM vs full order"
-HELD_OUT = "Force error at held-out positions"
+HELD_OUT = "Force and surface-field error at held-out positions"
 LATENCY = "Step latency"
 DEFORMED = "Deformed surface"
 SECTION_HEADINGS = (SUMMARY, EIGENVALUES, CURVES, HELD_OUT, LATENCY, DEFORMED)
 
-# The force-error targets of bench/accuracy.py (TARGETS there; that script needs MPI and the
-# offline stack, so it cannot be imported here).
-ACCURACY_TARGETS = {"curves": 0.05, "anm": 0.02}
-ACCURACY_COMMAND = "mpirun -n 2 python bench/accuracy.py {model} --json accuracy.json"
+ACCURACY_COMMAND = "mpirun -n 2 hapticrom accuracy {model} --json accuracy.json"
 
 RESPONSE_LABELS = {"anm": "POD-ANM series", "curves": "interpolated full-order curves"}
 DPI = 110
@@ -60,7 +59,7 @@ class Png:
 
 @dataclass(frozen=True)
 class HeldOutResults:
-    """The content of ``bench/accuracy.py --json``: per-combination summary and force rows."""
+    """The content of ``hapticrom accuracy --json``: per-combination summary and force rows."""
 
     summary: dict[str, dict[str, float]]
     responses: list[str]  # names of the ROM force columns of the rows ("podi+curves", ...)
@@ -69,6 +68,7 @@ class HeldOutResults:
     depths: np.ndarray  # (R,) mm
     fem: np.ndarray  # (R,) N
     rom: np.ndarray  # (R, C) N, one column per response
+    field: np.ndarray | None = None  # (R, C) relative L2 surface-field errors (format 2)
 
     @property
     def errors(self) -> np.ndarray:
@@ -344,7 +344,8 @@ def load_displacement_figure(model: ReducedModel, samples: list[int], response: 
 
 # -- 4. held-out accuracy --------------------------------------------------------------------
 def read_accuracy(path: str | Path) -> HeldOutResults:
-    """Read and check the JSON of ``bench/accuracy.py --json``; a bad file raises, naming it."""
+    """Read and check the JSON of ``hapticrom accuracy --json`` (or of the older
+    ``bench/accuracy.py --json``, without per-row field errors); a bad file raises, naming it."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -360,7 +361,7 @@ def read_accuracy(path: str | Path) -> HeldOutResults:
     rows = data.get("rows")
     if not isinstance(rows, list) or not rows:
         raise HapticromError(f"accuracy file {path} has no 'rows'")
-    # bench/accuracy.py appends one force per PODI combination, in the summary's order.
+    # One force per PODI combination is appended to each row, in the summary's order.
     responses = [name for name in data["summary"] if name.startswith("podi+")]
     try:
         table = [
@@ -388,40 +389,60 @@ def read_accuracy(path: str | Path) -> HeldOutResults:
         depths=np.array([r[2] for r in table]),
         fem=np.array([r[3] for r in table]),
         rom=np.array([r[4] for r in table]),
+        field=_field_errors(path, data.get("field_errors"), len(table), len(responses)),
     )
 
 
-def _target(combination: str) -> float | None:
-    return ACCURACY_TARGETS.get(combination.split("+")[-1])
+def _field_errors(path: Path, field, rows: int, columns: int) -> np.ndarray | None:
+    """The per-row field errors (R, C), or None when the file has none (format 1)."""
+    if field is None:
+        return None
+    try:
+        array = np.array(field, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise HapticromError(f"accuracy file {path}: 'field_errors' is malformed ({exc})") from None
+    if array.shape != (rows, columns):
+        raise HapticromError(
+            f"accuracy file {path}: 'field_errors' must have one row per row and one column per "
+            f"PODI combination ({rows} x {columns}), got shape {array.shape}"
+        )
+    return array
+
+
+def _error_cells(quantity: str, name: str, error: float) -> tuple[str, str, str]:
+    """(error %, target %, verdict) of one quantity, the target from hapticrom.shared.accuracy."""
+    limit = target(quantity, name)
+    return (
+        f"{100 * error:.2f}",
+        "" if limit is None else f"{100 * limit:g}",
+        verdict(error, limit),
+    )
 
 
 def accuracy_summary_rows(results: HeldOutResults) -> list[tuple[str, ...]]:
-    """(combination, max force error, target, verdict, max field error) per combination."""
+    """(combination, then error, target and verdict of the force and of the surface field)."""
     rows = []
     for name, s in results.summary.items():
         force = float(s.get("max_force_error", np.nan))
-        target = _target(name)
-        verdict = "" if target is None else ("met" if force <= target else "missed")
+        field = float(s.get("max_field_error", np.nan))
         rows.append(
-            (
-                name,
-                f"{100 * force:.2f}",
-                "" if target is None else f"{100 * target:.0f}",
-                verdict,
-                f"{100 * float(s.get('max_field_error', np.nan)):.2f}",
-            )
+            (name, *_error_cells("force", name, force), *_error_cells("field", name, field))
         )
     return rows
 
 
 def accuracy_position_rows(results: HeldOutResults) -> list[tuple[str, ...]]:
-    """Per held-out position: where, deepest depth and force, worst error of each response."""
+    """Per held-out position: where, deepest depth and force, worst force error of each
+    response, then (when the file has them) worst field error of each response."""
     rows = []
     errors = results.errors
+    columns = range(len(results.responses))
     for position in dict.fromkeys(results.positions.tolist()):
         mask = results.positions == position
         deepest = np.flatnonzero(mask)[np.argmax(results.depths[mask])]
-        worst = [np.nanmax(errors[mask, c]) for c in range(len(results.responses))]
+        worst = [np.nanmax(errors[mask, c]) for c in columns]
+        if results.field is not None:
+            worst += [np.nanmax(results.field[mask, c]) for c in columns]
         rows.append(
             (
                 str(position),
@@ -435,9 +456,33 @@ def accuracy_position_rows(results: HeldOutResults) -> list[tuple[str, ...]]:
 
 
 def accuracy_figure(results: HeldOutResults, trained_depth: float) -> Png:
-    fig = _new_figure(7.5, 4.2)
-    ax = fig.add_subplot()
-    errors = 100 * results.errors
+    """Force error vs depth at each held-out position; the field error beside it if known."""
+    panels = [("force", 100 * results.errors, "|F_ROM - F_FEM| / F_FEM (%)")]
+    if results.field is not None:
+        panels.append(("field", 100 * results.field, "surface-field relative L2 error (%)"))
+    fig = _new_figure(7.5 if len(panels) == 1 else 12, 4.2)
+    count = len(set(results.positions.tolist()))
+    for ax, (quantity, errors, ylabel) in zip(fig.subplots(1, len(panels), squeeze=False)[0],
+                                              panels, strict=True):  # fmt: skip
+        _plot_errors(ax, results, errors, quantity)
+        if results.depths.max() > trained_depth:  # force-controlled checks may press deeper
+            label = f"trained depth {trained_depth:.3g} mm (beyond: extrapolated)"
+            ax.axvline(trained_depth, color="0.3", ls=":", lw=1, label=label)
+        title = "Force" if quantity == "force" else "Surface-field"
+        ax.set(
+            xlabel="indentation depth (mm)",
+            ylabel=ylabel,
+            ylim=(0, None),
+            title=f"{title} error at {count} held-out positions (one line each)",
+        )
+        ax.title.set_fontsize(10)
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="center right")  # the errors sit low, the targets high
+    return _render(fig, "held-out-error.png", "force and field errors at held-out positions")
+
+
+def _plot_errors(ax, results: HeldOutResults, errors: np.ndarray, quantity: str) -> None:
+    """One line per position and response, and each response's target (dashed)."""
     for c, name in enumerate(results.responses):
         for k, position in enumerate(dict.fromkeys(results.positions.tolist())):
             mask = results.positions == position
@@ -452,28 +497,15 @@ def accuracy_figure(results: HeldOutResults, trained_depth: float) -> Png:
                 ms=3,
                 label=name if k == 0 else None,
             )
-        target = _target(name)
-        if target is not None:
+        limit = target(quantity, name)
+        if limit is not None:
             ax.axhline(
-                100 * target,
+                100 * limit,
                 color=f"C{c}",
                 ls="--",
                 lw=1,
-                label=f"target {name}: {100 * target:.0f} %",
+                label=f"target {name}: {100 * limit:g} %",
             )
-    if results.depths.max() > trained_depth:  # force-controlled checks may press deeper
-        label = f"trained depth {trained_depth:.3g} mm (beyond: extrapolated)"
-        ax.axvline(trained_depth, color="0.3", ls=":", lw=1, label=label)
-    ax.set(
-        xlabel="indentation depth (mm)",
-        ylabel="|F_ROM - F_FEM| / F_FEM (%)",
-        ylim=(0, None),
-        title=f"Force error at {len(set(results.positions.tolist()))} held-out positions "
-        "(one line each)",
-    )
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8, loc="center right")  # the errors sit low, the targets high
-    return _render(fig, "held-out-error.png", "force error at held-out positions vs depth")
 
 
 # -- 5. step latency -------------------------------------------------------------------------
@@ -769,14 +801,17 @@ def _held_out_section(results: HeldOutResults | None, source: Path | None, png, 
                 "</code>."
             ),
         )
-    columns = [f"max error {name} (%)" for name in results.responses]
-    n = len(results.responses)
+    columns = [f"max force error {name} (%)" for name in results.responses]
+    if results.field is not None:
+        columns += [f"max field error {name} (%)" for name in results.responses]
     return _section(
         HELD_OUT,
         _paragraph(
-            f"From <code>{_esc(source)}</code> (<code>bench/accuracy.py</code>): relative error "
-            "of the normal force along each held-out indentation, and the relative L2 error of "
-            "the surface displacement field."
+            f"From <code>{_esc(source)}</code> (<code>hapticrom accuracy</code>): the relative "
+            "error of the normal force along each held-out indentation, and the relative L2 "
+            "error of the surface displacement field (over the surface vertices), at every load "
+            f"step. Targets: {_esc(_targets_text())}. A missed target is information: it says "
+            "where the model is not to be trusted."
         ),
         _table(
             [
@@ -785,17 +820,32 @@ def _held_out_section(results: HeldOutResults | None, source: Path | None, png, 
                 "target (%)",
                 "verdict",
                 "max surface-field error (%)",
+                "target (%)",
+                "verdict",
             ],
             accuracy_summary_rows(results),
-            numeric={1, 2, 4},
+            numeric={1, 2, 4, 5},
         ),
         _table(
             ["position", "x (mm)", "y (mm)", "z (mm)", "deepest (mm)", "F_FEM there (N)", *columns],
             accuracy_position_rows(results),
-            numeric=set(range(1, 6 + n)),
+            numeric=set(range(1, 6 + len(columns))),
         ),
         _image(png),
     )
+
+
+def _targets_text() -> str:
+    """The targets of hapticrom.shared.accuracy in words."""
+    parts = []
+    for quantity, label in (("force", "force"), ("field", "surface field")):
+        limits = {r: f"{100 * target(quantity, f'podi+{r}'):g} %" for r in RESPONSE_LABELS}
+        if len(set(limits.values())) == 1:
+            parts.append(f"{label} {next(iter(limits.values()))} for every response")
+        else:
+            by_response = [f"{limit} for {RESPONSE_LABELS[r]}" for r, limit in limits.items()]
+            parts.append(f"{label} {' and '.join(by_response)}")
+    return "; ".join(parts)
 
 
 def _latency_section(us: np.ndarray, sample: int, response: str, png: Png) -> str:

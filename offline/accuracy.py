@@ -1,0 +1,481 @@
+"""The held-out check of a reduced model (``hapticrom accuracy``).
+
+The full-order model is solved at tool positions the model was not trained on, exactly as
+in its training campaign (a campaign of its own, resumable, in a work directory); at each
+of them the online runtime predicts the normal force along the same indentation path and
+the surface displacement, with every combination the artifact supports (PODI and
+Grassmann fields with the stored curves; PODI with the POD-ANM series). The errors are
+stated against the targets of :mod:`hapticrom.shared.accuracy` with a verdict.
+
+Held-out positions, inside the trained region and never a training position:
+
+- by default, the centroids of sample triangles spread over the region (thesis Table 2.2
+  layout: one per triangle, in the order of angle and radius), snapped to the nearest
+  surface node;
+- with a seed, surface nodes drawn at random (``numpy.random.default_rng(seed)``) among
+  those of the tool's surface group that lie inside the samples' triangulation in the
+  chart and face the same way as the samples.
+
+Selection is numpy; the solves go through :func:`~hapticrom.offline.campaign.run_campaign`
+(its progress bar); the comparison uses the online runtime; output is a text table on
+rank 0 and a JSON file that ``hapticrom report --accuracy`` reads. Units: mm, N.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mpi4py import MPI
+
+from hapticrom.meshes.msh import Surface, read_surface
+from hapticrom.offline.mpi import on_rank_zero
+from hapticrom.shared.accuracy import QUANTITIES, TARGETS, target, verdict
+from hapticrom.shared.errors import HapticromError, InputError
+
+FORMAT, VERSION = "hapticrom-accuracy", 2
+RESPONSE_COLUMNS = {"curves": "curves", "anm": "ANM"}
+
+
+@dataclass(frozen=True)
+class HeldOutPosition:
+    """A held-out tool position: a surface node (mm), how far the snap moved it, why chosen."""
+
+    point: tuple[float, float, float]
+    moved: float  # mm, in the chart, from the chosen point to the node (0: a node was drawn)
+    source: str
+
+
+@dataclass(frozen=True)
+class HeldOutPlan:
+    """What to solve: the training campaign with the held-out positions instead of its own."""
+
+    model: str
+    campaign: dict
+    positions: list[HeldOutPosition]
+    method: str  # "centroids" or "random"
+    seed: int | None
+    requested: int
+
+
+@dataclass
+class Step:
+    """One load step at one held-out position: full order and each combination's ROM."""
+
+    position: int
+    point: list[float]
+    depth: float  # mm, along the load direction
+    f_fem: float  # N, normal force of the full-order model
+    force: dict[str, float] = field(default_factory=dict)  # N, per combination
+    field: dict[str, float] = field(default_factory=dict)  # relative L2 error, per combination
+
+
+# -- selection (numpy) -------------------------------------------------------------------
+def chart_coordinates(samples: dict, x: np.ndarray) -> np.ndarray:
+    """Chart coordinates (..., 2) mm of points ``x`` (..., 3): axes (x - origin)."""
+    return (np.asarray(x) - samples["chart_origin"]) @ samples["chart_axes"].T
+
+
+def trained_nodes(samples: dict, surface: Surface) -> set[int]:
+    """Indices of the surface nodes that are training positions."""
+    d = np.linalg.norm(surface.nodes[None, :, :] - samples["points"][:, None, :], axis=2)
+    return {int(i) for i in np.argmin(d, axis=1)}
+
+
+def in_triangles(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(N,) True where a 2-D point lies in (or on) one of the triangles."""
+    a = vertices[triangles[:, 0]]
+    edges = np.stack([vertices[triangles[:, 1]] - a, vertices[triangles[:, 2]] - a], axis=-1)
+    offsets = points[:, None, :] - a[None]  # (N, S, 2)
+    lam = np.linalg.solve(edges[None], offsets[..., None])[..., 0]  # (N, S, 2)
+    tol = 1e-9
+    inside = (lam >= -tol).all(axis=-1) & (lam.sum(axis=-1) <= 1 + tol)
+    return inside.any(axis=1)
+
+
+def region_nodes(samples: dict, surface: Surface) -> np.ndarray:
+    """Surface nodes of the trained region: inside the samples' triangulation in the chart,
+    facing the same way as the samples (a plane chart also sees the far side of a cap)."""
+    inside = in_triangles(
+        chart_coordinates(samples, surface.nodes), samples["chart_points"], samples["triangles"]
+    )
+    facing = surface.normals @ samples["normals"].mean(axis=0) > 0
+    return np.flatnonzero(inside & facing)
+
+
+def centroid_positions(samples: dict, surface: Surface, count: int) -> list[HeldOutPosition]:
+    """Up to ``count`` centroids of sample triangles spread over the region, snapped to nodes.
+
+    Triangles are ordered by angle and radius and ``count`` of them picked evenly along that
+    order. A centroid goes to the nearest node of the trained region (:func:`region_nodes`:
+    the nearest node of the whole surface may lie just outside it, where the runtime clamps);
+    one whose node is a training position or already taken gives way to the next unpicked
+    triangle.
+    """
+    chart, triangles = samples["chart_points"], samples["triangles"]
+    centroids = chart[triangles].mean(axis=1)
+    order = np.argsort(np.arctan2(centroids[:, 1], centroids[:, 0]) + 10 * np.hypot(*centroids.T))
+    spread = order[np.linspace(0, len(order) - 1, min(count, len(order))).astype(int)]
+    picked = {int(t) for t in spread}
+    candidates = [int(t) for t in spread] + [int(t) for t in order if int(t) not in picked]
+    region = region_nodes(samples, surface)
+    taken, positions = trained_nodes(samples, surface), []
+    for t in candidates if len(region) else []:
+        x = samples["chart_origin"] + centroids[t] @ samples["chart_axes"]
+        node = int(region[np.argmin(np.linalg.norm(surface.nodes[region] - x, axis=1))])
+        if node in taken:
+            continue
+        taken.add(node)
+        moved = float(
+            np.linalg.norm(chart_coordinates(samples, surface.nodes[node]) - centroids[t])
+        )
+        point = tuple(float(c) for c in surface.nodes[node])
+        positions.append(HeldOutPosition(point, moved, f"centroid of sample triangle {t}"))
+        if len(positions) == count:
+            break
+    return positions
+
+
+def random_positions(
+    samples: dict, surface: Surface, count: int, seed: int
+) -> list[HeldOutPosition]:
+    """Up to ``count`` distinct surface nodes of the trained region, not training positions,
+    drawn with ``numpy.random.default_rng(seed)``."""
+    trained = trained_nodes(samples, surface)
+    candidates = [int(n) for n in region_nodes(samples, surface) if int(n) not in trained]
+    if not candidates:
+        return []
+    rng = np.random.default_rng(seed)
+    picked = rng.choice(candidates, size=min(count, len(candidates)), replace=False)
+    return [
+        HeldOutPosition(
+            tuple(float(c) for c in surface.nodes[n]), 0.0, f"random surface node (seed {seed})"
+        )
+        for n in picked
+    ]
+
+
+# -- the plan (rank 0: the artifact and the mesh) -------------------------------------------
+def _mesh_file(model: str, info: dict) -> Path:
+    """The mesh the model was trained on, checked against the digest the artifact records."""
+    from hapticrom.shared.checksum import file_digest
+
+    if "mesh_file" not in info:
+        raise InputError(f"{model} does not name the mesh it was trained on (mesh_file)")
+    mesh = Path(info["mesh_file"])
+    if not mesh.is_file():
+        raise InputError(
+            f"{model} was trained on {mesh}, which is not found: the held-out solves need it"
+        )
+    if "mesh_sha256" in info and file_digest(mesh) != info["mesh_sha256"]:
+        raise InputError(
+            f"{mesh} has changed since {model} was trained on it (SHA-256 differs): "
+            "held-out solves on it would not test this model"
+        )
+    return mesh
+
+
+def _plan(model: str, count: int, seed: int | None) -> HeldOutPlan:
+    from hapticrom.shared.artifact import read_artifact
+
+    artifact = read_artifact(model)
+    info, samples = artifact.group_attrs["model"], artifact["samples"]
+    if "campaign" not in artifact.attrs:
+        raise InputError(f"{model} does not record its training campaign: nothing to repeat")
+    mesh = _mesh_file(model, info)
+    surface = read_surface(mesh, info["surface_group"])
+    if seed is None:
+        positions = centroid_positions(samples, surface, count)
+    else:
+        positions = random_positions(samples, surface, count, seed)
+    if not positions:
+        raise InputError(f"{model}: no surface node of the trained region is left to hold out")
+    campaign = json.loads(json.dumps(artifact.attrs["campaign"]))  # a deep copy
+    campaign.pop("cutting", None)  # the solves only
+    campaign["positions"] = {"points": [list(p.point) for p in positions]}
+    campaign.setdefault("campaign", {})["name"] = "held-out"
+    campaign["mesh"]["file"] = str(mesh)
+    method = "centroids" if seed is None else "random"
+    return HeldOutPlan(str(model), campaign, positions, method, seed, count)
+
+
+def plan_held_out(model: str, count: int, seed: int | None = None, comm=MPI.COMM_WORLD):
+    """The held-out positions of ``model`` (rank 0 reads; every rank gets the plan)."""
+    return on_rank_zero(comm, _plan, str(model), count, seed)
+
+
+def default_work(model: str | Path, count: int, seed: int | None) -> Path:
+    """MODEL.heldout-N (centroids) or MODEL.heldout-N-seedS: one directory per selection."""
+    tag = f"{count}" if seed is None else f"{count}-seed{seed}"
+    return Path(model).with_suffix(f".heldout-{tag}")
+
+
+# -- the full-order solves --------------------------------------------------------------------
+def held_out_config(plan: HeldOutPlan):
+    from hapticrom.offline.campaign import CampaignConfig
+
+    return CampaignConfig.from_dict(plan.campaign, source=f"held-out campaign of {plan.model}")
+
+
+def solve_held_out(plan: HeldOutPlan, work, comm=MPI.COMM_WORLD, restart=False, verbose=True):
+    """Run the held-out campaign in ``work`` (resumable, the campaign's progress bar on rank
+    0 when ``verbose``); its CampaignReport."""
+    from hapticrom.offline.campaign import run_campaign
+
+    return run_campaign(held_out_config(plan), work, comm, restart=restart, verbose=verbose)
+
+
+# -- the comparison (rank 0, online runtime) ----------------------------------------------------
+def combinations(model) -> list[str]:
+    names = ["podi+curves"]
+    if model.grassmann:
+        names.append("grassmann+curves")
+    if model.anm:
+        names.append("podi+anm")
+    return names
+
+
+def relative_l2(approx: np.ndarray, exact: np.ndarray) -> float:
+    norm = float(np.linalg.norm(exact))
+    return float(np.linalg.norm(approx - exact)) / norm if norm > 0 else float("nan")
+
+
+def compare_position(model, index: int, data: dict, attrs: dict) -> tuple[list[Step], bool]:
+    """Every load step of one held-out solve against each combination; and whether the
+    runtime clamped the contact (outside its trained region)."""
+    direction = np.asarray(attrs["direction"])
+    point = np.asarray(attrs["point"])
+    steps = [
+        Step(index, point.tolist(), float(u @ direction), float(f @ direction))
+        for u, f in zip(data["contact_displacement"], data["force"], strict=True)
+    ]
+    nodes = model.artifact["surface"]["nodes"]
+    out = np.zeros_like(model.vertices)
+    outside = False
+    for name in combinations(model):
+        sim = model.simulator(*name.split("+"))
+        sim.set_contact(point)
+        outside |= bool(sim.outside_trained_region)
+        for step, u in zip(steps, data["displacement"], strict=True):
+            normal = sim.contact_normal.copy()
+            step.force[name] = float(sim.step_displacement(-step.depth * normal) @ normal)
+            sim.surface_displacement(out)
+            step.field[name] = relative_l2(out, u.reshape(-1, 3)[nodes])
+    return steps, outside
+
+
+def force_error(step: Step, name: str) -> float:
+    if step.f_fem <= 0:
+        return float("nan")
+    return abs(step.force[name] - step.f_fem) / step.f_fem
+
+
+def summarise(steps: list[Step], names: list[str]) -> dict[str, dict]:
+    """Per combination: the largest force and field errors, their targets and verdicts."""
+    summary = {}
+    for name in names:
+        errors = {
+            "force": [force_error(s, name) for s in steps],
+            "field": [s.field[name] for s in steps],
+        }
+        entry = {}
+        for quantity, values in errors.items():
+            finite = [v for v in values if np.isfinite(v)]
+            worst = max(finite) if finite else float("nan")
+            limit = target(quantity, name)
+            entry[f"max_{quantity}_error"] = worst
+            entry[f"{quantity}_target"] = limit
+            entry[f"{quantity}_verdict"] = verdict(worst, limit)
+        summary[name] = entry
+    return summary
+
+
+@dataclass
+class AccuracyResult:
+    plan: HeldOutPlan
+    steps: list[Step]
+    summary: dict[str, dict]
+    names: list[str]
+    failed: dict[int, str]  # held-out position -> why its full-order solve failed
+    outside: list[int]  # positions the runtime clamped to its trained region
+    seconds: dict[str, float]
+
+
+def compare(plan: HeldOutPlan, work: str | Path, failed: list[int]) -> AccuracyResult:
+    """The reduced model against every solved held-out position stored in ``work``."""
+    import hapticrom.online as online
+    from hapticrom.offline.store import SnapshotStore
+
+    t0 = time.perf_counter()
+    model = online.load(plan.model)
+    store = SnapshotStore(work)
+    steps, outside, why = [], [], {}
+    for index in store.completed():
+        data, attrs = store.read_position(index)
+        if index in failed or attrs.get("status") != "solved":
+            why[index] = str(attrs.get("message") or attrs.get("status"))
+            continue
+        position_steps, clamped = compare_position(model, index, data, attrs)
+        steps.extend(position_steps)
+        if clamped:
+            outside.append(index)
+    names = combinations(model)
+    seconds = {"comparison": time.perf_counter() - t0}
+    return AccuracyResult(plan, steps, summarise(steps, names), names, why, outside, seconds)
+
+
+# -- output (rank 0) -------------------------------------------------------------------------------
+def positions_text(plan: HeldOutPlan) -> str:
+    """The held-out positions with how far the snap to a surface node moved each (mm)."""
+    if plan.method == "centroids":
+        how = (
+            "centroids of sample triangles, snapped to the nearest surface node of the trained "
+            "region; 'snap moved': from the centroid to the node, in the chart"
+        )
+    else:
+        how = f"random surface nodes of the trained region, seed {plan.seed}"
+    lines = [
+        f"held-out check of {plan.model}: {len(plan.positions)} position(s) ({how})"
+        + (f"; asked for {plan.requested}" if len(plan.positions) < plan.requested else ""),
+        f"{'pos':>4} {'x':>8} {'y':>8} {'z':>8}  {'snap moved (mm)':>15}  chosen as",
+    ]
+    for i, p in enumerate(plan.positions):
+        x, y, z = p.point
+        lines.append(f"{i:4d} {x:8.3f} {y:8.3f} {z:8.3f}  {p.moved:15.3f}  {p.source}")
+    return "\n".join(lines)
+
+
+def _podi_names(names: list[str]) -> list[str]:
+    return [n for n in names if n.startswith("podi+")]
+
+
+def steps_text(result: AccuracyResult) -> str:
+    """A table per held-out position (thesis Table 2.2 layout, plus the field error)."""
+    podi = _podi_names(result.names)
+    head = f"{'u (mm)':>8} {'F_FEM (N)':>10}"
+    for name in podi:
+        label = RESPONSE_COLUMNS[name.split("+")[1]]
+        head += f" {'F_' + label + ' (N)':>12} {'err %':>6} {'field %':>7}"
+    blocks = []
+    for index in dict.fromkeys(s.position for s in result.steps):
+        rows = [s for s in result.steps if s.position == index]
+        x, y, z = rows[0].point
+        note = "  (outside the trained region: clamped)" if index in result.outside else ""
+        lines = [f"\nheld-out position {index} at ({x:.3f}, {y:.3f}, {z:.3f}) mm{note}", head]
+        for s in rows:
+            line = f"{s.depth:8.4f} {s.f_fem:10.5f}"
+            for name in podi:
+                err = 100 * force_error(s, name)
+                line += f" {s.force[name]:12.5f} {err:6.2f} {100 * s.field[name]:7.2f}"
+            lines.append(line)
+        blocks.append("\n".join(lines))
+    for index, why in sorted(result.failed.items()):
+        blocks.append(f"\nheld-out position {index}: the full-order solve failed ({why})")
+    return "\n".join(blocks)
+
+
+def summary_text(result: AccuracyResult) -> str:
+    positions = len({s.position for s in result.steps})
+    lines = [
+        f"\nsummary: largest errors over {positions} held-out position(s) and every load step",
+        f"{'combination':<18} {'force':>8} {'target':>7} {'verdict':<8}"
+        f" {'field':>8} {'target':>7} {'verdict':<8}",
+    ]
+    for name, s in result.summary.items():
+        cells = []
+        for quantity in ("force", "field"):
+            limit = s[f"{quantity}_target"]
+            limit_text = "-" if limit is None else f"{100 * limit:g} %"
+            cells.append(
+                f"{100 * s[f'max_{quantity}_error']:6.2f} % {limit_text:>7} "
+                f"{s[f'{quantity}_verdict']:<8}"
+            )
+        lines.append(f"{name:<18} " + " ".join(cells))
+    lines += [f"  {q}: {meaning}" for q, meaning in QUANTITIES.items()]
+    lines.append(
+        "  verdicts are information: a missed target says where the model is not to be "
+        "trusted, not that the check failed"
+    )
+    return "\n".join(lines)
+
+
+def result_json(result: AccuracyResult) -> dict:
+    """The JSON of ``hapticrom accuracy --json`` (read by ``hapticrom report --accuracy``).
+
+    ``rows``: [position, [x, y, z], depth, F_FEM, one F_ROM per PODI combination of the
+    summary, in its order] (format 1 had these, and the summary's max errors, only);
+    ``field_errors``: the relative L2 field error of the same combinations, row by row.
+    """
+    podi = _podi_names(result.names)
+    plan = result.plan
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "model": plan.model,
+        "selection": {"method": plan.method, "seed": plan.seed, "requested": plan.requested},
+        "positions": [
+            {"position": i, "point": list(p.point), "snap_moved_mm": p.moved, "source": p.source}
+            for i, p in enumerate(plan.positions)
+        ],
+        "targets": TARGETS,
+        "columns": ["position", "point_mm", "depth_mm", "force_fem_n"]
+        + [f"force_{name}_n" for name in podi],
+        "summary": result.summary,
+        "rows": [
+            [s.position, s.point, s.depth, s.f_fem, *(s.force[n] for n in podi)]
+            for s in result.steps
+        ],  # fmt: skip
+        "field_errors": [[s.field[n] for n in podi] for s in result.steps],
+        "failed": {str(i): why for i, why in result.failed.items()},
+        "outside_trained_region": result.outside,
+        "seconds": result.seconds,
+    }
+
+
+def write_json(result: AccuracyResult, path: str | Path) -> None:
+    """Write the JSON atomically: a failed write leaves the old file (or nothing)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    try:
+        tmp.write_text(json.dumps(result_json(result), indent=1) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise HapticromError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+# -- the check ----------------------------------------------------------------------------------
+def run_accuracy(
+    plan: HeldOutPlan,
+    work: str | Path,
+    comm=MPI.COMM_WORLD,
+    restart: bool = False,
+    json_path: str | Path | None = None,
+    quiet: bool = False,
+) -> AccuracyResult | None:
+    """Solve, compare, print (rank 0) and write the JSON; the result on rank 0, None elsewhere."""
+    if comm.rank == 0 and not quiet:
+        print(positions_text(plan), flush=True)
+    t0 = time.perf_counter()
+    report = solve_held_out(plan, work, comm, restart, verbose=not quiet)
+    solves = time.perf_counter() - t0
+    if comm.rank != 0:
+        return None
+    result = compare(plan, work, report.failed)
+    result.seconds["solves"] = solves
+    if not quiet:
+        print(steps_text(result) + "\n" + summary_text(result), flush=True)
+        print(
+            f"held-out solves {solves:.1f} s wall ({comm.size} rank(s)), "
+            f"comparison {result.seconds['comparison']:.1f} s",
+            flush=True,
+        )
+    if json_path is not None:
+        write_json(result, json_path)
+        if not quiet:
+            print(f"wrote {json_path}", flush=True)
+    return result

@@ -1,0 +1,209 @@
+"""``hapticrom accuracy``: the held-out check of a reduced model against the full order.
+
+Serial tests use the session's small model (5 positions on the coarse cornea, displacement
+control); the MPI test runs the command on 2 ranks and compares it with a serial run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mpi4py import MPI
+
+from hapticrom.meshes.msh import read_surface
+from hapticrom.offline import accuracy
+from hapticrom.shared.accuracy import FIELD_TARGET, FORCE_TARGETS, TARGETS
+from hapticrom.shared.artifact import read_artifact
+
+
+def model_surface(model: Path):
+    artifact = read_artifact(model)
+    info = artifact.group_attrs["model"]
+    return artifact["samples"], read_surface(info["mesh_file"], info["surface_group"])
+
+
+def node_index(surface, point) -> int:
+    distances = np.linalg.norm(surface.nodes - np.asarray(point), axis=1)
+    assert distances.min() < 1e-12, "not a surface node"
+    return int(np.argmin(distances))
+
+
+def with_positions(plan: accuracy.HeldOutPlan, positions) -> accuracy.HeldOutPlan:
+    """The plan with other positions (the campaign's points follow)."""
+    campaign = {**plan.campaign, "positions": {"points": [list(p.point) for p in positions]}}
+    return dataclasses.replace(plan, positions=list(positions), campaign=campaign)
+
+
+# -- selection -----------------------------------------------------------------------------
+@pytest.mark.serial
+def test_seed_gives_reproducible_distinct_positions_in_the_region(small_artifact):
+    samples, surface = model_surface(small_artifact)
+    trained = accuracy.trained_nodes(samples, surface)
+    region = set(accuracy.region_nodes(samples, surface).tolist())
+    assert len(trained) == len(samples["points"]) == 5
+    candidates = region - trained
+    assert len(candidates) >= 4, "the test model's region is too small to draw from"
+
+    first = accuracy.random_positions(samples, surface, 3, seed=7)
+    again = accuracy.random_positions(samples, surface, 3, seed=7)
+    other = accuracy.random_positions(samples, surface, 3, seed=8)
+    assert first == again
+    assert [p.point for p in first] != [p.point for p in other]
+    for positions in (first, other):
+        nodes = [node_index(surface, p.point) for p in positions]
+        assert len(set(nodes)) == 3  # distinct
+        assert set(nodes) <= candidates  # in the trained region, never a training position
+        assert all(p.moved == 0.0 and "seed" in p.source for p in positions)
+    # Asking for more than there are gives all of them, each once.
+    every = accuracy.random_positions(samples, surface, 10_000, seed=1)
+    assert {node_index(surface, p.point) for p in every} == candidates
+
+
+@pytest.mark.serial
+def test_centroids_snap_to_region_nodes_and_say_how_far(small_artifact):
+    samples, surface = model_surface(small_artifact)
+    trained = accuracy.trained_nodes(samples, surface)
+    region = set(accuracy.region_nodes(samples, surface).tolist())
+    positions = accuracy.centroid_positions(samples, surface, 8)
+    triangles = len(samples["triangles"])
+    assert 1 <= len(positions) <= triangles
+    nodes = [node_index(surface, p.point) for p in positions]
+    assert len(set(nodes)) == len(nodes) and set(nodes) <= region - trained
+    for p, node in zip(positions, nodes, strict=True):
+        t = int(p.source.removeprefix("centroid of sample triangle "))
+        centroid = samples["chart_points"][samples["triangles"][t]].mean(axis=0)
+        chart = accuracy.chart_coordinates(samples, surface.nodes[node])
+        assert p.moved == pytest.approx(np.linalg.norm(chart - centroid), abs=1e-12)
+    assert accuracy.centroid_positions(samples, surface, 8) == positions  # deterministic
+
+
+# -- errors against the full order -----------------------------------------------------------
+@pytest.mark.serial
+def test_errors_are_against_a_full_order_solve(small_artifact, tmp_path):
+    """At a training position the check finds ~0; at a held-out one, the full order's force
+    (checked against an independent solve) differs from the ROM's."""
+    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.positions import plan_positions
+
+    plan = accuracy.plan_held_out(small_artifact, 1, comm=MPI.COMM_SELF)
+    samples, surface = model_surface(small_artifact)
+    training = accuracy.HeldOutPosition(tuple(samples["points"][1]), 0.0, "training")
+    plan = with_positions(plan, [training, plan.positions[0]])
+    result = accuracy.run_accuracy(plan, tmp_path / "work", MPI.COMM_SELF, quiet=True)
+    assert not result.failed and set(result.names) == {
+        "podi+curves",
+        "grassmann+curves",
+        "podi+anm",
+    }
+    steps = {i: [s for s in result.steps if s.position == i] for i in (0, 1)}
+    assert len(steps[0]) == len(steps[1]) == 4  # the campaign's 4 load steps
+
+    def worst(i, name, quantity):
+        if quantity == "force":
+            return max(accuracy.force_error(s, name) for s in steps[i])
+        return max(s.field[name] for s in steps[i])
+
+    # displacement control: the training depths are the stored knots, reproduced exactly
+    assert worst(0, "podi+curves", "force") < 1e-8
+    assert worst(0, "podi+anm", "force") < 1e-3  # the series' own tolerance
+    assert worst(0, "podi+curves", "field") < 1e-2  # the POD truncation only
+    for name in result.names:
+        assert 1e-4 < worst(1, name, "force") < 0.2, name
+        assert worst(1, name, "field") > 10 * worst(0, "podi+curves", "field"), name
+
+    # An independent full-order solve at the held-out position gives the same F_FEM.
+    config = accuracy.held_out_config(plan)
+    position = plan_positions(surface, config.positions)[1]
+    problem = dataclasses.replace(config.problem, load=config.load.at(position))
+    solve = FullOrderModel(problem, comm=MPI.COMM_SELF, verbose=False).solve()
+    fem = solve.force @ config.load.unit_direction(position)
+    np.testing.assert_allclose([s.f_fem for s in steps[1]], fem, rtol=1e-10)
+    assert all(f > 0 for f in fem)
+    # and the summary is the worst of the steps, with the targets of the one place
+    for name, entry in result.summary.items():
+        assert entry["max_force_error"] == max(worst(0, name, "force"), worst(1, name, "force"))
+        assert entry["force_target"] == FORCE_TARGETS[name.split("+")[1]]
+        assert entry["field_target"] == FIELD_TARGET
+        assert entry["field_verdict"] == ("met" if entry["max_field_error"] <= 0.03 else "missed")
+
+
+@pytest.mark.serial
+def test_command_prints_positions_tables_verdicts_and_writes_json(small_artifact, tmp_path):
+    from hapticrom.report import read_accuracy
+
+    out = tmp_path / "accuracy.json"
+    args = ["accuracy", small_artifact, "--positions", "2", "--seed", "3"]
+    code = "import sys\nfrom hapticrom.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *map(str, args), "--work", tmp_path / "w", "--json", out],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr
+    text = proc.stdout
+    assert "2 position(s) (random surface nodes of the trained region, seed 3)" in text
+    assert "snap moved (mm)" in text and text.count("random surface node (seed 3)") == 2
+    assert "campaign 'held-out': 2 tool positions" in text  # the campaign's progress
+    assert "held-out position 0 at (" in text and "held-out position 1 at (" in text
+    for name in ("podi+curves", "grassmann+curves", "podi+anm"):
+        line = next(row for row in text.splitlines() if row.startswith(name))
+        target_force = f"{100 * FORCE_TARGETS[name.split('+')[1]]:.0f} %"
+        assert target_force in line and "3 %" in line, line
+        assert line.split().count("met") + line.split().count("missed") == 2, line
+    data = json.loads(out.read_text())
+    assert data["format"] == "hapticrom-accuracy" and data["version"] == 2
+    assert data["targets"] == json.loads(json.dumps(TARGETS))
+    assert data["selection"] == {"method": "random", "seed": 3, "requested": 2}
+    assert len(data["positions"]) == 2 and len(data["rows"]) == 2 * 4
+    for name, entry in data["summary"].items():
+        assert 0 < entry["max_force_error"] < 0.2, name
+        assert entry["field_target"] == FIELD_TARGET and entry["field_verdict"] in ("met", "missed")
+    results = read_accuracy(out)  # what the report reads
+    assert results.responses == ["podi+curves", "podi+anm"]
+    assert results.field.shape == (8, 2) and np.all(results.field > 0)
+    assert {tuple(p["point"]) for p in data["positions"]} == {tuple(r[1]) for r in data["rows"]}
+
+
+# -- two ranks ----------------------------------------------------------------------------------
+@pytest.mark.mpi
+def test_two_ranks_give_the_serial_result(mesh_dir, tmp_path_factory):
+    from conftest import campaign_toml
+
+    from hapticrom.cli import main
+    from hapticrom.offline.campaign import CampaignConfig, run_campaign
+    from hapticrom.offline.reduction import reduce_campaign
+
+    comm = MPI.COMM_WORLD
+    if comm.size < 2:
+        pytest.skip("run under mpirun -n 2")
+    root = Path(comm.bcast(str(tmp_path_factory.mktemp("acc")) if comm.rank == 0 else None))
+    model = root / "model.h5"
+    if comm.rank == 0:
+        (root / "c.toml").write_text(campaign_toml(mesh_dir / "cornea-coarse.msh", steps=3))
+        config = CampaignConfig.from_toml(root / "c.toml")
+        run_campaign(config, root / "store", MPI.COMM_SELF, verbose=False)
+        reduce_campaign(root / "store", model, MPI.COMM_SELF, verbose=False)
+    comm.barrier()
+    args = ["accuracy", str(model), "--positions", "2", "--work", str(root / "w2")]
+    assert main([*args, "--json", str(root / "two.json")]) == 0
+    if comm.rank != 0:
+        return
+    plan = accuracy.plan_held_out(model, 2, comm=MPI.COMM_SELF)
+    serial = accuracy.run_accuracy(plan, root / "w1", MPI.COMM_SELF, quiet=True)
+    two = json.loads((root / "two.json").read_text())
+    assert len(two["rows"]) == len(serial.steps) == 2 * 3
+    for row, step in zip(two["rows"], serial.steps, strict=True):
+        assert row[0] == step.position and row[1] == step.point
+        np.testing.assert_allclose(row[2:4], [step.depth, step.f_fem], rtol=1e-9)
+        np.testing.assert_allclose(
+            row[4:], [step.force["podi+curves"], step.force["podi+anm"]], rtol=1e-9
+        )
