@@ -211,17 +211,17 @@ def _anm_records(artifact: Artifact) -> dict:
     }
 
 
-def load(path: str | Path, warm_up: bool = True) -> ReducedModel:
-    """Load and verify a reduced-model artifact; optionally run every kernel once.
+def load(path: str | Path) -> ReducedModel:
+    """Load and verify a reduced-model artifact, then sweep it with every kernel.
 
-    Anything wrong with the file, found by the reader or by the warm-up (which
-    checks that every kernel returns finite values), is an ``ArtifactError``.
+    Anything wrong with the file, found by the reader or by the sweep, is an
+    ``ArtifactError``. The sweep also compiles the kernels (or loads them from
+    the cache), so the servo loop never compiles.
     """
     artifact = read_artifact(path)
     try:
         model = ReducedModel.from_artifact(artifact)
-        if warm_up:
-            _warm_up(model)
+        _sweep(model)
     except ArtifactError:
         raise
     except Exception as exc:  # noqa: BLE001 - a file's fault until proven otherwise
@@ -231,8 +231,20 @@ def load(path: str | Path, warm_up: bool = True) -> ReducedModel:
     return model
 
 
-def _warm_up(model: ReducedModel) -> None:
-    """Compile (or load from cache) and run every kernel the model can use."""
+def sweep_points(model: ReducedModel) -> np.ndarray:
+    """Where the sweep touches: every sample, every sample triangle's centroid and the
+    midpoints of its edges (the blends of two and three samples' data)."""
+    p, t = model.sample_points, model.sample_triangles
+    corners = p[t]  # (S, 3, 3)
+    midpoints = 0.5 * (corners + np.roll(corners, 1, axis=1))
+    return np.vstack([p, corners.mean(axis=1), midpoints.reshape(-1, 3)])
+
+
+def _sweep(model: ReducedModel) -> None:
+    """Every response at every sweep point, at half, all and 1.5x the trained depth and force:
+    forces, displacements and surfaces finite and within the simulator's limits (10x the
+    trained depth and force). Catches what no rule on single datasets sees (a field that
+    overflows in the blend of two samples, a force that runs away beyond the trained depth)."""
     combos = [("podi", "curves")]
     if model.grassmann:
         combos.append(("grassmann", "curves"))
@@ -241,11 +253,21 @@ def _warm_up(model: ReducedModel) -> None:
     surface = np.empty_like(model.vertices)
     for interpolation, response in combos:
         sim = model.simulator(interpolation, response)
-        sim.set_contact(model.sample_points[0])
-        outputs = [
-            sim.step_displacement(-0.5 * model.trained_depth * sim.contact_normal).copy(),
-            sim.step_force(-0.5 * model.trained_force * sim.contact_normal).copy(),
-            sim.surface_displacement(surface),
-        ]
-        if not all(np.all(np.isfinite(out)) for out in outputs):
-            raise ArtifactError(f"{model.path}: the model's {response} response is not finite")
+        for point in sweep_points(model):
+            sim.set_contact(point)
+            n = np.array(sim.contact_normal)
+            for scale in (0.5, 1.0, 1.5):
+                force = sim.step_displacement(-scale * model.trained_depth * n)
+                _within(model, response, "force", force, sim.max_force)
+                _within(model, response, "surface", sim.surface_displacement(surface),
+                        sim.max_displacement)  # fmt: skip
+                d = sim.step_force(-scale * model.trained_force * n)
+                _within(model, response, "displacement", d, sim.max_displacement)
+
+
+def _within(model: ReducedModel, response: str, what: str, value: np.ndarray, limit: float):
+    if not (np.all(np.isfinite(value)) and np.max(np.abs(value)) <= limit):
+        raise ArtifactError(
+            f"{model.path}: the model's {response} {what} is not finite or beyond the "
+            f"simulator's limit ({limit:.3g}) inside the trained region"
+        )

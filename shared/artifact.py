@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -514,7 +515,7 @@ class _Reading:
         ):
             raise self.fail(f"{name} is chunked or filtered (the writer stores data contiguously)")
         _check_meta(group, spec, dset.dtype, dset.shape, symbols, str(self.path))
-        nbytes = int(np.prod(dset.shape, dtype=np.int64)) * dset.dtype.itemsize
+        nbytes = math.prod(int(d) for d in dset.shape) * dset.dtype.itemsize  # no int64 wrap
         stored = dset.id.get_storage_size()
         if nbytes > self.size or (plist.get_layout() == h5py.h5d.CONTIGUOUS and stored != nbytes):
             raise self.fail(f"{name} declares {nbytes} bytes but stores {stored}")

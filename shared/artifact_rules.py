@@ -40,6 +40,14 @@ SYMMETRY_TOL = 1e-6
 # two agree to 0.1 % on the trained models (docs: ARTIFACT.md); a tampered or broken series is
 # off by far more.
 ANM_CURVE_TOL = 0.05
+# Physical bounds no surgical model comes near (a tool force of 10 tonnes, a 10 m dent): past
+# them a file is absurd, and squares of forces would overflow float64 in a consumer.
+MAX_FORCE = 1e5  # N
+MAX_STIFFNESS = 1e9  # N/mm
+MAX_LENGTH = 1e4  # mm
+MAX_SECTIONS = 256  # POD-ANM sections per sample (4 to 6 in practice): buffer and scan sizes
+# Neighbouring samples' normals within 60 degrees: their blend keeps a length >= 1/sqrt(2).
+MIN_NORMAL_DOT = 0.5
 # A section starts where its predecessor ends up to the reduced Newton correction at its start
 # (measured up to 1.4e-6 of the force scale on the test model).
 ANM_JUMP_TOL = 1e-3
@@ -232,17 +240,36 @@ def _depth_grid(artifact) -> None:
         raise _fail(artifact, "samples/depth must start at 0 and increase")
     if not np.allclose(steps, steps[0], rtol=1e-9, atol=0):
         raise _fail(artifact, "samples/depth must be uniform")
+    if depth[-1] > MAX_LENGTH:
+        raise _fail(artifact, f"samples/depth reaches {depth[-1]:.3g} mm (over {MAX_LENGTH:g})")
 
 
 def _force_curves(artifact) -> None:
-    force = artifact["samples"]["force"]
+    s = artifact["samples"]
+    force, slope = s["force"], s["stiffness"]
     scale = np.max(force, axis=1)
-    if np.any(scale <= 0):
-        raise _fail(artifact, "samples/force: a sample whose force never rises above 0")
+    if np.any(scale <= 0) or np.any(scale > MAX_FORCE):
+        raise _fail(
+            artifact, f"samples/force: a sample's largest force not in (0, {MAX_FORCE:g}] N"
+        )
     if np.any(abs(force[:, 0]) > 1e-6 * scale):
         raise _fail(artifact, "samples/force must be 0 at depth 0")
     if np.any(np.diff(force, axis=1) < 0):
         raise _fail(artifact, "samples/force is not increasing with depth")
+    _monotone_slopes(artifact, force, slope, s["depth"][1])
+
+
+def _monotone_slopes(artifact, force, slope, step) -> None:
+    """The knot slopes of a monotone cubic Hermite (Fritsch-Carlson): 0 <= s_k <= 3 times each
+    adjacent secant, and a positive last slope (the runtime extrapolates and inverts with it).
+    Within these bounds the curve neither overshoots nor turns back between knots."""
+    secant = np.diff(force, axis=1) / step
+    bound = np.minimum(np.c_[secant[:, :1], secant], np.c_[secant, secant[:, -1:]])
+    tol = 1e-9 * np.max(slope, axis=1, keepdims=True)
+    if np.any(slope > 3 * bound + tol):
+        raise _fail(artifact, "samples/stiffness exceeds 3x an adjacent secant of samples/force")
+    if np.any(slope[:, -1] <= 0) or np.any(slope > MAX_STIFFNESS):
+        raise _fail(artifact, "samples/stiffness must end positive and stay below 1e9 N/mm")
 
 
 def _chart(artifact) -> None:
@@ -255,6 +282,14 @@ def _chart(artifact) -> None:
     det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
     if len(det) == 0 or np.any(abs(det) <= 1e-9 * extent**2):
         raise _fail(artifact, "samples/triangles has a degenerate (zero-area) triangle")
+    n = s["normals"][s["triangles"]]  # (S, 3 corners, 3)
+    dots = np.einsum("sij,skj->sik", n, n)
+    if np.any(dots < MIN_NORMAL_DOT):
+        raise _fail(
+            artifact, "samples/normals of neighbouring samples differ by more than 60 degrees"
+        )
+    if np.max(abs(s["points"])) > MAX_LENGTH:
+        raise _fail(artifact, f"samples/points lie beyond {MAX_LENGTH:g} mm")
 
 
 def _surface(artifact) -> None:
@@ -278,6 +313,8 @@ def _anm_sections(artifact) -> None:
         raise _fail(artifact, "anm: section_offsets or the series' order do not fit the samples")
     if offsets[0] != 0 or offsets[-1] != Z or np.any(np.diff(offsets) < 1):
         raise _fail(artifact, f"anm/section_offsets must rise from 0 to {Z}, one or more each")
+    if np.any(np.diff(offsets) > MAX_SECTIONS):
+        raise _fail(artifact, f"anm: a sample has more than {MAX_SECTIONS} sections")
     sample = np.repeat(np.arange(P), np.diff(offsets))
     depth_scale = samples["depth"][-1]
     force_scale = samples["force"].max(axis=1)[sample]
@@ -298,6 +335,23 @@ def _anm_sections(artifact) -> None:
             raise _fail(artifact, f"anm/{name} decreases along section {bad[0]}")
         if name == "depth" and np.any(end[offsets[1:] - 1] < depth_scale * (1 - 1e-6)):
             raise _fail(artifact, "anm: the sections of a sample end before the trained depth")
+    _anm_end_slopes(artifact, offsets[1:] - 1)
+
+
+def _anm_end_slopes(artifact, last: np.ndarray) -> None:
+    """Beyond its last section the runtime extrapolates each sample's series with the slope
+    dF/d depth there: within [1/3, 3] times the stored curve's last secant (0.92-0.97 on the
+    trained models)."""
+    a, s = artifact["anm"], artifact["samples"]
+    n1 = a["depth"].shape[1]
+    at = a["a_max"][last][:, None]
+    dd = _horner(a["depth"][last, 1:] * np.arange(1, n1), at)[:, 0]
+    df = _horner(a["force"][last, 1:] * np.arange(1, n1), at)[:, 0]
+    secant = (s["force"][:, -1] - s["force"][:, -2]) / s["depth"][1]
+    ratio = df / (dd * secant)
+    if not np.all((ratio >= 1 / 3) & (ratio <= 3)):
+        p = int(np.flatnonzero(~((ratio >= 1 / 3) & (ratio <= 3)))[0])
+        raise _fail(artifact, f"anm: sample {p}'s end slope is {ratio[p]:.3g}x its curve's")
 
 
 def _horner(c: np.ndarray, x: np.ndarray) -> np.ndarray:

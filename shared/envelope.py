@@ -33,9 +33,8 @@ from hapticrom.shared.errors import ArtifactError
 
 USERBLOCK = 512
 MAGIC = b"hapticrom-envelope 1\n"
-# 64 GiB: far above any reduced model (the demo is 33 MB), below what a hostile size
-# field could make the reader allocate.
-MAX_BYTES = 1 << 36
+# 2 GiB: far above any reduced model (the demo is 33 MB); the reader holds the file in memory.
+MAX_BYTES = 1 << 31
 _HEADER = re.compile(rb"hapticrom-envelope 1\nbytes ([1-9][0-9]{0,15})\nsha256 ([0-9a-f]{64})\n")
 _CHUNK = 1 << 22
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
@@ -90,17 +89,21 @@ def read_verified(path: str | Path, max_bytes: int = MAX_BYTES) -> bytes:
         raise ArtifactError(f"artifact {path} has {info.st_size} bytes, over the {max_bytes} limit")
     try:
         with open(path, "rb") as fh:
-            data = fh.read(info.st_size + 1)  # one byte more: a file that grew is refused
+            header = fh.read(USERBLOCK)
+            _check_header(header, path, info.st_size)  # before reading the rest
+            data = header + fh.read(info.st_size - USERBLOCK + 1)  # one more: a file that grew
     except OSError as exc:
         raise ArtifactError(f"artifact {path} cannot be read: {exc.strerror}") from None
+    except MemoryError:
+        raise ArtifactError(f"artifact {path}: no memory for its {info.st_size} bytes") from None
     _check_envelope(data, path)
     return data
 
 
-def _check_envelope(data: bytes, path: Path) -> None:
-    block = data[:USERBLOCK]
+def _check_header(block: bytes, path: Path, size: int) -> None:
+    """The user block's header, and the file's size against it."""
     if not block.startswith(MAGIC):
-        if data[:8] == _HDF5_SIGNATURE:
+        if block[:8] == _HDF5_SIGNATURE:
             raise ArtifactError(
                 f"{path} has no integrity envelope: it was written before artifact format 1.4 "
                 "(or is not a hapticrom artifact); re-reduce it with "
@@ -110,10 +113,16 @@ def _check_envelope(data: bytes, path: Path) -> None:
     match = _HEADER.match(block)
     if match is None or len(block) != USERBLOCK or any(block[match.end() :]):
         raise ArtifactError(f"{path}: the envelope header is damaged")
-    size = int(match.group(1))
-    if size != len(data):
+    if int(match.group(1)) != size:
         raise ArtifactError(
-            f"{path} has {len(data)} bytes, its envelope says {size} (truncated or appended to)"
+            f"{path} has {size} bytes, its envelope says {int(match.group(1))} "
+            "(truncated or appended to)"
         )
+
+
+def _check_envelope(data: bytes, path: Path) -> None:
+    """The size read and the digest of everything after the user block."""
+    _check_header(data[:USERBLOCK], path, len(data))
+    match = _HEADER.match(data)
     if hashlib.sha256(memoryview(data)[USERBLOCK:]).hexdigest() != match.group(2).decode():
         raise ArtifactError(f"{path} fails its whole-file checksum (damaged)")

@@ -97,7 +97,7 @@ def test_every_rule_of_every_integer_dataset_is_enforced(small_artifact, tmp_pat
     [
         ("samples/force", lambda a: -a, "samples/force has negative values"),
         ("samples/force", lambda a: a[:, ::-1].copy(), "samples/force"),
-        ("samples/force", lambda a: 1000 * a, "anm/force of sample 0 disagrees"),
+        ("samples/force", lambda a: 1000 * a, "anm.* sample 0"),
         ("samples/stiffness", lambda a: -a, "samples/stiffness has negative values"),
         ("samples/normals", lambda a: 0 * a, "samples/normals has rows that are not unit"),
         ("samples/chart_axes", lambda a: 2 * a, "samples/chart_axes is not orthonormal"),
@@ -314,7 +314,7 @@ def test_fuzz_1000_byte_flips_over_the_whole_file(small_artifact, tmp_path):
         damaged[position] ^= int(rng.integers(1, 256))
         path.write_bytes(bytes(damaged))
         try:
-            load(path, warm_up=False)
+            load(path)
             outcome = "loaded"
         except ArtifactError as exc:
             outcome = str(exc).split(": ", 1)[-1].split(" (")[0][:40]
@@ -350,3 +350,108 @@ def test_the_smallest_slope_rule_matches_dense_sampling():
         poly.polyval(np.linspace(0, a[z], 200_001), poly.polyder(c[z])).min() for z in range(100)
     ]
     np.testing.assert_allclose(_min_slope(c, a), dense, atol=1e-8)
+
+
+# -- the red team's breaks (each loaded, then misbehaved, before its rule existed) -------------
+def test_a_huge_sparse_file_is_refused_before_it_is_read(tmp_path):
+    path = tmp_path / "huge.h5"
+    with open(path, "wb") as fh:
+        fh.truncate(3 << 30)  # 3 GiB of holes: no disk, but a read would allocate them
+    refused(path, "over the .* limit")
+    with open(path, "r+b") as fh:  # a plausible header that lies about the size
+        fh.truncate(1 << 20)
+        fh.write(b"hapticrom-envelope 1\nbytes 999\nsha256 " + b"0" * 64 + b"\n")
+    refused(path, "has 1048576 bytes, its envelope says 999")
+
+
+def test_opposite_normals_of_neighbouring_samples_are_refused(small_artifact, tmp_path):
+    """Their blend on the shared edge is the zero vector: set_contact divided by it."""
+    path = copy(small_artifact, tmp_path)
+    t = read_artifact(small_artifact)["samples"]["triangles"][0]
+
+    def flip(n):
+        n[t[1]] = -n[t[0]]
+        return n
+
+    rewrite(path, "samples/normals", flip)
+    refused(path, "normals of neighbouring samples differ by more than 60 degrees")
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda s: s * np.r_[np.ones(s.shape[1] - 1), 0.0], "must end positive"),  # 1/0
+        (lambda s: s + np.r_[np.zeros(s.shape[1] - 1), 1e300], "exceeds 3x an adjacent secant"),
+        (lambda s: s + 1e6, "exceeds 3x an adjacent secant"),
+    ],
+)
+def test_stiffness_that_would_make_the_cubic_overshoot_is_refused(
+    small_artifact, tmp_path, change, match
+):
+    path = copy(small_artifact, tmp_path)
+    rewrite(path, "samples/stiffness", change)
+    refused(path, match)
+
+
+def test_a_series_that_runs_away_beyond_its_last_section_is_refused(small_artifact, tmp_path):
+    """The last section flattens in depth at a_max while its force still rises: within 1 % of
+    the curves everywhere trained, 1e13 times the trained force beyond (the red team's)."""
+    from numpy.polynomial import polynomial as poly
+
+    path = copy(small_artifact, tmp_path)
+
+    def flatten(f):
+        off = f["anm/section_offsets"][()]
+        depth, force, a_max = (f[f"anm/{k}"][()] for k in ("depth", "force", "a_max"))
+        for z in off[1:] - 1:
+            d0, f0 = depth[z, 0], force[z, 0]
+            d1, f1 = poly.polyval(a_max[z], depth[z]), poly.polyval(a_max[z], force[z])
+            depth[z], force[z], a_max[z] = 0.0, 0.0, 1.0
+            depth[z, :3] = d0, 2 * (d1 - d0) + 8 * np.spacing(2 * (d1 - d0)), -(d1 - d0)
+            force[z, :3] = f0, 2.01 * (f1 - f0), -(f1 - f0)
+        for key, values in (("depth", depth), ("force", force), ("a_max", a_max)):
+            _replace(f, f"anm/{key}", lambda g, k, v=values: _dataset(g, k, v))
+
+    mutate(path, flatten)
+    refused(path, "end slope is")
+
+
+def _dataset(g, key, values):
+    units = {"depth": "mm", "force": "N", "a_max": "1"}[key]
+    d = g.create_dataset(key, data=values)
+    d.attrs["units"], d.attrs["sha256"] = units, array_digest(values)
+
+
+@pytest.mark.parametrize(
+    "name, scale",
+    [("samples/coefficients", 1e300), ("samples/surface_basis", 3e38)],
+)
+def test_a_field_that_overflows_away_from_sample_0_is_refused(
+    small_artifact, tmp_path, name, scale
+):
+    """Huge but finite values at sample 1 only: the sweep renders every sample and blend."""
+    path = copy(small_artifact, tmp_path)
+
+    def huge(a):
+        a = a.astype(np.float64) if a.dtype == np.float32 and scale < 1e38 else a
+        a[1] = np.sign(a[1]) * scale
+        return a
+
+    rewrite(path, name, huge)
+    if name == "samples/coefficients":  # the series' own coordinates of sample 1 too
+        offsets = read_artifact(small_artifact)["anm"]["section_offsets"]
+        rewrite(path, "anm/coefficients", lambda c: _scale_rows(c, offsets[1], offsets[2]))
+    refused(path, "surface is not finite or beyond the simulator's limit")
+
+
+def _scale_rows(c, start, stop):
+    c[start:stop] = np.sign(c[start:stop]) * 1e300
+    return c
+
+
+def test_absurd_but_consistent_scales_are_refused(small_artifact, tmp_path):
+    """A model of a tissue 1e305 times stiffer: finite, monotone, consistent, absurd."""
+    path = copy(small_artifact, tmp_path)
+    for name in ("samples/force", "samples/stiffness", "anm/force"):
+        rewrite(path, name, lambda a: a * 1e305)
+    refused(path, r"largest force not in \(0, 100000\] N")

@@ -214,3 +214,34 @@ def test_command_runs_without_the_offline_stack(small_artifact, tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.strip() == f"wrote {out / 'report.html'}"
     assert (out / "report.html").is_file()
+
+
+def test_physics_sanity_of_the_training_is_reported(report, small_artifact):
+    """The small HGO model (0.3 mm on the coarse cornea) is physical: nothing flagged."""
+    sanity = read_artifact(small_artifact).attrs["sanity"]
+    assert sanity["flagged"] == [] and sanity["checked"] == 5
+    html = report.read_text()
+    assert "No training position flagged (5 checked)." in html
+    assert "smallest J = det F" in html and "largest compression" in html
+
+
+def test_flagged_sanity_is_shown_escaped_and_malformed_values_never_trusted():
+    from hapticrom.report import flagged_rows, sanity_rows
+
+    sanity = {
+        "positions": 2,
+        "worst": {
+            "compression": {"value": 0.88, "position": 0, "step": 10, "load_factor": 1.0},
+            "j_min": {"value": "<script>", "position": 1},
+            "inverted": "not a dict",
+        },
+        "flagged": [{"position": 0, "kinds": ["compression"], "messages": ["88 %"]}, "junk"],
+        "suggestion": "try law = <b>neo-hookean</b>",
+    }
+    rows = dict((label, (value, where)) for label, value, where in sanity_rows(sanity))
+    assert rows["largest compression (1 - smallest stretch)"] == (
+        "88%",
+        "position 0, step 10, load_factor 1.0",
+    )
+    assert rows["smallest J = det F"][0] == "?"
+    assert flagged_rows(sanity) == [("0", "compression", "88 %")]

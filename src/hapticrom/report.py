@@ -37,10 +37,11 @@ from hapticrom.shared.errors import HapticromError
 SUMMARY = "Model summary"
 EIGENVALUES = "POD eigenvalue decay"
 CURVES = "Load-displacement curves: ROM vs full order"
+SANITY = "Physics sanity of the training"
 HELD_OUT = "Force and surface-field error at held-out positions"
 LATENCY = "Step latency"
 DEFORMED = "Deformed surface"
-SECTION_HEADINGS = (SUMMARY, EIGENVALUES, CURVES, HELD_OUT, LATENCY, DEFORMED)
+SECTION_HEADINGS = (SUMMARY, SANITY, EIGENVALUES, CURVES, HELD_OUT, LATENCY, DEFORMED)
 
 ACCURACY_COMMAND = "mpirun -n 2 hapticrom accuracy {model} --json accuracy.json"
 
@@ -227,6 +228,76 @@ def dataset_rows(path: Path) -> list[tuple[str, str, str, str, str, int, str]]:
 
 def _schema_fields():
     return [(group, spec) for group in SCHEMA for spec in group.fields]
+
+
+# -- 1b. physics sanity of the training ------------------------------------------------------
+SANITY_QUANTITIES = (  # key of the artifact's `sanity` JSON, label, format
+    ("j_min", "smallest J = det F", "{:.3g}"),
+    ("compression", "largest compression (1 - smallest stretch)", "{:.0%}"),
+    ("inverted", "inverted elements (J <= 0)", "{:d}"),
+    ("u_max", "largest |u| (mm)", "{:.3g}"),
+    ("jump_ratio", "largest step-to-step rate change", "{:.2g}x"),
+    ("tangent_negative", "negative tangent eigenvalues (-1: not checked)", "{:d}"),
+)
+
+
+def sanity_rows(sanity: dict) -> list[tuple[str, str, str]]:
+    """(quantity, worst value, where) from the artifact's `sanity` attribute (data from a file:
+    anything of the wrong type is shown as '?', never trusted)."""
+    worst = sanity.get("worst") if isinstance(sanity.get("worst"), dict) else {}
+    rows = []
+    for key, label, fmt in SANITY_QUANTITIES:
+        entry = worst.get(key)
+        if not isinstance(entry, dict):
+            continue
+        value = entry.get("value")
+        try:
+            shown = fmt.format(value)
+        except (TypeError, ValueError):
+            shown = "?"
+        where = ", ".join(
+            f"{k} {entry[k]}" for k in ("position", "step", "load_factor") if k in entry
+        )
+        rows.append((label, shown, where))
+    return rows
+
+
+def flagged_rows(sanity: dict) -> list[tuple[str, str, str]]:
+    """(position, kinds, first message) of each flagged position."""
+    flagged = sanity.get("flagged") if isinstance(sanity.get("flagged"), list) else []
+    rows = []
+    for item in flagged:
+        if isinstance(item, dict):
+            kinds = item.get("kinds") if isinstance(item.get("kinds"), list) else []
+            messages = item.get("messages") if isinstance(item.get("messages"), list) else [""]
+            rows.append((str(item.get("position", "?")), ", ".join(map(str, kinds)),
+                         str(messages[0]) if messages else ""))  # fmt: skip
+    return rows
+
+
+def _sanity_section(model: ReducedModel) -> str:
+    sanity = model.artifact.attrs.get("sanity")
+    if not isinstance(sanity, dict):
+        return _section(
+            SANITY,
+            _paragraph(
+                "Not recorded: this model was trained before the physics sanity checks "
+                "(smallest J, compression, inverted elements, load-path jumps); train it again "
+                "to see them."
+            ),
+        )
+    flagged = flagged_rows(sanity)
+    verdict = (
+        f"{len(flagged)} of {sanity.get('positions', '?')} training position(s) flagged: "
+        "the full-order solves this model distils are physically doubtful there."
+        if flagged
+        else f"No training position flagged ({sanity.get('checked', '?')} checked)."
+    )
+    parts = [_paragraph(_esc(verdict)), _table(["quantity", "worst", "where"], sanity_rows(sanity))]
+    if flagged:
+        parts.append(_table(["position", "flags", "first warning"], flagged[:20]))
+        parts.append(_paragraph("<b>Suggestion:</b> " + _esc(sanity.get("suggestion", ""))))
+    return _section(SANITY, *parts)
 
 
 # -- 2. POD eigenvalues ----------------------------------------------------------------------
@@ -918,6 +989,7 @@ def write_report(
 
     sections = [
         _summary_section(model),
+        _sanity_section(model),
         _eigenvalue_section(model, eigen_png),
         _curves_section(model, samples, response, curves_png),
         _held_out_section(held_out, accuracy, accuracy_png, model),
