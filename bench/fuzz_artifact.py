@@ -1,10 +1,11 @@
 """Fuzz the artifact reader behind a re-sealed envelope: crafted bytes reach h5py.
 
 Random damage never reaches h5py (the whole-file digest refuses it first; see
-tests/test_artifact_hostile.py; ``--damage`` measures it here). A hostile writer
+tests/test_artifact_hostile.py; ``--mode damage`` measures it here). A hostile writer
 can re-seal, though, so by default this flips random bytes *after* the user
-block, re-seals the envelope, and loads each file with ``hapticrom.online.load``
-in a child process, counting:
+block (``--mode metadata``: only in the bytes HDF5 parses as structure, where a
+crafted file would hit h5py's C code), re-seals the envelope, and loads each
+file with ``hapticrom.online.load`` in a child process, counting:
 
   refused    ArtifactError (the promise)
   identical  loaded, every array equal to the original's
@@ -34,16 +35,42 @@ import numpy as np
 OUTCOMES = ("refused", "identical", "changed", "uncaught", "crashed", "hung")
 
 
-def make_cases(source: Path, flips: int, seed: int, workdir: Path, reseal: bool) -> list[Path]:
-    """Files with one random byte flipped: behind a re-sealed envelope, or anywhere (damage)."""
+def metadata_bytes(source: Path) -> np.ndarray:
+    """Offsets of the bytes HDF5 parses as structure: all after the user block but the
+    datasets' contiguous data (a flip there only fails that dataset's digest)."""
+    import h5py
+
+    from hapticrom.shared.envelope import USERBLOCK
+
+    mask = np.ones(source.stat().st_size, dtype=bool)
+    mask[:USERBLOCK] = False
+
+    def visit(_, obj):
+        if isinstance(obj, h5py.Dataset) and obj.id.get_offset() is not None:
+            start = obj.id.get_offset()
+            mask[start : start + obj.id.get_storage_size()] = False
+
+    with h5py.File(source, "r") as f:
+        f.visititems(visit)
+    return np.flatnonzero(mask)
+
+
+def make_cases(source: Path, flips: int, seed: int, workdir: Path, mode: str) -> list[Path]:
+    """Files with one random byte flipped: behind a re-sealed envelope (anywhere after the user
+    block, or in the metadata only), or anywhere without re-sealing (damage)."""
     from hapticrom.shared.envelope import USERBLOCK, seal
 
     data = source.read_bytes()
     rng = np.random.default_rng(seed)
+    reseal = mode != "damage"
+    where = metadata_bytes(source) if mode == "metadata" else None
     cases = []
     for i in range(flips):
         damaged = bytearray(data)
-        position = int(rng.integers(USERBLOCK if reseal else 0, len(data)))
+        if where is not None:
+            position = int(rng.choice(where))
+        else:
+            position = int(rng.integers(USERBLOCK if reseal else 0, len(data)))
         damaged[position] ^= int(rng.integers(1, 256))
         path = workdir / f"flip-{i:05d}-{position}.h5"
         path.write_bytes(bytes(damaged))
@@ -53,7 +80,7 @@ def make_cases(source: Path, flips: int, seed: int, workdir: Path, reseal: bool)
     return cases
 
 
-def child(source: str, cases: list[str]) -> None:
+def child(source: str, cases: list[str], isolate: bool) -> None:
     """Load each case; print one JSON line per case (flushed, so a crash loses only its own)."""
     from hapticrom.online import load
     from hapticrom.shared.artifact import ArtifactError, read_artifact
@@ -61,7 +88,7 @@ def child(source: str, cases: list[str]) -> None:
     original = read_artifact(source)
     for case in cases:
         try:
-            model = load(case)
+            model = load(case, isolate=isolate)
             same = all(
                 np.array_equal(model.artifact[g][k], v, equal_nan=True)
                 for g, arrays in original.groups.items()
@@ -69,19 +96,19 @@ def child(source: str, cases: list[str]) -> None:
             )
             outcome, detail = ("identical" if same else "changed"), ""
         except ArtifactError as exc:
-            outcome, detail = "refused", str(exc).split(": ", 1)[-1][:80]
+            outcome, detail = "refused", str(exc).replace(case, "FILE")[:80]
         except BaseException as exc:  # noqa: BLE001 - what we are here to count
             outcome, detail = "uncaught", f"{type(exc).__name__}: {exc}"[:200]
         print(json.dumps({"case": case, "outcome": outcome, "detail": detail}), flush=True)
 
 
-def run(source: Path, cases: list[Path], timeout: float) -> dict[str, list]:
+def run(source: Path, cases: list[Path], timeout: float, isolate: bool) -> dict[str, list]:
     """Children over the cases; a child that dies or stalls is replaced after its case."""
     results = {k: [] for k in OUTCOMES}
     pending = [str(c) for c in cases]
     while pending:
         proc = subprocess.Popen(
-            [sys.executable, __file__, "--child", str(source), *pending],
+            [sys.executable, __file__, "--child", str(source), str(isolate), *pending],
             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
         )  # fmt: skip
         done = _collect(proc, timeout, results)
@@ -117,7 +144,7 @@ def _collect(proc, timeout: float, results) -> int:
 
 def main() -> int:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        child(sys.argv[2], sys.argv[3:])
+        child(sys.argv[2], sys.argv[4:], isolate=sys.argv[3] == "True")
         return 0
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("artifact", type=Path)
@@ -127,17 +154,27 @@ def main() -> int:
     p.add_argument("--workdir", type=Path, default=None)
     p.add_argument("--json", type=Path, default=None, help="write every case's outcome here")
     p.add_argument(
-        "--damage", action="store_true", help="flip anywhere, no re-seal (the envelope's job)"
+        "--in-process",
+        action="store_true",
+        help="load(isolate=False): HDF5 parses in the loading process (measures what the "
+        "isolation saves it from)",
+    )
+    p.add_argument(
+        "--mode",
+        choices=("resealed", "metadata", "damage"),
+        default="resealed",
+        help="resealed: flip after the user block and re-seal; metadata: the same, in HDF5's "
+        "structure only; damage: flip anywhere, no re-seal (the envelope's job)",
     )
     args = p.parse_args()
     with tempfile.TemporaryDirectory(dir=args.workdir) as tmp:
         t0 = time.perf_counter()
-        cases = make_cases(args.artifact, args.flips, args.seed, Path(tmp), not args.damage)
-        results = run(args.artifact.resolve(), cases, args.timeout)
+        cases = make_cases(args.artifact, args.flips, args.seed, Path(tmp), args.mode)
+        results = run(args.artifact.resolve(), cases, args.timeout, not args.in_process)
         seconds = time.perf_counter() - t0
     counts = {k: len(v) for k, v in results.items()}
-    kind = "damaging" if args.damage else "re-sealed"
-    print(f"{args.flips} {kind} byte flips of {args.artifact} ({seconds:.0f} s): "
+    where = "in-process" if args.in_process else "isolated"
+    print(f"{args.flips} byte flips ({args.mode}, {where}) of {args.artifact} ({seconds:.0f} s): "
           + ", ".join(f"{k} {n}" for k, n in counts.items()))  # fmt: skip
     reasons: dict[str, int] = {}
     for record in results["refused"]:

@@ -26,6 +26,8 @@ import io
 import json
 import math
 import os
+import subprocess
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -394,23 +396,34 @@ class Artifact:
         return self.groups[name]
 
 
-def read_artifact(path: str | Path, max_bytes: int = MAX_BYTES) -> Artifact:
+def read_artifact(path: str | Path, max_bytes: int = MAX_BYTES, isolate: bool = False) -> Artifact:
     """Load and verify an artifact; raise :class:`ArtifactError` naming what is wrong.
 
     Nothing else escapes: whatever a damaged or hostile file makes h5py or numpy
     raise is reported as an ``ArtifactError`` naming the dataset or attribute
-    being read.
+    being read. ``isolate``: parse the verified bytes in a child process first
+    (:func:`check_isolated`), so that a crafted HDF5 structure that crashes
+    HDF5's C code kills the child, not this process.
     """
-    from hapticrom.shared.artifact_rules import check_values
-
     path = Path(path)
     data = read_verified(path, max_bytes)
+    if isolate:
+        check_isolated(data, path)
+    return parse_verified(data, path)
+
+
+def parse_verified(data: bytes, path: Path, values: bool = True) -> Artifact:
+    """The artifact in ``data`` (bytes whose envelope checked out), checked value by value
+    (``values=False``: the structure only, what HDF5 parses)."""
+    from hapticrom.shared.artifact_rules import check_values
+
     reading = _Reading(path, len(data))
     try:
         with h5py.File(io.BytesIO(data), "r") as f:
             artifact = reading.artifact(f)
         reading.where = "values"
-        check_values(artifact)
+        if values:
+            check_values(artifact)
     except ArtifactError:
         raise
     except Exception as exc:  # noqa: BLE001 - the promise: one error type, naming the culprit
@@ -418,6 +431,43 @@ def read_artifact(path: str | Path, max_bytes: int = MAX_BYTES) -> Artifact:
             f"{path}: {reading.where} cannot be read ({type(exc).__name__}: {exc})"
         ) from None
     return artifact
+
+
+# The child reads the bytes from its standard input: the very bytes this process verified and
+# will parse (never the path again), so the child's verdict holds for them.
+CHILD = (
+    "import sys; from pathlib import Path; from hapticrom.shared import artifact as a\n"
+    "try: a.parse_verified(sys.stdin.buffer.read(), Path(sys.argv[1]), values=False)\n"
+    "except a.ArtifactError as e: sys.stderr.write(str(e)); sys.exit(2)"
+)
+CHILD_TIMEOUT = 300.0  # seconds; the demo model takes about 1 s
+
+
+def check_isolated(data: bytes, path: Path, command: list[str] | None = None) -> None:
+    """Parse ``data`` in a child Python process: its ``ArtifactError`` is raised here; its death
+    by a signal (a segfault in HDF5 on a crafted structure) or a hang is an ``ArtifactError``
+    too. HDF5 parses identical bytes identically, so what the child survived this process can
+    parse. Needs an interpreter at ``sys.executable`` (an embedding host may have none: it
+    loads with ``isolate=False``)."""
+    command = command or [sys.executable, "-c", CHILD, str(path)]
+    try:
+        child = subprocess.run(command, input=data, capture_output=True, timeout=CHILD_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        raise ArtifactError(f"{path}: reading it hung for {CHILD_TIMEOUT:g} s") from None
+    except OSError as exc:
+        raise HapticromError(
+            f"cannot start a process to check {path} ({exc.strerror}); "
+            "load it in this process with isolate=False"
+        ) from None
+    if child.returncode == 2:
+        raise ArtifactError(child.stderr.decode("utf-8", errors="replace").strip())
+    if child.returncode < 0:
+        raise ArtifactError(
+            f"{path}: its HDF5 structure crashed the reading process (signal {-child.returncode})"
+        )
+    if child.returncode != 0:
+        tail = child.stderr.decode("utf-8", errors="replace").strip().splitlines()[-1:]
+        raise ArtifactError(f"{path}: the reading process failed ({' '.join(tail)})")
 
 
 class _Reading:
