@@ -53,9 +53,9 @@ CORNEA_PRESETS = {
 
 HEMISPHERE_DEFAULTS: dict[str, Any] = {
     "radius": 25.0,  # outer radius, mm
-    # mm, constant. The thesis does not give it; 10 mm makes its 30 N pole load
-    # indent the pole by about 6 mm with a smooth softening response (5 mm
-    # snaps through near 28 N).
+    # mm, constant. The thesis does not give it. With SVK its 30 N pole load is not
+    # physical on 10 mm either: 6.4 mm with inverted elements on the default mesh, a
+    # snap-through on the fine one (meshes/README.md); neo-Hookean gives 2.5 mm.
     "thickness": 10.0,
     "n": 8,
     "m": 5,
