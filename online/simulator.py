@@ -310,12 +310,10 @@ class Simulator:
         try:
             if not self._contact:
                 self._refuse(-1, "displacement (mm)", d, 0.0)
-            x = d
-            if type(x) is not _NDARRAY or x.dtype is not _F8:  # the slower path
-                x = _as_vector(x, self._input, "displacement (mm)", StepInputError)
+            x = d  # a 1-D float64 array goes straight in; anything else: TypeError below
             try:
                 status = self._step_displacement(x, self._buf)
-            except TypeError:  # a float64 array of another dimension: refused here
+            except TypeError:  # the slower path: converted into a buffer, or refused
                 x = _as_vector(x, self._input, "displacement (mm)", StepInputError)
                 status = self._step_displacement(x, self._buf)
             if status:
@@ -457,15 +455,13 @@ class Simulator:
         try:
             if not self._contact:
                 self._refuse(-1, "force (N)", f, 0.0)
-            x = f
-            if type(x) is not _NDARRAY or x.dtype is not _F8:  # the slower path
-                x = _as_vector(x, self._input, "force (N)", StepInputError)
+            x = f  # a 1-D float64 array goes straight in; anything else: TypeError below
             if self._cutting is not None:  # cut tissue yields 1 / ratio times more: less depth
                 ratio = self._cutting.ratio[self._vertex] if self._vertex >= 0 else 1.0
                 self._buf[kernels.MAX_DEPTH] = self._buf[kernels.MAX_DISPLACEMENT] * ratio
             try:
                 status = self._step_force(x, self._buf)
-            except TypeError:  # a float64 array of another dimension: refused here
+            except TypeError:  # the slower path: converted into a buffer, or refused
                 x = _as_vector(x, self._input, "force (N)", StepInputError)
                 status = self._step_force(x, self._buf)
             if status:
