@@ -174,6 +174,8 @@ class Simulator:
         self._displacement_out = _readonly(self._displacement)
         self._input = np.zeros(3)  # the slower path's copy of a step input
         self._point, self._blade_input = np.zeros(3), np.zeros(3)  # ... of a point, a blade
+        # The last scalpel placement (position, blade): placing it there again only re-arms it.
+        self._placement = np.full(6, np.nan)
         self._chart = self._buf[k.CHART : k.CHART + 2]
         self._weights = self._buf[k.WEIGHTS : k.WEIGHTS + 3]
         self._vertices = np.zeros(3, dtype=np.int64)
@@ -239,6 +241,7 @@ class Simulator:
             if type(p) is not _NDARRAY or p.dtype is not _F8 or p.ndim != 1:
                 p = _as_vector(p, self._point, "contact point (mm)", StepInputError)
             self._contact_at(p, point)
+            self._placement[0] = np.nan  # the scalpel's contact is gone
             if self._cutting is not None:
                 self._armed = False  # a plain contact; scalpel() arms the blade again
                 self._vertex = self._cutting.region_vertex(p)
@@ -354,6 +357,12 @@ class Simulator:
                 p = _as_vector(p, self._point, "scalpel position (mm)", ScalpelInputError)
             if type(b) is not _NDARRAY or b.dtype is not _F8 or b.ndim != 1:
                 b = _as_vector(b, self._blade_input, "blade direction", ScalpelInputError)
+            last = self._placement
+            if (len(p) == 3 and len(b) == 3 and p[0] == last[0] and p[1] == last[1]
+                    and p[2] == last[2] and b[0] == last[3] and b[1] == last[4]
+                    and b[2] == last[5]):  # fmt: skip
+                self._armed, self._background = True, bool(background)  # same place: re-arm
+                return
             floats, ints = scalpel.tables
             status = kernels.place_scalpel(
                 p,
@@ -373,6 +382,7 @@ class Simulator:
             self._scalpel_vertex = int(self._buf[placed])
             self._vertex = int(self._buf[placed + 1])
             self._armed, self._background = True, bool(background)
+            last[:3], last[3:] = p, b
         finally:
             self._inside = False
 

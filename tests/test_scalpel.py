@@ -494,3 +494,22 @@ def test_the_rendered_cut_cannot_be_written(model):
     for internal in (vertices, displacement, triangles, all_vertices):
         with pytest.raises(ValueError, match="read-only"):
             internal[...] = 0
+
+
+def test_placing_the_scalpel_again_at_the_same_place_is_the_same_state(model):
+    """The same-place shortcut: after a plain contact elsewhere, or at a new place, the
+    placement is made in full; at the same place it only re-arms the blade."""
+    blade = np.array([0.0, 1.0, 0.0])
+    here, there = on_surface(4.6), on_surface(3.0)
+    shortcut, full = model.simulator(), model.simulator()
+    shortcut.scalpel(here, blade)
+    shortcut.set_contact(there)  # moves the contact away: the next placement is a full one
+    shortcut.scalpel(here, blade)
+    shortcut.scalpel(here, blade)  # the shortcut
+    full.scalpel(here, blade)
+    for sim in (shortcut, full):
+        sim.step_displacement(-0.05 * sim.contact_normal)
+    np.testing.assert_array_equal(shortcut.contact_normal, full.contact_normal)
+    np.testing.assert_array_equal(shortcut.step_displacement(-0.05 * full.contact_normal),
+                                  full.step_displacement(-0.05 * full.contact_normal))  # fmt: skip
+    assert shortcut.weights[0].tolist() == full.weights[0].tolist()
