@@ -61,6 +61,7 @@ from hapticrom.offline.positions import (
 from hapticrom.offline.progress import ProgressBar
 from hapticrom.offline.sanity import (
     campaign_summary,
+    check_refinement,
     dumps,
     summary_lines,
     warning_lines,
@@ -276,6 +277,7 @@ class CampaignReport:
     ranks_per_solve: int
     redone: list[int] = field(default_factory=list)  # stored damaged or failed: solved again
     sanity: dict | None = None  # physics sanity of every stored position (sanity.json)
+    refinement: dict | None = None  # --refinement-check of position 0 (refinement.json)
 
 
 def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str, Any]:
@@ -523,8 +525,13 @@ def run_campaign(
     ranks_per_solve: int = 1,
     restart: bool = False,
     verbose: bool = True,
+    refinement_check: bool = False,
 ) -> CampaignReport:
-    """Solve every position of ``config`` not yet stored in ``out_dir``; see the module doc."""
+    """Solve every position of ``config`` not yet stored in ``out_dir``; see the module doc.
+
+    ``refinement_check``: afterwards, solve position 0 again on the next finer built-in
+    mesh (:func:`refinement_check_position`).
+    """
     t_start = time.perf_counter()
     if ranks_per_solve < 1 or comm.size % ranks_per_solve:
         raise InputError(
@@ -638,7 +645,12 @@ def run_campaign(
             sep="\n",
             flush=True,
         )
+    refinement = None
+    if refinement_check:
+        first = next(p for p in positions if p.index == 0)
+        refinement = refinement_check_position(config, first, store, comm)
     return CampaignReport(
+        refinement=refinement,
         positions=len(positions),
         solved_now=len(todo),
         resumed=len(done),
@@ -649,6 +661,31 @@ def run_campaign(
         redone=sorted(redo),
         sanity=sanity,
     )
+
+
+def refinement_check_position(config, position: ToolPosition, store: SnapshotStore, comm):
+    """The mesh-convergence check of one stored position, as ``solve --refinement-check``.
+
+    The position's problem (its load, tool position and solver settings, as
+    :func:`_solve_position` built it) is solved on the next finer built-in mesh by
+    the whole ``comm`` (the mesh and that solve in ``CAMPAIGN_DIR/refinement``) and
+    compared with the stored record; the check goes to ``CAMPAIGN_DIR/refinement.json``.
+    The stored positions are not touched.
+    """
+    from types import SimpleNamespace
+
+    problem = replace(config.problem, load=config.load.at(position))
+
+    def stored():
+        data, _ = store.read_position(position.index)
+        return SimpleNamespace(
+            load_factor=data["load_factor"],
+            force=data["force"],
+            displacement=data["contact_displacement"],
+        )
+
+    coarse = on_rank_zero(comm, stored)
+    return check_refinement(problem, coarse, store.root, comm, record="refinement.json")
 
 
 def _announce_plan(plan: _Plan, say) -> None:

@@ -38,7 +38,8 @@ depth_{i-1}) / (force_i - force_{i-1}) of each step (from the unloaded state):
 
 Each flag carries a message with the numbers and the report a suggestion (another law, a
 smaller load, a finer mesh: ``hapticrom solve --refinement-check`` solves the same
-problem on the next finer built-in mesh, :func:`run_refinement_check`).
+problem on the next finer built-in mesh, :func:`run_refinement_check`; ``hapticrom
+campaign --refinement-check`` does so for the campaign's position 0).
 """
 
 from __future__ import annotations
@@ -663,8 +664,15 @@ def run_refinement_check(config, result, out_dir: str | Path, comm, log=print) -
     return check
 
 
-def check_refinement(config, result, out_dir: str | Path, comm) -> dict:
-    """:func:`run_refinement_check`, printed (rank 0) and added to ``out_dir/sanity.json``."""
+def check_refinement(
+    config, result, out_dir: str | Path, comm, record: str = "sanity.json"
+) -> dict:
+    """:func:`run_refinement_check`, printed (rank 0) and recorded in ``out_dir/record``.
+
+    ``sanity.json`` (a solve) gets a ``refinement`` key; any other ``record`` (a
+    campaign's ``refinement.json``) is the check alone. ``result`` needs only
+    ``load_factor``, ``force`` and ``displacement`` (a campaign's stored position).
+    """
     from hapticrom.offline.mpi import print0
 
     check = run_refinement_check(config, result, out_dir, comm, log=lambda s: print0(comm, s))
@@ -672,9 +680,12 @@ def check_refinement(config, result, out_dir: str | Path, comm) -> dict:
     prefix = "" if check.get("converged", True) else "warning: "
     print0(comm, prefix + line)
     if comm.rank == 0:
-        path = Path(out_dir) / "sanity.json"
-        data = json.loads(path.read_text()) if path.is_file() else {}
-        write_json(path, {**data, "refinement": check})
+        path = Path(out_dir) / record
+        if record == "sanity.json":
+            data = json.loads(path.read_text()) if path.is_file() else {}
+            write_json(path, {**data, "refinement": check})
+        else:
+            write_json(path, check)
     return check
 
 

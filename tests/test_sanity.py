@@ -272,6 +272,50 @@ def test_refinement_check_reports_the_difference(mesh_dir, tmp_path):
     assert "coarse -> default hemisphere mesh" in check["message"]
 
 
+@pytest.mark.serial
+def test_campaign_refinement_check(mesh_dir, tmp_path, capsys):
+    """`campaign --refinement-check`: position 0 on the next finer mesh, refinement.json."""
+    from hapticrom.cli import main
+    from hapticrom.offline.store import SnapshotStore
+
+    toml = write_campaign(tmp_path / "c.toml", mesh_dir / "cornea-coarse.msh", steps=2)
+    out = tmp_path / "store"
+    assert main(["campaign", str(toml), "--out", str(out), "--refinement-check"]) == 0
+    printed = capsys.readouterr().out
+    check = json.loads((out / "refinement.json").read_text())
+    assert check["message"] in printed and "coarse -> default cornea mesh" in printed
+    assert check["available"] and check["finer_status"] == "solved"
+    data, _ = SnapshotStore(out).read_position(0)  # the stored position is the coarse side
+    assert check["load_factor"] == data["load_factor"][-1] == 1.0
+    np.testing.assert_array_equal(check["force"]["coarse"], data["force"][-1])
+    np.testing.assert_array_equal(check["displacement"]["coarse"], data["contact_displacement"][-1])
+    coarse, fine = check["force"]["coarse"][2], check["force"]["fine"][2]
+    assert np.isfinite(fine) and fine < 0 and abs(fine - coarse) > 1e-3 * abs(coarse)
+    assert check["force"]["difference"] == pytest.approx(abs(fine - coarse), rel=1e-6)
+    assert (out / "refinement" / "cornea-default.msh").is_file()
+    assert sorted(p.name for p in (out / "solves").iterdir()) == ["position-0000.h5"]
+    assert "refinement" not in json.loads((out / "sanity.json").read_text())
+
+    # A user mesh (a sidecar no built-in generator wrote): the check is not available.
+    for suffix in (".msh", ".json"):
+        (tmp_path / f"kidney{suffix}").write_bytes(
+            (mesh_dir / f"cornea-coarse{suffix}").read_bytes()
+        )
+    info = json.loads((tmp_path / "kidney.json").read_text())
+    (tmp_path / "kidney.json").write_text(json.dumps({**info, "name": "kidney"}))
+    toml = write_campaign(tmp_path / "k.toml", tmp_path / "kidney.msh", steps=2)
+    assert main(["campaign", str(toml), "--out", str(tmp_path / "k"), "--refinement-check"]) == 0
+    printed = capsys.readouterr().out
+    assert "refinement check: not available: kidney.msh is not a built-in mesh" in printed
+    assert json.loads((tmp_path / "k" / "refinement.json").read_text())["available"] is False
+    assert not (tmp_path / "k" / "refinement").exists()
+
+    for command in ("campaign", "train"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        assert "--refinement-check" in capsys.readouterr().out
+
+
 # -- campaigns: snapping, validation before the directory, storage -------------------------------
 @pytest.mark.serial
 def test_snapped_positions_are_listed(mesh_dir):

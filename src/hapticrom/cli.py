@@ -260,7 +260,13 @@ def cmd_campaign(args, petsc_args) -> int:
     _init_petsc(petsc_args)
     from hapticrom.offline.campaign import run_campaign
 
-    report = run_campaign(config, out, ranks_per_solve=args.ranks_per_solve, restart=args.restart)
+    report = run_campaign(
+        config,
+        out,
+        ranks_per_solve=args.ranks_per_solve,
+        restart=args.restart,
+        refinement_check=args.refinement_check,
+    )
     return 1 if report.failed else 0
 
 
@@ -298,7 +304,13 @@ def cmd_train(args, petsc_args) -> int:
     from hapticrom.offline.campaign import run_campaign
     from hapticrom.offline.reduction import reduce_campaign
 
-    report = run_campaign(config, work, ranks_per_solve=args.ranks_per_solve, restart=args.restart)
+    report = run_campaign(
+        config,
+        work,
+        ranks_per_solve=args.ranks_per_solve,
+        restart=args.restart,
+        refinement_check=args.refinement_check,
+    )
     reduce_campaign(work, out, reduction=config)
     return 1 if report.failed else 0
 
@@ -446,6 +458,12 @@ def build_parser() -> argparse.ArgumentParser:
         )
         p.add_argument(
             "--restart", action="store_true", help="discard what the directory holds and start over"
+        )
+        p.add_argument(
+            "--refinement-check",
+            action="store_true",
+            help="afterwards, solve position 0 again on the next finer built-in mesh (in "
+            "CAMPAIGN_DIR/refinement) and report the difference (CAMPAIGN_DIR/refinement.json)",
         )
 
     p = sub.add_parser(
