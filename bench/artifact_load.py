@@ -58,20 +58,14 @@ def main() -> int:
     p.add_argument("--baseline", default="425a6ed", help="git revision of the previous reader")
     args = p.parse_args()
 
-    import io
-
-    import h5py
-
-    from hapticrom.online.model import ReducedModel, _sweep
+    from hapticrom.online.model import ReducedModel, sweep
     from hapticrom.shared import artifact, artifact_rules, envelope
 
     path, r = args.model, args.repeat
     data = envelope.read_verified(path)
 
     def structure():
-        reading = artifact._Reading(path, len(data))
-        with h5py.File(io.BytesIO(data), "r") as f:
-            return reading.artifact(f)
+        return artifact.parse_verified(data, path, values=False)
 
     a = structure()
     rows = [
@@ -82,8 +76,8 @@ def main() -> int:
         ("model set-up (ReducedModel)", best(lambda: ReducedModel.from_artifact(a), r)),
     ]
     model = ReducedModel.from_artifact(a)
-    _sweep(model)  # compiles or loads the kernels from the cache once
-    rows.append(("sweep: every kernel over the region", best(lambda: _sweep(model), r)))
+    sweep(model)  # compiles or loads the kernels from the cache once
+    rows.append(("sweep: every kernel over the region", best(lambda: sweep(model), r)))
     old = baseline_reader(args.baseline)
     if old is not None:
         rows.append((f"baseline: read_artifact at {args.baseline}", best(lambda: old(path), r)))

@@ -280,7 +280,7 @@ class CampaignReport:
     refinement: dict | None = None  # --refinement-check of position 0 (refinement.json)
 
 
-def _manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str, Any]:
+def campaign_manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str, Any]:
     mesh = config.problem.mesh.file
     return {
         "format": FORMAT,
@@ -322,7 +322,7 @@ def _plan(config: CampaignConfig, store: SnapshotStore, restart: bool) -> _Plan:
     surface = read_surface(config.problem.mesh.file, config.load.surface)
     positions, snapping = plan_with_report(surface, config.positions)
     validate_campaign(config)  # before the directory exists
-    manifest = _manifest(config, positions)
+    manifest = campaign_manifest(config, positions)
     note = ""
     if not restart and _holds_another_campaign_unsolved(store, manifest):
         restart = True

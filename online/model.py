@@ -224,7 +224,7 @@ def load(path: str | Path, isolate: bool = True) -> ReducedModel:
     artifact = read_artifact(path, isolate=isolate)
     try:
         model = ReducedModel.from_artifact(artifact)
-        _sweep(model)
+        sweep(model)
     except ArtifactError:
         raise
     except Exception as exc:  # noqa: BLE001 - a file's fault until proven otherwise
@@ -243,7 +243,7 @@ def sweep_points(model: ReducedModel) -> np.ndarray:
     return np.vstack([p, corners.mean(axis=1), midpoints.reshape(-1, 3)])
 
 
-def _sweep(model: ReducedModel) -> None:
+def sweep(model: ReducedModel) -> None:
     """Every response at every sweep point, at half, all and 1.5x the trained depth and force:
     forces, displacements and surfaces finite and within the simulator's limits (10x the
     trained depth and force). Catches what no rule on single datasets sees (a field that

@@ -328,7 +328,7 @@ def _anm_sections(artifact) -> None:
             raise _fail(
                 artifact, f"anm section {jump[0]} does not start where its predecessor ends"
             )
-        slope = _min_slope(series, a_max) * a_max
+        slope = min_slope(series, a_max) * a_max
         # depth strictly increasing; force non-decreasing up to rounding
         bad = np.flatnonzero(slope <= 0 if name == "depth" else slope < -1e-6 * scale)
         if len(bad):
@@ -362,7 +362,7 @@ def _horner(c: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def _min_slope(c: np.ndarray, a_max: np.ndarray) -> np.ndarray:
+def min_slope(c: np.ndarray, a_max: np.ndarray) -> np.ndarray:
     """Each row's smallest derivative on [0, a_max]: at the ends or a real critical point."""
     n1 = c.shape[1]
     d1 = c[:, 1:] * np.arange(1, n1)

@@ -357,7 +357,7 @@ def test_the_smallest_slope_rule_matches_dense_sampling():
     """The exact minimum of p' on [0, a] (ends and critical points) against 200,001 samples."""
     from numpy.polynomial import polynomial as poly
 
-    from hapticrom.shared.artifact_rules import _min_slope
+    from hapticrom.shared.artifact_rules import min_slope
 
     rng = np.random.default_rng(0)
     c = rng.standard_normal((100, 7))
@@ -366,7 +366,7 @@ def test_the_smallest_slope_rule_matches_dense_sampling():
     dense = [
         poly.polyval(np.linspace(0, a[z], 200_001), poly.polyder(c[z])).min() for z in range(100)
     ]
-    np.testing.assert_allclose(_min_slope(c, a), dense, atol=1e-8)
+    np.testing.assert_allclose(min_slope(c, a), dense, atol=1e-8)
 
 
 # -- the red team's breaks (each loaded, then misbehaved, before its rule existed) -------------

@@ -391,14 +391,15 @@ def test_mistakes_are_caught_before_any_directory(mesh_dir, tmp_path, material, 
 @pytest.mark.serial
 def test_a_rerun_after_a_mistake_needs_no_restart(mesh_dir, tmp_path):
     """A directory whose campaign never solved a position is taken over without --restart."""
-    from hapticrom.offline.campaign import CampaignConfig, _manifest, run_campaign
+    from hapticrom.offline.campaign import CampaignConfig, campaign_manifest, run_campaign
     from hapticrom.offline.positions import ToolPosition
     from hapticrom.offline.store import SnapshotStore
 
     mesh = mesh_dir / "cornea-coarse.msh"
     first = CampaignConfig.from_toml(write_campaign(tmp_path / "a.toml", mesh, steps=3))
     store = SnapshotStore(tmp_path / "store")
-    store.open_or_create(_manifest(first, [ToolPosition(0, (0, 0, 0), (0, 0, 1), 1, "point")]))
+    position = ToolPosition(0, (0, 0, 0), (0, 0, 1), 1, "point")
+    store.open_or_create(campaign_manifest(first, [position]))
     fixed = CampaignConfig.from_toml(write_campaign(tmp_path / "b.toml", mesh, steps=2))
     report = run_campaign(fixed, store.root, comm=MPI.COMM_SELF, verbose=False)
     assert report.solved_now == 1 and report.failed == []
