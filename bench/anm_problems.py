@@ -21,11 +21,11 @@ import tomllib
 from pathlib import Path
 
 import hapticrom.offline  # noqa: F401 - h5py and MPI first
-from hapticrom.offline.anm import ANMOptions
-from hapticrom.offline.anm_study import run_study
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.fe.fullorder import FullOrderModel
 from hapticrom.offline.mpi import print0
+from hapticrom.offline.reduce.anm import ANMOptions
+from hapticrom.offline.studies.anm import run_study
 
 ROOT = Path(__file__).resolve().parents[1]
 ISOTROPIC_CORNEA = {"E": 0.5, "nu": 0.49}  # MPa: isotropic stand-ins, not fitted to tissue

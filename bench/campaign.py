@@ -83,8 +83,8 @@ def run(ranks: int, per_solve: int, toml: Path, out: Path) -> float:
 def pod_timings(store_dir: Path) -> dict:
     from mpi4py import MPI
 
-    from hapticrom.offline.pod import Truncation, pod, pod_numpy, principal_angles
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.store import SnapshotStore
+    from hapticrom.offline.reduce.pod import Truncation, pod, pod_numpy, principal_angles
 
     store = SnapshotStore(store_dir)
     blocks = [store.read_position(i)[0]["displacement"].T for i in store.completed()]

@@ -24,7 +24,7 @@ from mpi4py import MPI
 
 from hapticrom.meshes import generate
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.fe.fullorder import FullOrderModel
 
 ROOT = Path(__file__).resolve().parents[1]
 # Thesis Table 2.2, F_FEM (N) at prescribed indentation u (mm), on its own mesh.

@@ -21,7 +21,7 @@ import json
 from pathlib import Path
 
 import hapticrom.offline  # noqa: F401 - h5py and MPI first
-from hapticrom.offline.cutting_study import CuttingStudy, run_study
+from hapticrom.offline.studies.cutting import CuttingStudy, run_study
 
 TARGET = 0.05
 

@@ -27,9 +27,9 @@ from hapticrom.meshes import build
 from hapticrom.meshes.cut import cut_mesh, interior_faces
 from hapticrom.meshes.msh import write_msh
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.cutting_study import draw_magnitude
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.fullorder import FullOrderModel
+from hapticrom.offline.studies.cutting import draw_magnitude
 
 
 def full_order_surface(mesh_file, campaign: dict, point, force, steps: int = 5):
@@ -103,7 +103,7 @@ def main() -> None:
     keys = {tuple(sorted(nodes[list(f)])) for f in sim._cutting.topology.cut_faces}
     mesh_name = campaign["mesh"]["file"]
     intact = build("cornea", "default")
-    from hapticrom.offline.cutting_export import read_mesh_arrays
+    from hapticrom.offline.cutting.export import read_mesh_arrays
 
     trained_nodes, _, _ = read_mesh_arrays(model.artifact.group_attrs["model"]["mesh_file"])
     if trained_nodes.shape != intact.nodes.shape or not np.allclose(trained_nodes, intact.nodes):

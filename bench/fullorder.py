@@ -32,7 +32,7 @@ def worker(newton: str, steps: int, out: str) -> None:
     from mpi4py import MPI
 
     from hapticrom.offline.config import ProblemConfig
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     config = ProblemConfig.from_toml(CONFIG)
     config = ProblemConfig.from_dict(

@@ -1,15 +1,16 @@
 """The offline trainer: full-order hyperelastic solves with DOLFINx and PETSc.
 
-Needs the ``offline`` extra (``pip install 'hapticrom[offline]'``). Modules:
+Needs the ``offline`` extra (``pip install 'hapticrom[offline]'``). The folders follow the
+pipeline (README, "Architecture"):
 
 - :mod:`~hapticrom.offline.config` -- TOML configuration of a solve (pure Python).
-- :mod:`~hapticrom.offline.materials` -- material laws as UFL strain energies.
-- :mod:`~hapticrom.offline.organ` -- an organ mesh with its surface groups, supports, fibres.
-- :mod:`~hapticrom.offline.formulation` -- finite-element spaces, the (mixed) energy, residuals.
-- :mod:`~hapticrom.offline.contact` -- the tool's contact patch, reaction force, patch displacement.
-- :mod:`~hapticrom.offline.solver` -- PETSc SNES plumbing and incremental loading with step cutting.
-- :mod:`~hapticrom.offline.output` -- curve.csv and XDMF fields for ParaView.
-- :mod:`~hapticrom.offline.fullorder` -- the full-order model: all of the above for one problem.
+- :mod:`~hapticrom.offline.fe` -- the full-order model: laws, organ, formulation, contact, solver.
+- :mod:`~hapticrom.offline.campaign` -- tool positions, the snapshot store, the campaign loop.
+- :mod:`~hapticrom.offline.reduce` -- POD, POD-ANM and the reductor that writes the artifact.
+- :mod:`~hapticrom.offline.cutting` -- the cut patch and the artifact's cuttable region.
+- :mod:`~hapticrom.offline.accuracy` -- the held-out check (``hapticrom accuracy``).
+- :mod:`~hapticrom.offline.studies` -- studies of the thesis' figures (``hapticrom anm``).
+- :mod:`~hapticrom.offline.mpi`, :mod:`~hapticrom.offline.progress` -- rank-0 helpers.
 """
 
 # Import order matters with the PyPI wheels:

@@ -16,7 +16,7 @@ Held-out positions, inside the trained region and never a training position:
   those of the tool's surface group that lie inside the samples' triangulation in the
   chart and face the same way as the samples.
 
-Selection is numpy; the solves go through :func:`~hapticrom.offline.campaign.run_campaign`
+Selection is numpy; the solves go through :func:`~hapticrom.offline.campaign.run.run_campaign`
 (its progress bar); the comparison uses the online runtime; output is a text table on
 rank 0 and a JSON file that ``hapticrom report --accuracy`` reads. Units: mm, N.
 """
@@ -216,7 +216,7 @@ def default_work(model: str | Path, count: int, seed: int | None) -> Path:
 
 # -- the full-order solves --------------------------------------------------------------------
 def held_out_config(plan: HeldOutPlan):
-    from hapticrom.offline.campaign import CampaignConfig
+    from hapticrom.offline.campaign.run import CampaignConfig
 
     return CampaignConfig.from_dict(plan.campaign, source=f"held-out campaign of {plan.model}")
 
@@ -224,7 +224,7 @@ def held_out_config(plan: HeldOutPlan):
 def solve_held_out(plan: HeldOutPlan, work, comm=MPI.COMM_WORLD, restart=False, verbose=True):
     """Run the held-out campaign in ``work`` (resumable, the campaign's progress bar on rank
     0 when ``verbose``); its CampaignReport."""
-    from hapticrom.offline.campaign import run_campaign
+    from hapticrom.offline.campaign.run import run_campaign
 
     return run_campaign(held_out_config(plan), work, comm, restart=restart, verbose=verbose)
 
@@ -308,7 +308,7 @@ class AccuracyResult:
 def compare(plan: HeldOutPlan, work: str | Path, failed: list[int]) -> AccuracyResult:
     """The reduced model against every solved held-out position stored in ``work``."""
     import hapticrom.online as online
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.store import SnapshotStore
 
     t0 = time.perf_counter()
     model = online.load(plan.model)

@@ -244,7 +244,7 @@ def _material(r: _Reader, t: dict) -> MaterialConfig:
     params = {k: v for k, v in t.items() if k != "law"}
     # The law and its parameters are checked here, before any mesh is read or any
     # output directory created (ufl is pure Python: still no DOLFINx or PETSc).
-    from hapticrom.offline.materials import make_law
+    from hapticrom.offline.fe.materials import make_law
 
     try:
         make_law(t["law"], **params)

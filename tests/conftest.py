@@ -86,8 +86,8 @@ include_centre = false
 @pytest.fixture(scope="session")
 def small_campaign(mesh_dir, tmp_path_factory):
     """A 5-position, 4-step HGO indentation campaign on the coarse cornea (serial)."""
-    from hapticrom.offline.campaign import CampaignConfig, run_campaign
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+    from hapticrom.offline.campaign.store import SnapshotStore
 
     root = tmp_path_factory.mktemp("campaign")
     path = root / "campaign.toml"
@@ -102,7 +102,7 @@ def small_artifact(small_campaign, tmp_path_factory) -> Path:
     """The reduced-model artifact of ``small_campaign`` (serial)."""
     from mpi4py import MPI
 
-    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.reduce.reduction import reduce_campaign
 
     _, store, _ = small_campaign
     out = tmp_path_factory.mktemp("artifact") / "small.h5"

@@ -89,8 +89,8 @@ def test_centroids_snap_to_region_nodes_and_say_how_far(small_artifact):
 def test_errors_are_against_a_full_order_solve(small_artifact, tmp_path):
     """At a training position the check finds ~0; at a held-out one, the full order's force
     (checked against an independent solve) differs from the ROM's."""
-    from hapticrom.offline.fullorder import FullOrderModel
-    from hapticrom.offline.positions import plan_positions
+    from hapticrom.offline.campaign.positions import plan_positions
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     plan = accuracy.plan_held_out(small_artifact, 1, comm=MPI.COMM_SELF)
     samples, surface = model_surface(small_artifact)
@@ -179,8 +179,8 @@ def test_two_ranks_give_the_serial_result(mesh_dir, tmp_path_factory):
     from conftest import campaign_toml
 
     from hapticrom.cli import main
-    from hapticrom.offline.campaign import CampaignConfig, run_campaign
-    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+    from hapticrom.offline.reduce.reduction import reduce_campaign
 
     comm = MPI.COMM_WORLD
     if comm.size < 2:

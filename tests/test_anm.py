@@ -17,15 +17,15 @@ from dolfinx import fem
 from dolfinx.la import InsertMode
 from test_beam import LENGTH, TRACTION, analytic_stretches, beam_config
 
-from hapticrom.offline.anm import (
+from hapticrom.offline.config import ProblemConfig
+from hapticrom.offline.fe.fullorder import FullOrderModel
+from hapticrom.offline.reduce.anm import (
     ANMOptions,
     ComplexResidual,
     ReducedResidual,
     continuation,
 )
-from hapticrom.offline.anm_study import reduced_space, run_study, solve_with_snapshots
-from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.studies.anm import reduced_space, run_study, solve_with_snapshots
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial
@@ -181,7 +181,7 @@ def test_campaign_anm_table_is_validated_and_not_part_of_the_campaign_identity(m
 
     from conftest import campaign_toml
 
-    from hapticrom.offline.campaign import CampaignConfig
+    from hapticrom.offline.campaign.run import CampaignConfig
 
     base = toml.loads(campaign_toml(mesh_dir / "cornea-coarse.msh"))
     config = CampaignConfig.from_dict(base)
@@ -199,9 +199,9 @@ def test_force_controlled_campaign_gets_series_the_runtime_follows(mesh_dir, tmp
     from conftest import campaign_toml
 
     import hapticrom.online as online
-    from hapticrom.offline.campaign import CampaignConfig, run_campaign
-    from hapticrom.offline.reduction import reduce_campaign
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+    from hapticrom.offline.campaign.store import SnapshotStore
+    from hapticrom.offline.reduce.reduction import reduce_campaign
 
     text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=4, per_ring=3)
     text = text.replace('mode = "displacement"', 'mode = "force"').replace(

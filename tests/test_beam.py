@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.fe.fullorder import FullOrderModel
 
 pytestmark = pytest.mark.serial
 

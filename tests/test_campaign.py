@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from conftest import campaign_toml
 
-from hapticrom.offline.campaign import CampaignConfig, run_campaign
+from hapticrom.offline.campaign.positions import ToolPosition
+from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+from hapticrom.offline.campaign.store import SnapshotStore, csr_from, read_h5
 from hapticrom.offline.config import LoadConfig, ProblemConfig
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.fullorder import FullOrderModel
-from hapticrom.offline.operators import load_vector
-from hapticrom.offline.positions import ToolPosition
-from hapticrom.offline.store import SnapshotStore, csr_from, read_h5
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.fullorder import FullOrderModel
+from hapticrom.offline.fe.operators import load_vector
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial

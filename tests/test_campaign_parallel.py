@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hapticrom.offline.campaign import CampaignConfig, run_campaign
-from hapticrom.offline.store import SnapshotStore
+from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+from hapticrom.offline.campaign.store import SnapshotStore
 
 pytestmark = pytest.mark.mpi
 

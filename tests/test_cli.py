@@ -159,14 +159,14 @@ def main_error(capsys, *args) -> str:
 @pytest.fixture
 def no_expensive_work(monkeypatch):
     """The solves and the reduction fail the test if they start."""
-    import hapticrom.offline.campaign
-    import hapticrom.offline.reduction
+    import hapticrom.offline.campaign.run
+    import hapticrom.offline.reduce.reduction
 
     def boom(*args, **kwargs):
         raise AssertionError("expensive work started before the input was checked")
 
-    monkeypatch.setattr(hapticrom.offline.campaign, "run_campaign", boom)
-    monkeypatch.setattr(hapticrom.offline.reduction, "reduce_campaign", boom)
+    monkeypatch.setattr(hapticrom.offline.campaign.run, "run_campaign", boom)
+    monkeypatch.setattr(hapticrom.offline.reduce.reduction, "reduce_campaign", boom)
 
 
 def snapshot(directory: Path) -> dict:

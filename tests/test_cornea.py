@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.contact import ReactionForce
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.fe.contact import ReactionForce
+from hapticrom.offline.fe.fullorder import FullOrderModel
 from hapticrom.shared.errors import SolverError
 
 pytestmark = pytest.mark.serial

@@ -85,7 +85,7 @@ def test_the_cut_opens_under_a_tool_next_to_it(tmp_path):
 
     import hapticrom.offline  # noqa: F401 - h5py and MPI first
     from hapticrom.offline.config import ProblemConfig
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     mesh = build("cornea", "coarse")
     cut, origin = cut_mesh(mesh, limbal_arc(mesh, ARC))

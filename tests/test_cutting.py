@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import hapticrom.offline  # noqa: F401 - h5py and MPI first
-from hapticrom.offline.cutting import continuation_map, couple, patch_around, relative_l2
-from hapticrom.offline.cutting_study import (
+from hapticrom.offline.cutting.patch import continuation_map, couple, patch_around, relative_l2
+from hapticrom.offline.studies.cutting import (
     CuttingStudy,
     linear_solve,
     lip_nodes,

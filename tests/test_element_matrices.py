@@ -8,17 +8,17 @@ import scipy.sparse
 
 import hapticrom.offline  # noqa: F401 - h5py and MPI first
 from hapticrom.meshes import build
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.element_matrices import (
+from hapticrom.offline.cutting.element_matrices import (
     canonical_cell_index,
     colour_cells,
     element_blocks,
     element_stiffness,
 )
-from hapticrom.offline.formulation import HyperelasticModel, choose_element
-from hapticrom.offline.materials import make_law
-from hapticrom.offline.operators import reference_tangent, tangent_blocks
-from hapticrom.offline.organ import load_organ
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.formulation import HyperelasticModel, choose_element
+from hapticrom.offline.fe.materials import make_law
+from hapticrom.offline.fe.operators import reference_tangent, tangent_blocks
+from hapticrom.offline.fe.organ import load_organ
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial

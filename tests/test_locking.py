@@ -11,7 +11,7 @@ import pytest
 from mpi4py import MPI
 
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.fe.fullorder import FullOrderModel
 
 pytestmark = [pytest.mark.mpi, pytest.mark.slow]
 

@@ -14,7 +14,12 @@ import ufl
 from dolfinx import fem, mesh
 from mpi4py import MPI
 
-from hapticrom.offline.materials import HolzapfelGasser, NeoHookean, SaintVenantKirchhoff, make_law
+from hapticrom.offline.fe.materials import (
+    HolzapfelGasser,
+    NeoHookean,
+    SaintVenantKirchhoff,
+    make_law,
+)
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial

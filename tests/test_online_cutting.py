@@ -7,8 +7,8 @@ import pytest
 
 import hapticrom.offline  # noqa: F401 - h5py and MPI first
 from hapticrom.meshes.cut import interior_faces, limbal_arc
-from hapticrom.offline.cutting import couple, patch_around
-from hapticrom.offline.cutting_study import (
+from hapticrom.offline.cutting.patch import couple, patch_around
+from hapticrom.offline.studies.cutting import (
     CuttingStudy,
     linear_solve,
     lip_nodes,
@@ -27,10 +27,10 @@ STUDY = CuttingStudy(refinement="coarse", test_point=(3.4, 0.0))  # load away fr
 def setting(tmp_path_factory):
     from mpi4py import MPI
 
-    from hapticrom.offline.element_matrices import element_stiffness
-    from hapticrom.offline.formulation import HyperelasticModel, choose_element
-    from hapticrom.offline.materials import make_law
-    from hapticrom.offline.organ import load_organ
+    from hapticrom.offline.cutting.element_matrices import element_stiffness
+    from hapticrom.offline.fe.formulation import HyperelasticModel, choose_element
+    from hapticrom.offline.fe.materials import make_law
+    from hapticrom.offline.fe.organ import load_organ
 
     intact, cut, origin, files = meshes(STUDY, tmp_path_factory.mktemp("online-cut"))
     point = surface_point(*STUDY.test_point)
@@ -110,8 +110,8 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
     from mpi4py import MPI
 
     import hapticrom.online as online
-    from hapticrom.offline.campaign import CampaignConfig, run_campaign
-    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+    from hapticrom.offline.reduce.reduction import reduce_campaign
 
     text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=2, per_ring=3)
     text = text.replace('law = "hgo"', 'law = "svk"\nE = 0.5\nnu = 0.45')

@@ -13,7 +13,7 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.fullorder import FullOrderModel
+from hapticrom.offline.fe.fullorder import FullOrderModel
 
 pytestmark = pytest.mark.mpi
 

@@ -1,4 +1,4 @@
-"""POD (offline/pod.py) on synthetic snapshot matrices of known structure.
+"""POD (offline/reduce/pod.py) on synthetic snapshot matrices of known structure.
 
 ``Q = U diag(s) V^T`` with U (N x r) orthonormal (W-orthonormal in the weighted
 cases) and V (M x r) orthonormal, both random and seeded: the exact POD
@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hapticrom.offline.pod import PODResult, Truncation, pod, pod_numpy, principal_angles
+from hapticrom.offline.reduce.pod import PODResult, Truncation, pod, pod_numpy, principal_angles
 from hapticrom.shared.errors import InputError
 
 N, M = 3000, 40
@@ -279,7 +279,7 @@ def test_partial_and_adaptive_spectra():
 @pytest.mark.serial
 def test_eps_partial_spectrum_doubling(monkeypatch):
     """The path for M > FULL_SPECTRUM_M: 64 eigenpairs first, doubling until decided."""
-    import hapticrom.offline.pod as pod_module
+    import hapticrom.offline.reduce.pod as pod_module
 
     monkeypatch.setattr(pod_module, "FULL_SPECTRUM_M", 100)
     s = np.logspace(0, -2, 200)

@@ -9,7 +9,7 @@ import pytest
 
 from hapticrom.meshes import build, generate
 from hapticrom.meshes.msh import face_area_vectors, gmsh_home_guard, read_surface, write_msh
-from hapticrom.offline.positions import (
+from hapticrom.offline.campaign.positions import (
     FarthestSampler,
     PolarSampler,
     PositionsSpec,

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hapticrom.offline.pod import Truncation, pod, pod_numpy, principal_angles
-from hapticrom.offline.reduction import reduce_campaign
-from hapticrom.offline.store import csr_from
+from hapticrom.offline.campaign.store import csr_from
+from hapticrom.offline.reduce.pod import Truncation, pod, pod_numpy, principal_angles
+from hapticrom.offline.reduce.reduction import reduce_campaign
 from hapticrom.shared.artifact import read_artifact
 
 pytestmark = pytest.mark.serial
@@ -88,7 +88,7 @@ def test_artifact_content_matches_the_campaign(small_campaign, reduced):
 
 
 def test_reduce_refuses_an_unfinished_campaign(small_campaign, tmp_path):
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.store import SnapshotStore
     from hapticrom.shared.errors import InputError
 
     _, store, _ = small_campaign

@@ -19,9 +19,9 @@ import pytest
 from conftest import campaign_toml
 from mpi4py import MPI
 
-from hapticrom.offline.campaign import CampaignConfig, run_campaign
-from hapticrom.offline.pod import principal_angles
-from hapticrom.offline.reduction import reduce_campaign
+from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+from hapticrom.offline.reduce.pod import principal_angles
+from hapticrom.offline.reduce.reduction import reduce_campaign
 from hapticrom.shared.artifact import read_artifact
 
 pytestmark = pytest.mark.mpi

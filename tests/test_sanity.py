@@ -1,4 +1,4 @@
-"""Physics sanity checks (offline/sanity.py), each on a case built to trigger it.
+"""Physics sanity checks (offline/fe/sanity.py), each on a case built to trigger it.
 
 Pure checks on synthetic load paths (the numbers are those of the pinched hemisphere,
 examples/hemisphere-svk-pinch.toml at 30 N), real solves on coarse meshes (a few
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from mpi4py import MPI
 
-from hapticrom.offline import sanity
-from hapticrom.offline.sanity import StepSanity, campaign_summary, judge, next_finer_level
-from hapticrom.offline.solver import StepRecord
+from hapticrom.offline.fe import sanity
+from hapticrom.offline.fe.sanity import StepSanity, campaign_summary, judge, next_finer_level
+from hapticrom.offline.fe.solver import StepRecord
 from hapticrom.shared.errors import InputError, SolverError
 
 # Fine hemisphere, SVK, 3 N per step (measured): 0.94 -> 4.69 mm between 9 and 12 N.
@@ -120,7 +120,7 @@ def test_campaign_summary_layout():
 # -- the measures on a real mesh --------------------------------------------------------------
 def beam_model(mesh_dir, **load):
     from hapticrom.offline.config import ProblemConfig
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     config = ProblemConfig.from_dict(
         {
@@ -199,7 +199,7 @@ def hemisphere_config(mesh_dir, law: str, force: float, steps: int = 10):
 def test_svk_hemisphere_snaps_through_and_inverts(mesh_dir, tmp_path, capsys):
     """The pinched hemisphere of the example on the coarse mesh at 45 N (the coarse mesh is
     stiffer than the default one, which does this at 30 N)."""
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     model = FullOrderModel(hemisphere_config(mesh_dir, "svk", 45.0), comm=MPI.COMM_SELF)
     result = model.solve(tmp_path)
@@ -219,7 +219,7 @@ def test_svk_hemisphere_snaps_through_and_inverts(mesh_dir, tmp_path, capsys):
 
 @pytest.mark.serial
 def test_force_control_stopped_by_a_limit_point(mesh_dir):
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     config = hemisphere_config(mesh_dir, "svk", 60.0)
     config = replace(config, load=replace(config.load, max_step_cuts=3))
@@ -253,7 +253,7 @@ def test_next_finer_level(mesh_dir, tmp_path):
 
 @pytest.mark.serial
 def test_refinement_check_reports_the_difference(mesh_dir, tmp_path):
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     config = hemisphere_config(mesh_dir, "neo-hookean", 10.0, steps=2)
     result = FullOrderModel(config, comm=MPI.COMM_SELF, verbose=False).solve(tmp_path)
@@ -276,7 +276,7 @@ def test_refinement_check_reports_the_difference(mesh_dir, tmp_path):
 def test_campaign_refinement_check(mesh_dir, tmp_path, capsys):
     """`campaign --refinement-check`: position 0 on the next finer mesh, refinement.json."""
     from hapticrom.cli import main
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.store import SnapshotStore
 
     toml = write_campaign(tmp_path / "c.toml", mesh_dir / "cornea-coarse.msh", steps=2)
     out = tmp_path / "store"
@@ -320,7 +320,7 @@ def test_campaign_refinement_check(mesh_dir, tmp_path, capsys):
 @pytest.mark.serial
 def test_snapped_positions_are_listed(mesh_dir):
     from hapticrom.meshes.msh import read_surface
-    from hapticrom.offline.positions import (
+    from hapticrom.offline.campaign.positions import (
         PolarSampler,
         PositionsSpec,
         plan_with_report,
@@ -376,7 +376,7 @@ points = [{list(point)}]
 )
 def test_mistakes_are_caught_before_any_directory(mesh_dir, tmp_path, material, mesh, message):
     from hapticrom.cli import main
-    from hapticrom.offline.campaign import CampaignConfig, run_campaign
+    from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
 
     point = (400.0, 0.0, 0.0) if mesh == "beam" else (0.0, 0.0, 0.0)
     toml = write_campaign(tmp_path / "c.toml", mesh_dir / f"{mesh}-coarse.msh", material, 2, point)
@@ -391,9 +391,9 @@ def test_mistakes_are_caught_before_any_directory(mesh_dir, tmp_path, material, 
 @pytest.mark.serial
 def test_a_rerun_after_a_mistake_needs_no_restart(mesh_dir, tmp_path):
     """A directory whose campaign never solved a position is taken over without --restart."""
-    from hapticrom.offline.campaign import CampaignConfig, campaign_manifest, run_campaign
-    from hapticrom.offline.positions import ToolPosition
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.positions import ToolPosition
+    from hapticrom.offline.campaign.run import CampaignConfig, campaign_manifest, run_campaign
+    from hapticrom.offline.campaign.store import SnapshotStore
 
     mesh = mesh_dir / "cornea-coarse.msh"
     first = CampaignConfig.from_toml(write_campaign(tmp_path / "a.toml", mesh, steps=3))
@@ -437,7 +437,7 @@ def test_campaign_stores_sanity_and_the_artifact_summarises_it(small_campaign, s
 # -- parallel -----------------------------------------------------------------------------------
 @pytest.mark.mpi
 def test_measures_in_parallel_equal_serial(mesh_dir):
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     comm = MPI.COMM_WORLD
     if comm.size < 2:

@@ -19,8 +19,8 @@ def _train(root, text: str):
     from mpi4py import MPI
 
     import hapticrom.online as online
-    from hapticrom.offline.campaign import CampaignConfig, run_campaign
-    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+    from hapticrom.offline.reduce.reduction import reduce_campaign
 
     (root / "c.toml").write_text(text)
     config = CampaignConfig.from_toml(root / "c.toml")
@@ -206,8 +206,8 @@ def test_reduce_again_with_other_reduction_tables_only(small_campaign, tmp_path,
     from conftest import campaign_toml
     from mpi4py import MPI
 
-    from hapticrom.offline.campaign import CampaignConfig
-    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.campaign.run import CampaignConfig
+    from hapticrom.offline.reduce.reduction import reduce_campaign
     from hapticrom.shared.errors import InputError
 
     _, store, _ = small_campaign
@@ -269,8 +269,8 @@ def _linear_full_order(mesh_file, config, point, direction, tmp_path):
     from mpi4py import MPI
 
     from hapticrom.offline.config import ProblemConfig
-    from hapticrom.offline.dofs import CanonicalOrder
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.dofs import CanonicalOrder
+    from hapticrom.offline.fe.fullorder import FullOrderModel
 
     force = 1e-6  # N: the linear range
     problem = ProblemConfig.from_dict({

@@ -163,7 +163,7 @@ def _check_ancestor(path: Path, label: str) -> None:
 def _check_campaign_dir(path: str, label: str, restart: bool) -> Path:
     """A campaign directory to write: as :func:`_check_out_dir`; a manifest it holds is read."""
     out = _check_out_dir(path, label)
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.store import SnapshotStore
 
     store = SnapshotStore(out)
     if store.manifest_path.exists() and not restart:
@@ -224,7 +224,7 @@ def cmd_solve(args, petsc_args) -> int:
     config = ProblemConfig.from_toml(args.config)  # fails before MPI/PETSc on a bad file
     out = _check_out_dir(args.out, f"solve --out {args.out}")
     _init_petsc(petsc_args)
-    from hapticrom.offline.fullorder import solve_config
+    from hapticrom.offline.fe.fullorder import solve_config
 
     result = solve_config(config, out_dir=out)
     if _rank() == 0:
@@ -235,7 +235,7 @@ def cmd_solve(args, petsc_args) -> int:
     if args.refinement_check:
         from mpi4py import MPI
 
-        from hapticrom.offline.sanity import check_refinement
+        from hapticrom.offline.fe.sanity import check_refinement
 
         check_refinement(config, result, out, MPI.COMM_WORLD)
     return 0 if result.records else 1
@@ -253,12 +253,12 @@ def cmd_campaign(args, petsc_args) -> int:
     from hapticrom.offline import require_offline
 
     require_offline()
-    from hapticrom.offline.campaign import CampaignConfig
+    from hapticrom.offline.campaign.run import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
     out = _check_campaign_dir(args.out, f"campaign --out {args.out}", args.restart)
     _init_petsc(petsc_args)
-    from hapticrom.offline.campaign import run_campaign
+    from hapticrom.offline.campaign.run import run_campaign
 
     report = run_campaign(
         config,
@@ -274,17 +274,17 @@ def cmd_reduce(args, petsc_args) -> int:
     from hapticrom.offline import require_offline
 
     require_offline()
-    from hapticrom.offline.store import SnapshotStore
+    from hapticrom.offline.campaign.store import SnapshotStore
 
     reduction = None
     if args.campaign:
-        from hapticrom.offline.campaign import CampaignConfig
+        from hapticrom.offline.campaign.run import CampaignConfig
 
         reduction = CampaignConfig.from_toml(args.campaign)
     SnapshotStore(args.campaign_dir).manifest()  # a campaign directory, intact manifest
     out = _check_out_file(args.out, f"reduce --out {args.out}")
     _offline(petsc_args)
-    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.reduce.reduction import reduce_campaign
 
     reduce_campaign(args.campaign_dir, out, reduction=reduction)
     return 0
@@ -294,15 +294,15 @@ def cmd_train(args, petsc_args) -> int:
     from hapticrom.offline import require_offline
 
     require_offline()
-    from hapticrom.offline.campaign import CampaignConfig
+    from hapticrom.offline.campaign.run import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
     out = _check_out_file(args.out, f"train --out {args.out}")
     work = args.work or str(out.with_suffix(".campaign"))
     work = _check_campaign_dir(work, f"train --work {work}", args.restart)
     _init_petsc(petsc_args)
-    from hapticrom.offline.campaign import run_campaign
-    from hapticrom.offline.reduction import reduce_campaign
+    from hapticrom.offline.campaign.run import run_campaign
+    from hapticrom.offline.reduce.reduction import reduce_campaign
 
     report = run_campaign(
         config,
@@ -324,10 +324,10 @@ def cmd_anm(args, petsc_args) -> int:
     config = ProblemConfig.from_toml(args.config)
     _check_out_dir(args.out, f"anm --out {args.out}")
     _init_petsc(petsc_args)
-    from hapticrom.offline.anm import ANMOptions
-    from hapticrom.offline.anm_study import run_study
-    from hapticrom.offline.fullorder import FullOrderModel
-    from hapticrom.offline.pod import Truncation
+    from hapticrom.offline.fe.fullorder import FullOrderModel
+    from hapticrom.offline.reduce.anm import ANMOptions
+    from hapticrom.offline.reduce.pod import Truncation
+    from hapticrom.offline.studies.anm import run_study
 
     options = ANMOptions(order=args.order, tolerance=args.tolerance)
     fom = FullOrderModel(config, verbose=not args.quiet)

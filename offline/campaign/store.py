@@ -12,7 +12,7 @@ Every file is written under a temporary name in the same directory, flushed
 to disk, then renamed: a crash (even SIGKILL) at any moment leaves either the
 complete file or none, never a half-written one that reads as valid. Every
 dataset carries its SHA-256 (``hapticrom.shared.checksum``), verified on read.
-All arrays are in the canonical DOF order of :mod:`hapticrom.offline.dofs`, so
+All arrays are in the canonical DOF order of :mod:`hapticrom.offline.fe.dofs`, so
 campaigns run on different numbers of ranks store the same data.
 
 A rerun of the same campaign in the same directory resumes: positions whose

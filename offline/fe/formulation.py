@@ -5,7 +5,7 @@ The total potential energy of the tissue under a dead surface traction t is
     Pi(u, p) = int_Omega Psi_mix(F, p) dX - int_Gamma_t t . u dA,
     Psi_mix  = Psi_rest(F) + p theta(F) - p^2 / (2 kappa)
 
-(see :class:`~hapticrom.offline.materials.EnergySplit`). With a pressure
+(see :class:`~hapticrom.offline.fe.materials.EnergySplit`). With a pressure
 space (``Q1P0``, ``P2P0``, ``Q2Q1``, ...) ``p`` is an unknown and the
 volumetric constraint is enforced weakly, which removes volumetric locking of
 nearly incompressible tissue; eliminating ``p`` gives back Psi exactly. With a
@@ -27,8 +27,8 @@ import ufl
 from dolfinx import fem
 from petsc4py import PETSc
 
-from hapticrom.offline.materials import MaterialLaw
-from hapticrom.offline.organ import OrganMesh
+from hapticrom.offline.fe.materials import MaterialLaw
+from hapticrom.offline.fe.organ import OrganMesh
 from hapticrom.shared.errors import InputError
 
 
@@ -90,7 +90,7 @@ def mixed_energy_density(law: MaterialLaw, F, p, constants, fibres):
     """Psi_mix(F, p) = rest + p theta - p^2/(2 kappa) (MPa); Psi(F) itself when p is None.
 
     Shared by the real forms of :class:`HyperelasticModel` and the complex forms
-    of the ANM (:mod:`hapticrom.offline.anm`), so both differentiate one energy.
+    of the ANM (:mod:`hapticrom.offline.reduce.anm`), so both differentiate one energy.
     """
     split = law.energy_split(F, constants, fibres)
     if p is None:

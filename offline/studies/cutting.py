@@ -27,10 +27,10 @@ from hapticrom.meshes import build
 from hapticrom.meshes.cut import LimbalArc, cut_mesh, limbal_arc
 from hapticrom.meshes.msh import write_msh
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.cutting import couple, patch_around, relative_l2
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.fullorder import FullOrderModel
-from hapticrom.offline.operators import load_vector, reference_tangent
+from hapticrom.offline.cutting.patch import couple, patch_around, relative_l2
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.fullorder import FullOrderModel
+from hapticrom.offline.fe.operators import load_vector, reference_tangent
 
 MATERIAL = {"law": "svk", "E": 0.5, "nu": 0.45}  # thesis ch. 4: Saint Venant-Kirchhoff cornea
 ANTERIOR_RADIUS = 7.8  # mm, the cornea generator's default

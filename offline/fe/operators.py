@@ -23,8 +23,8 @@ from dolfinx.fem.petsc import assemble_matrix
 from dolfinx.la import InsertMode
 from petsc4py import PETSc
 
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.formulation import HyperelasticModel
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.formulation import HyperelasticModel
 from hapticrom.shared.errors import InputError
 
 

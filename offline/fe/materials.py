@@ -5,7 +5,7 @@ construction) and returning a UFL strain-energy density ``Psi(F)``. Stresses
 and tangents are never written by hand: the solver differentiates ``Psi`` with
 ``ufl.derivative`` and tests with ``ufl.diff``. Energies are analytic
 expressions (no ``ufl.inner``, ``abs`` or conjugates): the ANM evaluates them
-at complex deformations (:mod:`hapticrom.offline.anm`).
+at complex deformations (:mod:`hapticrom.offline.reduce.anm`).
 
 Parameters enter the UFL expressions through a mapping ``c`` (name -> UFL
 value). The solver passes ``dolfinx.fem.Constant`` objects so that a new
@@ -14,7 +14,7 @@ parameter value does not recompile the kernels; tests may pass floats.
 Every law splits its energy as ``Psi = Psi_rest(F) + kappa/2 * theta(F)**2``
 (:class:`EnergySplit`) with a scalar volumetric strain ``theta`` and a bulk
 modulus ``kappa``. The mixed displacement-pressure formulation
-(:mod:`hapticrom.offline.formulation`) replaces the volumetric term by
+(:mod:`hapticrom.offline.fe.formulation`) replaces the volumetric term by
 ``p*theta - p**2/(2*kappa)``, which gives back ``kappa/2*theta**2`` when the
 pressure ``p`` is eliminated; that is how nearly incompressible tissue avoids
 volumetric locking on linear elements.

@@ -49,7 +49,7 @@ def condensed_reduced_stiffness(comm: MPI.Comm, ops, A_local: np.ndarray, K_r=No
 
     ``K_r``: A^T K A (K_uu if mixed) when already computed (``reduction.reduced_blocks``).
     """
-    from hapticrom.offline.reduction import _allgather_rows, _sum
+    from hapticrom.offline.reduce.reduction import _allgather_rows, _sum
 
     K = K_r
     if K is None:
@@ -72,14 +72,14 @@ def cutting_group(
     (``reduced_*`` datasets): the coupling then keeps the reduced pressure outside
     the cut patch (format 1.3).
     """
-    from hapticrom.offline.element_matrices import (
+    from hapticrom.offline.cutting.element_matrices import (
         canonical_cell_index,
         condense,
         element_blocks,
     )
-    from hapticrom.offline.formulation import HyperelasticModel, choose_element
-    from hapticrom.offline.materials import make_law
-    from hapticrom.offline.organ import load_organ
+    from hapticrom.offline.fe.formulation import HyperelasticModel, choose_element
+    from hapticrom.offline.fe.materials import make_law
+    from hapticrom.offline.fe.organ import load_organ
 
     problem = config.problem
     nodes, cells, clamped = read_mesh_arrays(problem.mesh.file)

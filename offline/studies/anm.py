@@ -25,7 +25,9 @@ import ufl
 from dolfinx import fem
 from dolfinx.la import InsertMode
 
-from hapticrom.offline.anm import (
+from hapticrom.offline.fe.fullorder import FullOrderModel
+from hapticrom.offline.mpi import print0
+from hapticrom.offline.reduce.anm import (
     ANMOptions,
     Branch,
     ComplexResidual,
@@ -36,9 +38,7 @@ from hapticrom.offline.anm import (
     snapshot_space,
     validity_radius,
 )
-from hapticrom.offline.fullorder import FullOrderModel
-from hapticrom.offline.mpi import print0
-from hapticrom.offline.pod import Truncation
+from hapticrom.offline.reduce.pod import Truncation
 
 
 @dataclass

@@ -43,12 +43,12 @@ from mpi4py import MPI
 
 from hapticrom import __version__
 from hapticrom.meshes.msh import read_surface
-from hapticrom.offline.campaign import CampaignConfig, campaign_sanity
-from hapticrom.offline.dofs import owned_canonical_rows
+from hapticrom.offline.campaign.run import CampaignConfig, campaign_sanity
+from hapticrom.offline.campaign.store import SnapshotStore
+from hapticrom.offline.fe.dofs import owned_canonical_rows
+from hapticrom.offline.fe.sanity import dumps
 from hapticrom.offline.mpi import on_rank_zero, print0
-from hapticrom.offline.pod import PODResult, Truncation, pod
-from hapticrom.offline.sanity import dumps
-from hapticrom.offline.store import SnapshotStore
+from hapticrom.offline.reduce.pod import PODResult, Truncation, pod
 from hapticrom.shared.artifact import write_artifact
 from hapticrom.shared.errors import HapticromError, InputError
 
@@ -369,14 +369,14 @@ def reduce_campaign(
 
     series = None
     if config.anm.enabled:
-        from hapticrom.offline.anm_reduction import sample_series
+        from hapticrom.offline.reduce.anm_reduction import sample_series
 
         anm = config.anm
         say(f"POD-ANM series per sample (order {anm.order}, tolerance {anm.tolerance:g})")
         series = sample_series(config, samples, reduced, comm, say)
     cut_stiffness = cut_pressure = None
     if config.cutting is not None:
-        from hapticrom.offline.cutting_export import condensed_reduced_stiffness
+        from hapticrom.offline.cutting.export import condensed_reduced_stiffness
 
         K_uu, K_up, K_pp = global_blocks
         cut_stiffness = condensed_reduced_stiffness(comm, ops, global_pod.basis_local, K_uu)
@@ -460,11 +460,11 @@ def reduce_campaign(
             },
         }
         if series is not None:
-            from hapticrom.offline.anm_reduction import artifact_group
+            from hapticrom.offline.reduce.anm_reduction import artifact_group
 
             content["anm"] = artifact_group(series, config)
         if cut_stiffness is not None:
-            from hapticrom.offline.cutting_export import cutting_group
+            from hapticrom.offline.cutting.export import cutting_group
 
             content["cutting"] = cutting_group(
                 config, config.cutting, global_basis, cut_stiffness, cut_pressure
@@ -475,7 +475,7 @@ def reduce_campaign(
             "units": json.dumps({"length": "mm", "force": "N", "stiffness": "N/mm"}),
             "campaign": json.dumps(manifest["campaign"], default=str),
             "description": f"contact ROM of campaign '{config.name}'",
-            "sanity": dumps(campaign_sanity(store)),  # physics sanity (offline/sanity.py)
+            "sanity": dumps(campaign_sanity(store)),  # physics sanity (offline/fe/sanity.py)
         }
         error = _write_model(out, content, root)
     if comm.rank == 0 and error is None:
@@ -538,7 +538,7 @@ def _common_grid(samples: list[Sample], reduced: list[ReducedSample]):
 
 def _material(config) -> dict:
     """The law and every parameter it used, defaults included (MPa or dimensionless)."""
-    from hapticrom.offline.materials import make_law
+    from hapticrom.offline.fe.materials import make_law
 
     material = config.problem.material
     law = make_law(material.law, **material.params)

@@ -25,7 +25,7 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from hapticrom.offline.organ import OrganMesh
+from hapticrom.offline.fe.organ import OrganMesh
 from hapticrom.shared.errors import InputError
 
 

@@ -348,7 +348,7 @@ def worst_values(steps: list[StepSanity]) -> dict[str, Any]:
 
 # -- measuring (DOLFINx; imported lazily so the judging above needs numpy only) -----------
 class SanityMonitor:
-    """Measures :class:`StepSanity` of a :class:`~hapticrom.offline.fullorder.FullOrderModel`.
+    """Measures :class:`StepSanity` of a :class:`~hapticrom.offline.fe.fullorder.FullOrderModel`.
 
     ``tangent``: "softening" (check the tangent where the path softens and at the last
     step), "every" (every step) or "never".
@@ -622,14 +622,14 @@ def _generate(name: str, level: str, out: Path) -> None:
 def run_refinement_check(config, result, out_dir: str | Path, comm, log=print) -> dict:
     """Solve ``config`` again on the next finer built-in mesh; compare the last common step.
 
-    ``result``: the :class:`~hapticrom.offline.fullorder.SolveResult` on the configured
+    ``result``: the :class:`~hapticrom.offline.fe.fullorder.SolveResult` on the configured
     mesh. The finer mesh and its solve (curve.csv, sanity.json) go to
     ``out_dir/refinement``. Returns a JSON-ready dict (``available`` False with a
     ``reason`` when there is no finer level).
     """
     from dataclasses import replace
 
-    from hapticrom.offline.fullorder import FullOrderModel
+    from hapticrom.offline.fe.fullorder import FullOrderModel
     from hapticrom.offline.mpi import on_rank_zero
     from hapticrom.shared.errors import SolverError
 

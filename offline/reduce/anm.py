@@ -55,7 +55,7 @@ import ufl
 from dolfinx import fem
 from mpi4py import MPI
 
-from hapticrom.offline.formulation import HyperelasticModel, mixed_energy_density
+from hapticrom.offline.fe.formulation import HyperelasticModel, mixed_energy_density
 from hapticrom.shared.errors import InputError, SolverError
 
 COMPLEX = np.complex128
@@ -82,7 +82,7 @@ class ComplexResidual:
     """The model's internal residual [R_u, R_p], compiled for complex displacements.
 
     Built from the same energy as the real forms
-    (:func:`~hapticrom.offline.formulation.mixed_energy_density`) with complex
+    (:func:`~hapticrom.offline.fe.formulation.mixed_energy_density`) with complex
     copies of the constants and fibres. The load is not included: it is a dead
     load, linear in the load factor, and enters the reduced residual as
     ``-lam A^T f``. UFL's complex mode conjugates test functions, so the forms
@@ -190,7 +190,7 @@ def snapshot_space(
     states. Pressure modes: at most ceil(n_u / 2) (see :mod:`.reduction`).
     Scale: alpha by the size of the last state's coordinates, lam by 1.
     """
-    from hapticrom.offline.pod import Truncation, pod
+    from hapticrom.offline.reduce.pod import Truncation, pod
 
     truncation = truncation or Truncation()
     lam = np.asarray(load_factor, dtype=float)

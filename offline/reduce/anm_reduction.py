@@ -2,10 +2,10 @@
 
 For each solved tool position the reduction already holds its snapshots (in
 canonical rows). Here they are moved to the DOLFINx layout of one
-:class:`~hapticrom.offline.formulation.HyperelasticModel` of the campaign's
+:class:`~hapticrom.offline.fe.formulation.HyperelasticModel` of the campaign's
 organ and material (the residual does not depend on the tool: the lifting of
 the tool's displacement carries the position), the reduced space of the
-sample is built (:func:`~hapticrom.offline.anm.snapshot_space`) and the
+sample is built (:func:`~hapticrom.offline.reduce.anm.snapshot_space`) and the
 continuation covers the trained load range. Displacement control: the load is
 the depth and the response the force; force control (a smooth pressure under
 the tool): the load is the force and the response the work-conjugate mean
@@ -27,18 +27,18 @@ from dataclasses import dataclass
 import numpy as np
 from mpi4py import MPI
 
-from hapticrom.offline.anm import (
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.formulation import HyperelasticModel, choose_element
+from hapticrom.offline.fe.materials import make_law
+from hapticrom.offline.fe.organ import load_organ
+from hapticrom.offline.reduce.anm import (
     ANMOptions,
     ComplexResidual,
     ReducedResidual,
     continuation,
     snapshot_space,
 )
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.formulation import HyperelasticModel, choose_element
-from hapticrom.offline.materials import make_law
-from hapticrom.offline.organ import load_organ
-from hapticrom.offline.pod import Truncation
+from hapticrom.offline.reduce.pod import Truncation
 from hapticrom.shared.errors import InputError
 
 
@@ -63,7 +63,7 @@ def _to_owned(order: CanonicalOrder, canonical: np.ndarray) -> np.ndarray:
 
 def sample_series(config, samples, reduced, comm: MPI.Comm, say=lambda s: None):
     """SampleSeries for every sample (collective over ``comm``)."""
-    from hapticrom.offline.reduction import _allgather_rows
+    from hapticrom.offline.reduce.reduction import _allgather_rows
 
     problem = config.problem
     organ = load_organ(problem.mesh.file, comm)

@@ -21,8 +21,8 @@ import scipy.sparse
 import ufl
 from dolfinx import fem
 
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.formulation import HyperelasticModel
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.formulation import HyperelasticModel
 from hapticrom.shared.errors import InputError
 
 
@@ -129,7 +129,7 @@ def element_blocks(model: HyperelasticModel, msh_cells: np.ndarray, cell_nodes: 
 def canonical_cell_index(cells: np.ndarray) -> np.ndarray:
     """Canonical index of each mesh-file cell: the order of an element-wise pressure's
     DOFs in snapshots and operators (cells sorted by their sorted node ids, as
-    :class:`~hapticrom.offline.dofs.CanonicalOrder` does for a DG0 space)."""
+    :class:`~hapticrom.offline.fe.dofs.CanonicalOrder` does for a DG0 space)."""
     keys = np.sort(cells, axis=1)
     order = np.lexsort(keys.T[::-1])
     index = np.empty(len(cells), dtype=np.int64)

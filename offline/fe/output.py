@@ -20,7 +20,7 @@ from pathlib import Path
 from dolfinx import fem, io
 from mpi4py import MPI
 
-from hapticrom.offline.solver import StepRecord
+from hapticrom.offline.fe.solver import StepRecord
 
 CURVE_COLUMNS = [
     "step",

@@ -3,7 +3,7 @@
 A campaign (TOML, see ``examples/cornea-campaign.toml``) names the mesh, the
 material, the control mode and load range, and the tool positions. Running it
 solves the full load path at every position and stores the snapshots in a
-:class:`~hapticrom.offline.store.SnapshotStore` directory.
+:class:`~hapticrom.offline.campaign.store.SnapshotStore` directory.
 
 Two-level parallelism: ``ranks_per_solve = K`` splits the N ranks into N/K
 groups (MPI sub-communicators); each group solves its share of the positions,
@@ -32,6 +32,14 @@ from mpi4py import MPI
 
 from hapticrom import __version__
 from hapticrom.meshes.msh import read_surface
+from hapticrom.offline.campaign.positions import (
+    PositionsSpec,
+    ToolPosition,
+    plan_with_report,
+    positions_from_dict,
+    positions_table,
+)
+from hapticrom.offline.campaign.store import FORMAT, VERSION, SnapshotStore, csr_datasets
 from hapticrom.offline.config import (
     LOAD_COMMON_KEYS,
     LoadConfig,
@@ -40,26 +48,17 @@ from hapticrom.offline.config import (
     load_common,
     read_toml,
 )
-from hapticrom.offline.dofs import CanonicalOrder
-from hapticrom.offline.formulation import HyperelasticModel
-from hapticrom.offline.fullorder import FullOrderModel
-from hapticrom.offline.mpi import on_rank_zero, print0
-from hapticrom.offline.operators import (
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.formulation import HyperelasticModel
+from hapticrom.offline.fe.fullorder import FullOrderModel
+from hapticrom.offline.fe.operators import (
     load_vector,
     lumped_volumes,
     reference_tangent,
     tangent_blocks,
 )
-from hapticrom.offline.organ import load_organ
-from hapticrom.offline.positions import (
-    PositionsSpec,
-    ToolPosition,
-    plan_with_report,
-    positions_from_dict,
-    positions_table,
-)
-from hapticrom.offline.progress import ProgressBar
-from hapticrom.offline.sanity import (
+from hapticrom.offline.fe.organ import load_organ
+from hapticrom.offline.fe.sanity import (
     campaign_summary,
     check_refinement,
     dumps,
@@ -67,7 +66,8 @@ from hapticrom.offline.sanity import (
     warning_lines,
     write_json,
 )
-from hapticrom.offline.store import FORMAT, VERSION, SnapshotStore, csr_datasets
+from hapticrom.offline.mpi import on_rank_zero, print0
+from hapticrom.offline.progress import ProgressBar
 from hapticrom.shared.checksum import file_digest
 from hapticrom.shared.errors import HapticromError, InputError, SolverError
 
@@ -254,7 +254,7 @@ def _anm(r: _Reader, t: dict) -> ANMConfig:
 
 
 def _cutting(r: _Reader, t: dict):
-    from hapticrom.offline.cutting_export import CuttingConfig
+    from hapticrom.offline.cutting.export import CuttingConfig
 
     r.keys(t, "cutting", {"centre", "radius", "patch_layers", "cut_force"})
     return CuttingConfig(
@@ -351,8 +351,8 @@ def validate_campaign(config: CampaignConfig) -> None:
     directory or solve.
     """
     from hapticrom.meshes.msh import read_sidecar
-    from hapticrom.offline.formulation import choose_element
-    from hapticrom.offline.materials import make_law
+    from hapticrom.offline.fe.formulation import choose_element
+    from hapticrom.offline.fe.materials import make_law
 
     problem = config.problem
     info = read_sidecar(problem.mesh.file)
@@ -393,8 +393,8 @@ def _ensure_operators(config, organ, comm, group, group_index, store, say) -> No
 def _write_operators(config: CampaignConfig, organ, group: MPI.Comm, store: SnapshotStore):
     """K0, volumes, coordinates and supports of the campaign's mesh (group 0 only)."""
     problem = config.problem
-    from hapticrom.offline.formulation import choose_element
-    from hapticrom.offline.materials import make_law
+    from hapticrom.offline.fe.formulation import choose_element
+    from hapticrom.offline.fe.materials import make_law
 
     law = make_law(problem.material.law, **problem.material.params)
     element = choose_element(organ.cell_type, problem.discretisation.element)
@@ -493,7 +493,7 @@ def _solve_position(config, position, organ, group):
 
 
 def _sanity_datasets(report) -> dict[str, np.ndarray]:
-    """The per-step sanity measures of a position (offline/sanity.py), one value per record."""
+    """The per-step sanity measures of a position (offline/fe/sanity.py), one value per record."""
     steps = report.steps
     return {
         "sanity/j_min": np.array([s.j_min for s in steps], dtype=float),

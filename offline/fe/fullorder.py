@@ -18,14 +18,14 @@ from dolfinx import fem
 from mpi4py import MPI
 
 from hapticrom.offline.config import ProblemConfig
-from hapticrom.offline.contact import ContactPatch, NodalMean, ReactionForce, WeightedMean
-from hapticrom.offline.formulation import HyperelasticModel, choose_element
-from hapticrom.offline.materials import make_law
+from hapticrom.offline.fe.contact import ContactPatch, NodalMean, ReactionForce, WeightedMean
+from hapticrom.offline.fe.formulation import HyperelasticModel, choose_element
+from hapticrom.offline.fe.materials import make_law
+from hapticrom.offline.fe.organ import OrganMesh, load_organ
+from hapticrom.offline.fe.output import CurveWriter, FieldWriter
+from hapticrom.offline.fe.sanity import SanityMonitor, SanityReport, write_json
+from hapticrom.offline.fe.solver import IncrementalLoading, NewtonSolver, StepRecord
 from hapticrom.offline.mpi import print0
-from hapticrom.offline.organ import OrganMesh, load_organ
-from hapticrom.offline.output import CurveWriter, FieldWriter
-from hapticrom.offline.sanity import SanityMonitor, SanityReport, write_json
-from hapticrom.offline.solver import IncrementalLoading, NewtonSolver, StepRecord
 from hapticrom.shared.errors import SolverError
 
 
@@ -41,7 +41,7 @@ class SolveResult:
     setup_seconds: float  # mesh, spaces, patch (no compilation)
     jit_seconds: float  # form compilation (FFCx/CFFI, or the JIT cache)
     solve_seconds: float
-    sanity: SanityReport | None = None  # physics sanity of the load path (offline/sanity.py)
+    sanity: SanityReport | None = None  # physics sanity of the load path (offline/fe/sanity.py)
 
     @property
     def newton_iterations(self) -> int:
@@ -187,7 +187,7 @@ class FullOrderModel:
         ``on_step(record, force, disp)`` is called after every converged
         increment, on every rank. If the solve fails, ``self.history`` still holds
         the converged increments (records, forces, displacements) and
-        ``self.sanity`` their physics sanity (:mod:`hapticrom.offline.sanity`).
+        ``self.sanity`` their physics sanity (:mod:`hapticrom.offline.fe.sanity`).
         """
         comm, load = self.comm, self.config.load
         log = (lambda s: print0(comm, s)) if self.verbose else (lambda s: None)
