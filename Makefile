@@ -1,4 +1,5 @@
 # hapticrom: one venv (.venv, Python 3.12), meshes under meshes/, caches under .cache/.
+#   make help   the targets, one line each (a target's line is the `## ` comment after it)
 #   make demo   set up everything, train the default cornea model on 2 ranks, play it,
 #               check it at held-out positions, write the report (out/report/report.html),
 #               cut it with the scalpel (latency, and against the full order with the cut meshed)
@@ -26,32 +27,36 @@ export OMP_NUM_THREADS := 1
 
 DEFAULT_MESHES := meshes/cornea.msh meshes/beam.msh meshes/hemisphere.msh meshes/liver.msh
 
-.PHONY: venv meshes test test-serial test-mpi demo bench lint clean
+.PHONY: help venv meshes test test-serial test-mpi demo bench lint clean docker-test
 
-venv: $(STAMP)
+venv: $(STAMP) ## create .venv and install hapticrom with the offline and test extras
 
-$(STAMP): pyproject.toml
+help: ## list the targets, one line each
+	@awk 'BEGIN { FS = ":.*## " } /^[a-zA-Z_-]+:.*## / { printf "  make %-12s %s\n", $$1, $$2 }' \
+	  $(MAKEFILE_LIST)
+
+$(STAMP): pyproject.toml constraints.txt
 	@if [ -z "$(PYTHON312)" ]; then \
 	  echo "error: Python 3.12 not found (looked for python3.12 on PATH and under pyenv);" \
 	       "install it (e.g. pyenv install 3.12) or run: make PYTHON312=/path/to/python3.12 ..." >&2; \
 	  exit 1; fi
 	@echo "using $(PYTHON312)"
 	$(PYTHON312) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[offline,test]'
+	$(PY) -m pip install --quiet --constraint constraints.txt --upgrade pip
+	$(PY) -m pip install --quiet --constraint constraints.txt --build-constraint constraints.txt -e '.[offline,test]'
 	@touch $@
 
 meshes/%.msh: $(STAMP)
 	$(VENV)/bin/hapticrom mesh $* --out $@
 
-meshes: $(DEFAULT_MESHES)
+meshes: $(DEFAULT_MESHES) ## generate the default meshes (cornea, beam, hemisphere, liver)
 
-test: lint test-serial test-mpi
+test: lint test-serial test-mpi ## lint, then the tests serially and under mpirun -n NP (default 2)
 
-test-serial: venv
+test-serial: venv ## the tests on one process
 	$(PY) -m pytest -m "not mpi" -q tests
 
-test-mpi: venv
+test-mpi: venv ## the MPI tests under mpirun -n NP
 	$(VENV)/bin/mpirun -n $(NP) $(PY) -m pytest -m mpi -q -p no:cacheprovider tests
 
 # The campaign resumes: a second `make demo` reuses the stored solves. The default model is
@@ -59,8 +64,9 @@ test-mpi: venv
 # smoothly with the tool position, unlike the rigid tip's node set (see README).
 DEMO_CAMPAIGN ?= examples/cornea-campaign-soft-tip.toml
 DEMO_MODEL ?= out/cornea-soft.h5
-demo: venv meshes/cornea.msh
-	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom train $(DEMO_CAMPAIGN) --out $(DEMO_MODEL)
+TRAIN_DEMO = $(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom train $(DEMO_CAMPAIGN) --out $(DEMO_MODEL)
+demo: venv meshes/cornea.msh ## train the demo model (resumed), play, check, report and cut it
+	$(TRAIN_DEMO)
 	$(VENV)/bin/hapticrom play $(DEMO_MODEL)
 	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom accuracy $(DEMO_MODEL) --json out/accuracy.json
 	$(VENV)/bin/hapticrom report $(DEMO_MODEL) --out out/report --accuracy out/accuracy.json
@@ -68,17 +74,29 @@ demo: venv meshes/cornea.msh
 	$(PY) bench/cutting_runtime_accuracy.py $(DEMO_MODEL) --out out/cutting-runtime
 	@echo "reduced model: $(DEMO_MODEL) (snapshots: $(DEMO_MODEL:.h5=.campaign)); report: out/report/report.html; try: $(VENV)/bin/hapticrom bench $(DEMO_MODEL)"
 
-bench: demo
+# The demo model, trained only when it is missing (`make demo` trains it again, resuming).
+# Order-only prerequisites: a newer venv or mesh does not make it out of date.
+$(DEMO_MODEL): | venv meshes/cornea.msh
+	$(TRAIN_DEMO)
+
+bench: $(DEMO_MODEL) | venv meshes/cornea.msh ## full-order, runtime and cutting benchmarks (trains the demo model if missing)
 	$(PY) bench/fullorder.py
 	$(PY) bench/online.py $(DEMO_MODEL)
 	$(PY) bench/cutting_accuracy.py
 
 # Static checks, seconds (part of `make test`): ruff lint and format, and hadolint on the
 # Dockerfiles (no Docker engine needed; rules in .hadolint.yaml).
-lint: venv
+lint: venv ## ruff lint and format check, hadolint on the Dockerfiles
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/hadolint --no-color --config .hadolint.yaml docker/Dockerfile.offline docker/Dockerfile.runtime
 
-clean:
+clean: ## remove out/ (models, reports) and the pytest cache
 	rm -rf out .pytest_cache
+
+# Both Docker images built with buildah and run (docker/test.sh): the runtime plays and
+# benches a model without the finite-element stack, the trainer solves and trains the coarse
+# cornea under mpirun -n 2. Root, buildah and debootstrap; no Docker engine or registry (a
+# local base image, kept). 8 to 15 min; not part of `make test`.
+docker-test: ## build and run both Docker images with buildah (root; 8-15 min)
+	docker/test.sh

@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 import hapticrom.online as online
-from hapticrom.online.latency import _percentiles, _time_calls
+from hapticrom.online.latency import percentiles, time_calls
 
 TARGET_US = 100.0
 REPLACE_TARGET_US = 10.0
@@ -69,16 +69,16 @@ def main() -> None:
     gc_was = gc.isenabled()
     gc.disable()
     try:
-        step = _time_calls(sim.step_displacement, pushes)
+        step = time_calls(sim.step_displacement, pushes)
 
         def slide(p):
             sim.set_contact(p)
             sim.step_displacement(-0.5 * depth * n)
 
-        sliding = _time_calls(slide, near)
+        sliding = time_calls(slide, near)
         sim.set_contact(start)
         sim.step_displacement(-depth * n)
-        surface = _time_calls(lambda _: sim.surface_displacement(out), range(200))
+        surface = time_calls(lambda _: sim.surface_displacement(out), range(200))
         same, nearby = _replacements(sim, start, blade, near)
     finally:
         if gc_was:
@@ -88,13 +88,13 @@ def main() -> None:
     for name, ns in (("step_displacement", step), ("set_contact + step", sliding),
                      ("surface_displacement", surface), ("scalpel() again, same place", same),
                      ("scalpel() again, nearby", nearby)):  # fmt: skip
-        r = _percentiles(ns)
+        r = percentiles(ns)
         print(f"{name:32s} {r['p50_us']:9.2f} {r['p99_us']:9.2f} {r['max_us']:9.1f} "
               f"{r['calls']:8d}")  # fmt: skip
-    p99 = _percentiles(step)["p99_us"]
+    p99 = percentiles(step)["p99_us"]
     verdict = "met" if p99 <= TARGET_US else "missed"
     print(f"target step p99 <= {TARGET_US:g} us without topology change: {p99:.2f} us, {verdict}")
-    p99 = max(_percentiles(same)["p99_us"], _percentiles(nearby)["p99_us"])
+    p99 = max(percentiles(same)["p99_us"], percentiles(nearby)["p99_us"])
     verdict = "met" if p99 <= REPLACE_TARGET_US else "missed"
     print(f"target scalpel() re-placement p99 <= {REPLACE_TARGET_US:g} us: {p99:.2f} us, {verdict}")
     vertices, _, lips = sim.lip_vertices
@@ -108,8 +108,8 @@ def _replacements(sim, start, blade, near) -> tuple:
     (placing does not cut: only a step pressing the blade does)."""
     sim.scalpel(start, blade)  # not the first call: that one sets the scalpel up
     blade = np.ascontiguousarray(blade, dtype=float)
-    same = _time_calls(lambda p: sim.scalpel(p, blade), [np.array(start, dtype=float)] * 5000)
-    nearby = _time_calls(lambda p: sim.scalpel(p, blade), near)
+    same = time_calls(lambda p: sim.scalpel(p, blade), [np.array(start, dtype=float)] * 5000)
+    nearby = time_calls(lambda p: sim.scalpel(p, blade), near)
     return same, nearby
 
 
@@ -140,7 +140,7 @@ def background(sim, start, blade, n, depth) -> None:
         ns.append(time.perf_counter_ns() - t0)
         late += time.perf_counter_ns() > next_tick + 1_000_000
     event = sim.cut_events[-1]
-    r = _percentiles(np.asarray(ns))
+    r = percentiles(np.asarray(ns))
     print(f"background cut: {len(sim.cut_events) - before} event(s), patch {event.patch_unknowns} "
           f"unknowns, {1e3 * event.seconds:.1f} ms on the worker; {len(ns)} steps at 1 kHz "
           f"meanwhile: p50 {r['p50_us']:.2f} us, p99 {r['p99_us']:.2f} us, "

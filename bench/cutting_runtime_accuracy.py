@@ -100,7 +100,7 @@ def main() -> None:
 
     # The same faces cut in the mesh file.
     nodes = np.asarray(model.artifact["cutting"]["nodes"])
-    keys = {tuple(sorted(nodes[list(f)])) for f in sim._cutting.topology.cut_faces}
+    keys = {tuple(sorted(nodes[list(f)])) for f in sim.cutting.cuts.topology.cut_faces}
     mesh_name = campaign["mesh"]["file"]
     intact = build("cornea", "default")
     from hapticrom.offline.cutting.export import read_mesh_arrays
@@ -167,8 +167,8 @@ def main() -> None:
     )
     # The runtime's softening is a linear (reference tangent) estimate: compare it with the
     # full order's in the linear range, same tool centre and direction.
-    scalpel = sim._cutting
-    vertex = sim._vertex
+    scalpel = sim.cutting
+    vertex = scalpel.vertex
     tiny = 1e-6 * scalpel.normals[vertex]  # N, into the tissue
     centre = model.vertices[vertex]
     _, d_cut = full_order_surface(files["cut"], campaign, centre, -tiny, steps=1)

@@ -20,12 +20,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from hapticrom.meshes.msh import CELL_FACES, CELL_TYPE_OF_NODES, BuiltMesh, boundary_faces
+from hapticrom.shared.cut_topology import CutTopology  # the runtime cuts the same way
 from hapticrom.shared.errors import InputError
 
 
 def _topology(cells: np.ndarray, num_nodes: int | None = None):
-    from hapticrom.online.cutting import CutTopology  # numpy only: the runtime cuts the same way
-
     local = CELL_FACES[CELL_TYPE_OF_NODES[cells.shape[1]]]
     return CutTopology(cells, int(cells.max()) + 1 if num_nodes is None else num_nodes, local)
 
@@ -102,7 +101,7 @@ def cut_mesh(mesh: BuiltMesh, face_indices: np.ndarray) -> tuple[BuiltMesh, np.n
 
     Returns the new mesh and ``origin`` (new node -> original node). Cells keep
     their order; new nodes are appended after the original ones. The runtime's
-    :class:`~hapticrom.online.cutting.CutTopology` does the cutting, so the
+    :class:`~hapticrom.shared.cut_topology.CutTopology` does the cutting, so the
     explicit reference and the runtime's cuts are the same by construction.
     """
     faces, _ = interior_faces(mesh.cells)

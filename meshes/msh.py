@@ -34,6 +34,12 @@ from typing import Any
 import numpy as np
 
 from hapticrom.shared.errors import InputError
+from hapticrom.shared.files import read_versioned_json
+from hapticrom.shared.geometry import (  # noqa: F401 (face_area_vectors: for the planners)
+    corner_area_vectors,
+    face_area_vectors,
+    vertex_normals,
+)
 
 SIDECAR_FORMAT = "hapticrom-mesh"
 SIDECAR_VERSION = 1
@@ -77,6 +83,7 @@ class BuiltMesh:
 
     @property
     def cell_type(self) -> str:
+        """The cell type: hexahedron or tetrahedron."""
         return CELL_TYPE_OF_NODES[self.cells.shape[1]]
 
     def sidecar(self) -> dict[str, Any]:
@@ -247,8 +254,6 @@ def write_msh(
     require(cells.ndim == 2 and cells.shape[1] in CELL_TYPE_OF_NODES, "cells must be (m, 8|4)")
     unknown = sorted(set(facet_groups) - set(SURFACE_GROUPS))
     require(not unknown, f"unknown surface group(s) {unknown}; valid: {list(SURFACE_GROUPS)}")
-    cell_type = CELL_TYPE_OF_NODES[cells.shape[1]]
-
     options = {
         "General.Terminal": 0,
         "Mesh.MshFileVersion": 4.1,
@@ -256,33 +261,8 @@ def write_msh(
         "Mesh.SaveAll": 0,
     }
     with gmsh_model(f"hapticrom-write-{path.stem}", options):
-        volume = 1
-        gmsh.model.addDiscreteEntity(3, volume)
-        gmsh.model.mesh.addNodes(
-            3, volume, np.arange(1, len(nodes) + 1, dtype=np.uint64), nodes.ravel()
-        )
-        gmsh.model.mesh.addElementsByType(
-            volume,
-            GMSH_TYPES[cell_type],
-            np.arange(1, len(cells) + 1, dtype=np.uint64),
-            (cells + 1).astype(np.uint64).ravel(),
-        )
-        gmsh.model.addPhysicalGroup(3, [volume], tag=GROUP_TAGS["tissue"], name="tissue")
-        next_element = len(cells) + 1
-        for surface_tag, group in enumerate(SURFACE_GROUPS, start=1):
-            faces = np.asarray(facet_groups.get(group, np.empty((0, 0))), dtype=np.int64)
-            if faces.size == 0:
-                continue
-            face_type = FACE_TYPE_OF_NODES[faces.shape[1]]
-            gmsh.model.addDiscreteEntity(2, surface_tag)
-            gmsh.model.mesh.addElementsByType(
-                surface_tag,
-                GMSH_TYPES[face_type],
-                np.arange(next_element, next_element + len(faces), dtype=np.uint64),
-                (faces + 1).astype(np.uint64).ravel(),
-            )
-            next_element += len(faces)
-            gmsh.model.addPhysicalGroup(2, [surface_tag], tag=GROUP_TAGS[group], name=group)
+        _add_volume(nodes, cells)
+        _add_surface_groups(facet_groups, first_element=len(cells) + 1)
         path.parent.mkdir(parents=True, exist_ok=True)
         # Write next to the target, then rename: a crash never leaves a half mesh.
         partial = path.with_name(f".{path.stem}.partial.msh")
@@ -295,23 +275,52 @@ def write_msh(
     return path
 
 
+def _add_volume(nodes: np.ndarray, cells: np.ndarray) -> None:
+    """Into the current gmsh model: the nodes (tags 1..n), the cells (tags 1..m) and the
+    physical group "tissue", on one discrete volume entity."""
+    import gmsh
+
+    volume = 1
+    gmsh.model.addDiscreteEntity(3, volume)
+    gmsh.model.mesh.addNodes(
+        3, volume, np.arange(1, len(nodes) + 1, dtype=np.uint64), nodes.ravel()
+    )
+    gmsh.model.mesh.addElementsByType(
+        volume,
+        GMSH_TYPES[CELL_TYPE_OF_NODES[cells.shape[1]]],
+        np.arange(1, len(cells) + 1, dtype=np.uint64),
+        (cells + 1).astype(np.uint64).ravel(),
+    )
+    gmsh.model.addPhysicalGroup(3, [volume], tag=GROUP_TAGS["tissue"], name="tissue")
+
+
+def _add_surface_groups(facet_groups: Mapping[str, np.ndarray], first_element: int) -> None:
+    """Into the current gmsh model: each non-empty surface group as a discrete surface
+    entity and physical group, its faces numbered from ``first_element`` on."""
+    import gmsh
+
+    next_element = first_element
+    for surface_tag, group in enumerate(SURFACE_GROUPS, start=1):
+        faces = np.asarray(facet_groups.get(group, np.empty((0, 0))), dtype=np.int64)
+        if faces.size == 0:
+            continue
+        gmsh.model.addDiscreteEntity(2, surface_tag)
+        gmsh.model.mesh.addElementsByType(
+            surface_tag,
+            GMSH_TYPES[FACE_TYPE_OF_NODES[faces.shape[1]]],
+            np.arange(next_element, next_element + len(faces), dtype=np.uint64),
+            (faces + 1).astype(np.uint64).ravel(),
+        )
+        next_element += len(faces)
+        gmsh.model.addPhysicalGroup(2, [surface_tag], tag=GROUP_TAGS[group], name=group)
+
+
 def read_sidecar(msh_path: str | Path) -> dict[str, Any]:
     """Read the JSON sidecar of a .msh file; InputError if missing or not ours."""
     json_path = sidecar_path(msh_path)
     if not json_path.is_file():
         raise InputError(f"mesh sidecar {json_path} not found (generate the mesh first)")
-    try:
-        data = json.loads(json_path.read_text())
-    except json.JSONDecodeError as error:
-        raise InputError(f"mesh sidecar {json_path} is not valid JSON: {error}") from None
-    if not isinstance(data, dict) or data.get("format") != SIDECAR_FORMAT:
-        raise InputError(f"{json_path} is not a {SIDECAR_FORMAT} sidecar")
-    if data.get("version") != SIDECAR_VERSION:
-        raise InputError(
-            f"{json_path} has {SIDECAR_FORMAT} version {data.get('version')!r}; "
-            f"this hapticrom reads version {SIDECAR_VERSION}"
-        )
-    return data
+    return read_versioned_json(json_path, SIDECAR_FORMAT, SIDECAR_VERSION, "sidecar")
 
 
 # --- reading a surface group back -----------------------------------------------------------
@@ -338,38 +347,6 @@ class Surface:
     group: str
 
 
-def face_area_vectors(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area vectors (f, 3) of triangles or quadrangles: normal x area, in mm^2.
-
-    For a quadrangle, half the cross product of its diagonals: exact for a
-    planar one and the mean area vector of a warped one. The right-hand rule
-    of the node order gives the direction.
-    """
-    return corner_area_vectors(nodes[faces])
-
-
-def corner_area_vectors(p: np.ndarray) -> np.ndarray:
-    """Area vectors (f, 3) of faces given by their corner coordinates ``p`` (f, 3|4, 3), mm^2."""
-    if p.shape[1] == 3:
-        return 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    return 0.5 * np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
-
-
-def vertex_normals(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit vertex normals (k, 3): the area-weighted mean of the adjacent faces' normals.
-
-    Summing area vectors is that weighted mean up to length. InputError for
-    a node that is on no face or whose adjacent normals cancel.
-    """
-    sums = np.zeros_like(nodes, dtype=np.float64)
-    area = face_area_vectors(nodes, faces)
-    for corner in range(faces.shape[1]):
-        np.add.at(sums, faces[:, corner], area)
-    lengths = np.sqrt(np.einsum("ij,ij->i", sums, sums))
-    require(bool(np.all(lengths > 0.0)), "a surface node has no well-defined normal")
-    return sums / lengths[:, None]
-
-
 def read_surface(msh_path: str | Path, group: str = "loadable") -> Surface:
     """Read surface group ``group`` of a hapticrom .msh file as a :class:`Surface` (mm).
 
@@ -380,7 +357,7 @@ def read_surface(msh_path: str | Path, group: str = "loadable") -> Surface:
     """
     path = Path(msh_path)
     require(path.is_file(), f"mesh file {path} not found (generate it with `hapticrom mesh`)")
-    all_tags, coords, face_tags, cell_tags = _read_msh_group(path, group)
+    all_tags, coords, face_tags, cell_tags = read_msh_group(path, group)
     node_tags = np.unique(face_tags)
     # gmsh tags are arbitrary positive integers: map them through a sorted index.
     order = np.argsort(all_tags)
@@ -393,12 +370,21 @@ def read_surface(msh_path: str | Path, group: str = "loadable") -> Surface:
         nodes=nodes,
         node_tags=node_tags.astype(np.int64),
         faces=faces.astype(np.int64),
-        normals=vertex_normals(nodes, faces),
+        normals=_outward_normals(nodes, faces),
         group=group,
     )
 
 
-def _read_msh_group(path: Path, group: str):
+def _outward_normals(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals of a surface group; InputError if one is not defined."""
+    normals = vertex_normals(nodes, faces)
+    require(
+        bool(np.all(np.any(normals != 0.0, axis=1))), "a surface node has no well-defined normal"
+    )
+    return normals
+
+
+def read_msh_group(path: Path, group: str):
     """Node tags (n,), coordinates (n, 3), the group's faces and the tissue cells as node tags."""
     import gmsh
 

@@ -4,6 +4,8 @@ Needs the ``offline`` extra (``pip install 'hapticrom[offline]'``). The folders 
 pipeline (README, "Architecture"):
 
 - :mod:`~hapticrom.offline.config` -- TOML configuration of a solve (pure Python).
+- :mod:`~hapticrom.offline.tables` -- the one validator of every TOML table (pydantic models).
+- :mod:`~hapticrom.offline.check` -- ``hapticrom check CONFIG``; the JSON Schemas (``schemas/``).
 - :mod:`~hapticrom.offline.fe` -- the full-order model: laws, organ, formulation, contact, solver.
 - :mod:`~hapticrom.offline.campaign` -- tool positions, the snapshot store, the campaign loop.
 - :mod:`~hapticrom.offline.reduce` -- POD, POD-ANM and the reductor that writes the artifact.

@@ -21,16 +21,35 @@ DOLFINx or PETSc are imported. Example (``examples/cornea-hgo-indent.toml``)::
     options_prefix = "hapticrom_"     # then tune with -hapticrom_snes_rtol 1e-10
     [solver.petsc_options]
     snes_max_it = 30
+
+Each table is a typed model (:mod:`hapticrom.offline.tables`): :class:`MeshTable`,
+:class:`MaterialTable`, :class:`LoadTable`, :class:`DiscretisationTable`,
+:class:`SolverTable`, :class:`OutputTable`, gathered by :class:`SolveFile`. A campaign
+(:mod:`hapticrom.offline.campaign.config`) reuses them; its ``[load]`` shares
+:class:`LoadCommon`. What comes out are the frozen dataclasses below.
 """
 
 from __future__ import annotations
 
-import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
+from pydantic import Field, PlainValidator, WithJsonSchema, model_validator
+
+from hapticrom.offline.tables import (
+    Table,
+    boolean,
+    choice,
+    integer,
+    invalid,
+    number,
+    rule,
+    text,
+    validate,
+    vector,
+)
 from hapticrom.shared.errors import InputError
 
 LOAD_MODES = ("force", "displacement", "traction")
@@ -41,11 +60,15 @@ NEWTON_STRATEGIES = ("full", "modified")
 
 @dataclass(frozen=True)
 class MeshConfig:
+    """The organ's Gmsh file (``hapticrom mesh``)."""
+
     file: Path
 
 
 @dataclass(frozen=True)
 class MaterialConfig:
+    """A material law by name and its parameters (MPa), as written in the file."""
+
     law: str
     params: dict[str, Any] = field(default_factory=dict)
 
@@ -107,11 +130,15 @@ class SolverConfig:
 
 @dataclass(frozen=True)
 class OutputConfig:
+    """What a solve writes besides its record: ``xdmf``, the displacement path."""
+
     xdmf: bool = True
 
 
 @dataclass(frozen=True)
 class ProblemConfig:
+    """A full-order solve: mesh, material, load, discretisation, solver and output."""
+
     mesh: MeshConfig
     material: MaterialConfig
     load: LoadConfig
@@ -121,6 +148,7 @@ class ProblemConfig:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> ProblemConfig:
+        """Read and check a solve configuration file (paths relative to its folder)."""
         path = Path(path)
         return cls.from_dict(read_toml(path), base_dir=path.parent, source=str(path))
 
@@ -128,17 +156,9 @@ class ProblemConfig:
     def from_dict(
         cls, data: dict[str, Any], base_dir: str | Path = ".", source: str = "configuration"
     ) -> ProblemConfig:
-        reader = _Reader(source)
-        reader.keys(data, "", {"mesh", "material", "load", "discretisation", "solver", "output"})
-        mesh = _mesh(reader, reader.table(data, "mesh", required=True), Path(base_dir))
-        material = _material(reader, reader.table(data, "material", required=True))
-        load = _load(reader, reader.table(data, "load", required=True))
-        disc = _discretisation(reader, reader.table(data, "discretisation"))
-        solver = _solver(reader, reader.table(data, "solver"))
-        out = reader.table(data, "output")
-        reader.keys(out, "output", {"xdmf"})
-        output = OutputConfig(xdmf=reader.boolean(out, "output", "xdmf", True))
-        return cls(mesh, material, load, disc, solver, output)
+        """Check ``data`` (as from tomllib) against :class:`SolveFile`; InputError naming
+        ``source``, the table and the key otherwise."""
+        return validate(SolveFile, data, source).problem(Path(base_dir))
 
 
 def read_toml(path: Path, what: str = "configuration file") -> dict[str, Any]:
@@ -160,171 +180,255 @@ def read_toml(path: Path, what: str = "configuration file") -> dict[str, Any]:
         raise InputError(f"{path}: not valid TOML ({exc})") from None
 
 
-class _Reader:
-    """Small typed accessors that name the file and key in every error."""
+# --- the tables ---------------------------------------------------------------------------
 
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, where: str, message: str):
-        raise InputError(
-            f"{self.source}: [{where}] {message}" if where else f"{self.source}: {message}"
-        )
-
-    def keys(self, table: dict, where: str, allowed: set[str]) -> None:
-        unknown = sorted(set(table) - allowed)
-        if unknown:
-            self.fail(
-                where, f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(sorted(allowed))}"
-            )
-
-    def table(self, data: dict, name: str, required: bool = False) -> dict:
-        if name not in data:
-            if required:
-                self.fail("", f"missing table [{name}]")
-            return {}
-        if not isinstance(data[name], dict):
-            self.fail(name, "must be a table")
-        return data[name]
-
-    def number(self, table, where, key, default=None, positive=False, integer=False):
-        if key not in table:
-            if default is None:
-                self.fail(where, f"missing {key}")
-            return default
-        v = table[key]
-        ok = isinstance(v, int) if integer else isinstance(v, int | float)
-        if isinstance(v, bool) or not ok or not math.isfinite(v):
-            self.fail(
-                where, f"{key} must be a finite {'integer' if integer else 'number'}, got {v!r}"
-            )
-        if positive and v <= 0:
-            self.fail(where, f"{key} must be positive, got {v}")
-        return v
-
-    def vector(self, table, where, key, required=False):
-        if key not in table:
-            if required:
-                self.fail(where, f"missing {key} = [x, y, z]")
-            return None
-        v = table[key]
-        if (
-            not isinstance(v, list)
-            or len(v) != 3
-            or any(isinstance(c, bool) or not isinstance(c, int | float) for c in v)
-            or not all(math.isfinite(c) for c in v)
-        ):
-            self.fail(where, f"{key} must be three finite numbers [x, y, z], got {v!r}")
-        return tuple(float(c) for c in v)
-
-    def choice(self, table, where, key, choices, default):
-        v = table.get(key, default)
-        if v not in choices:
-            self.fail(where, f"{key} must be one of {', '.join(choices)}, got {v!r}")
-        return v
-
-    def boolean(self, table, where, key, default):
-        v = table.get(key, default)
-        if not isinstance(v, bool):
-            self.fail(where, f"{key} must be true or false, got {v!r}")
-        return v
-
-
-def _mesh(r: _Reader, t: dict, base_dir: Path) -> MeshConfig:
-    r.keys(t, "mesh", {"file"})
-    if not isinstance(t.get("file"), str):
-        r.fail("mesh", 'missing file = "path/to/mesh.msh" (generate one with `hapticrom mesh`)')
-    path = Path(t["file"])
-    return MeshConfig(file=path if path.is_absolute() else (base_dir / path))
-
-
-def _material(r: _Reader, t: dict) -> MaterialConfig:
-    if not isinstance(t.get("law"), str):
-        r.fail("material", 'missing law = "svk" | "neo-hookean" | "hgo"')
-    params = {k: v for k, v in t.items() if k != "law"}
-    # The law and its parameters are checked here, before any mesh is read or any
-    # output directory created (ufl is pure Python: still no DOLFINx or PETSc).
-    from hapticrom.offline.fe.materials import make_law
-
-    try:
-        make_law(t["law"], **params)
-    except InputError as exc:
-        r.fail("material", str(exc))
-    return MaterialConfig(law=t["law"], params=params)
-
-
-# Keys of the [load] table shared by a problem configuration and a campaign, and
-# the bounds of the integer ones (inclusive), checked by :func:`load_common`.
-LOAD_COMMON_KEYS = ("contact_radius", "surface", "steps", "max_step_cuts", "predictor")
+# Bounds (inclusive) of the integer [load] keys shared by a problem and a campaign.
 LOAD_STEPS = (1, 100_000)
 LOAD_MAX_STEP_CUTS = (0, 16)
 
+# The value types of the keys (offline/tables.py), shared with the campaign's tables.
+Positive = number(gt=0)
+PositiveInteger = integer(ge=1)
+Vector = vector()
+Boolean = boolean()
+MeshPath = text('a path such as "../meshes/cornea.msh"')
+LawName = text("a material law such as svk, neo-hookean or hgo")
+SurfaceName = text("the name of a surface group")
+Steps = integer(ge=LOAD_STEPS[0], le=LOAD_STEPS[1])
+StepCuts = integer(ge=LOAD_MAX_STEP_CUTS[0], le=LOAD_MAX_STEP_CUTS[1])
+Predictor = choice(PREDICTORS)
+LoadMode = choice(LOAD_MODES)
+ElementName = text("a name such as Q1P0")
+OptionsPrefix = text(
+    "a non-empty word such as 'hapticrom_'",
+    accept=lambda v: v.replace("_", "").isalnum(),
+    pattern="^_*[A-Za-z0-9][A-Za-z0-9_]*$",
+)
+LinearSolver = choice(LINEAR_SOLVERS)
+NewtonStrategy = choice(NEWTON_STRATEGIES)
 
-def _load(r: _Reader, t: dict) -> LoadConfig:
-    r.keys(t, "load", {"mode", *LOAD_MODES, "contact_point", *LOAD_COMMON_KEYS})
-    mode = r.choice(t, "load", "mode", LOAD_MODES, None)
-    vectors = {m: r.vector(t, "load", m, required=(m == mode)) for m in LOAD_MODES}
-    for m in LOAD_MODES:
-        if m != mode and vectors[m] is not None:
-            r.fail("load", f"{m} is given but mode is {mode!r}")
-    return LoadConfig(
-        mode=mode,
-        contact_point=r.vector(t, "load", "contact_point"),
-        **load_common(r, t),
-        **vectors,
+
+class MeshTable(Table):
+    """``[mesh]``: the Gmsh file of the organ (``hapticrom mesh``), relative to the config."""
+
+    missing = {"file": 'file = "path/to/mesh.msh" (generate one with `hapticrom mesh`)'}
+    file: MeshPath = Field(
+        description="Gmsh .msh file of the organ, relative to this file (`hapticrom mesh`)"
     )
 
+    def config(self, base_dir: Path) -> MeshConfig:
+        """The mesh file, relative paths taken from ``base_dir``."""
+        path = Path(self.file)
+        return MeshConfig(file=path if path.is_absolute() else (base_dir / path))
 
-def load_common(r: _Reader, t: dict) -> dict[str, Any]:
-    """The [load] keys a problem configuration and a campaign share, validated.
 
-    One validator for both, so a campaign is bounded exactly as the problem
+def _material_schema(schema: dict[str, Any]) -> None:
+    """The JSON Schema of ``[material]``: one branch per law, with its parameters and defaults
+    (from the laws' dataclasses; their bounds are checked by the laws)."""
+    from dataclasses import MISSING, fields
+
+    from hapticrom.offline.fe.materials import ALIASES, LAWS
+
+    schema.pop("additionalProperties", None)
+    branches = []
+    for name, law in sorted(LAWS.items()):
+        names = [name, *sorted(alias for alias, key in ALIASES.items() if key == name)]
+        params, required = {}, ["law"]
+        for f in fields(law):
+            kind = "boolean" if f.type in ("bool", bool) else "number"
+            params[f.name] = {"type": kind}
+            if f.default is MISSING:
+                required.append(f.name)
+            else:
+                params[f.name]["default"] = f.default
+        branches.append(
+            {
+                "title": name,
+                "description": (law.__doc__ or name).strip().splitlines()[0],
+                "properties": {"law": {"enum": names}, **params},
+                "required": required,
+                "additionalProperties": False,
+            }
+        )
+    schema["oneOf"] = branches
+
+
+class MaterialTable(Table, extra="allow", json_schema_extra=_material_schema):
+    """``[material]``: ``law`` and its parameters (MPa), checked by the law itself.
+
+    The parameters a law takes, their defaults and bounds are the law's
+    (:func:`hapticrom.offline.fe.materials.make_law`); the JSON Schema lists them per law.
+    """
+
+    missing = {"law": 'law = "svk" | "neo-hookean" | "hgo"'}
+    law: LawName = Field(description="the strain-energy law: svk | neo-hookean | hgo")
+
+    @model_validator(mode="after")
+    def _law(self) -> MaterialTable:
+        """The law accepts the parameters (names, types, bounds), before any mesh is read."""
+        from hapticrom.offline.fe.materials import make_law
+
+        rule(lambda: make_law(self.law, **self.params))
+        return self
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """The law's parameters as written (every key but ``law``)."""
+        return dict(self.model_extra or {})
+
+    def config(self) -> MaterialConfig:
+        """The law's name and parameters."""
+        return MaterialConfig(law=self.law, params=self.params)
+
+
+class LoadCommon(Table):
+    """The ``[load]`` keys a problem configuration and a campaign share.
+
+    One model for both, so a campaign is bounded exactly as the problem
     configuration it becomes at every position (:class:`LoadConfig`).
     """
-    surface = t.get("surface", "loadable")
-    if not isinstance(surface, str) or not surface:
-        r.fail("load", f"surface must be the name of a surface group, got {surface!r}")
-    return {
-        "contact_radius": r.number(t, "load", "contact_radius", 0.5, positive=True),
-        "surface": surface,
-        "steps": _bounded(r, t, "steps", 10, *LOAD_STEPS),
-        "max_step_cuts": _bounded(r, t, "max_step_cuts", 8, *LOAD_MAX_STEP_CUTS),
-        "predictor": r.choice(t, "load", "predictor", PREDICTORS, "secant"),
-    }
 
-
-def _bounded(r: _Reader, t: dict, key: str, default: int, low: int, high: int) -> int:
-    value = r.number(t, "load", key, default, integer=True)
-    if not low <= value <= high:
-        r.fail("load", f"{key} must lie in [{low}, {high}], got {value}")
-    return value
-
-
-def _discretisation(r: _Reader, t: dict) -> DiscretisationConfig:
-    r.keys(t, "discretisation", {"element", "quadrature_degree"})
-    element = t.get("element", "auto")
-    if not isinstance(element, str):
-        r.fail("discretisation", "element must be a name such as Q1P0")
-    qd = t.get("quadrature_degree")
-    if qd is not None:
-        qd = r.number(t, "discretisation", "quadrature_degree", positive=True, integer=True)
-    return DiscretisationConfig(element=element, quadrature_degree=qd)
-
-
-def _solver(r: _Reader, t: dict) -> SolverConfig:
-    r.keys(t, "solver", {"options_prefix", "linear_solver", "newton", "petsc_options"})
-    prefix = t.get("options_prefix", "hapticrom_")
-    if not isinstance(prefix, str) or not prefix or not prefix.replace("_", "").isalnum():
-        r.fail(
-            "solver",
-            f"options_prefix must be a non-empty word such as 'hapticrom_', got {prefix!r}",
-        )
-    options = t.get("petsc_options", {})
-    if not isinstance(options, dict):
-        r.fail("solver", "petsc_options must be a table of PETSc option names and values")
-    return SolverConfig(
-        options_prefix=prefix,
-        linear_solver=r.choice(t, "solver", "linear_solver", LINEAR_SOLVERS, "direct"),
-        newton=r.choice(t, "solver", "newton", NEWTON_STRATEGIES, "full"),
-        petsc_options=dict(options),
+    contact_radius: Positive = Field(
+        0.5, description="mm: the tool holds (or presses) the surface within this radius"
     )
+    surface: SurfaceName = Field(
+        "loadable", description="the mesh's surface group the tool acts on"
+    )
+    steps: Steps = Field(10, description="load steps from load factor 0 to 1")
+    max_step_cuts: StepCuts = Field(
+        8, description="times a load step may be halved when Newton fails"
+    )
+    predictor: Predictor = Field(
+        "secant", description="first guess of a load step: secant extrapolation or none"
+    )
+
+    def common(self) -> dict[str, Any]:
+        """These keys' values, as keyword arguments of :class:`LoadConfig`."""
+        return {key: getattr(self, key) for key in LOAD_COMMON_KEYS}
+
+
+LOAD_COMMON_KEYS = tuple(LoadCommon.model_fields)
+
+
+class LoadTable(LoadCommon):
+    """``[load]`` of a solve: the mode and its vector at load factor 1 (see :class:`LoadConfig`)."""
+
+    missing = {"mode": 'mode = "force" | "displacement" | "traction"'}
+    mode: LoadMode = Field(description="force (N) | displacement (mm) | traction (MPa)")
+    force: Vector | None = Field(None, description="N at load factor 1 (mode = force)")
+    displacement: Vector | None = Field(
+        None, description="mm at load factor 1 (mode = displacement)"
+    )
+    traction: Vector | None = Field(
+        None, description="MPa at load factor 1 on the whole surface (mode = traction)"
+    )
+    contact_point: Vector | None = Field(
+        None, description="mm; default: the mesh's default contact point"
+    )
+
+    @model_validator(mode="after")
+    def _one_vector(self) -> LoadTable:
+        """The mode's vector is given, and no other mode's."""
+        for mode in LOAD_MODES:
+            given = getattr(self, mode) is not None
+            if mode == self.mode and not given:
+                raise invalid(f"missing {mode} = [x, y, z]")
+            if mode != self.mode and given:
+                raise invalid(f"{mode} is given but mode is {self.mode!r}")
+        return self
+
+    def config(self) -> LoadConfig:
+        """The load of the solve."""
+        vectors = {mode: getattr(self, mode) for mode in LOAD_MODES}
+        return LoadConfig(
+            mode=self.mode, contact_point=self.contact_point, **self.common(), **vectors
+        )
+
+
+class DiscretisationTable(Table):
+    """``[discretisation]``: the finite element and the quadrature (see
+    :class:`DiscretisationConfig`)."""
+
+    element: ElementName = Field(
+        "auto",
+        description="auto | Q1 | Q1P0 | Q2 | Q2Q1 | Q2P0 (hexahedra) | P1 | P2 | P2P0 | P2P1 "
+        "(tetrahedra); checked against the mesh when it is read",
+    )
+    quadrature_degree: PositiveInteger | None = Field(
+        None, description="default: from the element and the law"
+    )
+
+    def config(self) -> DiscretisationConfig:
+        """The element and quadrature degree."""
+        return DiscretisationConfig(element=self.element, quadrature_degree=self.quadrature_degree)
+
+
+def _petsc_options(value: Any) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise invalid(f"must be a table of PETSc option names and values, got {value!r}")
+    return dict(value)
+
+
+PetscOptions = Annotated[
+    dict,
+    PlainValidator(_petsc_options),
+    WithJsonSchema(
+        {"type": "object", "additionalProperties": {"type": ["string", "number", "boolean"]}}
+    ),
+]
+
+
+class SolverTable(Table):
+    """``[solver]``: Newton strategy, linear solver, PETSc options (:class:`SolverConfig`)."""
+
+    options_prefix: OptionsPrefix = Field(
+        "hapticrom_", description="PETSc options prefix (-hapticrom_snes_rtol ...)"
+    )
+    linear_solver: LinearSolver = Field("direct", description="direct | iterative")
+    newton: NewtonStrategy = Field(
+        "full", description="full (a tangent per iteration) | modified (one per load step)"
+    )
+    petsc_options: PetscOptions = Field(
+        default_factory=dict, description="PETSc option names (without prefix) and values"
+    )
+
+    def config(self) -> SolverConfig:
+        """The solver settings."""
+        return SolverConfig(
+            options_prefix=self.options_prefix,
+            linear_solver=self.linear_solver,
+            newton=self.newton,
+            petsc_options=dict(self.petsc_options),
+        )
+
+
+class OutputTable(Table):
+    """``[output]``: what a solve writes besides its record."""
+
+    xdmf: Boolean = Field(True, description="write the displacement path as XDMF")
+
+    def config(self) -> OutputConfig:
+        """The output settings."""
+        return OutputConfig(xdmf=self.xdmf)
+
+
+class SolveFile(Table):
+    """A solve configuration file (``hapticrom solve CONFIG``): its tables."""
+
+    mesh: MeshTable
+    material: MaterialTable
+    load: LoadTable
+    discretisation: DiscretisationTable = DiscretisationTable()
+    solver: SolverTable = SolverTable()
+    output: OutputTable = OutputTable()
+
+    def problem(self, base_dir: Path) -> ProblemConfig:
+        """The :class:`ProblemConfig`; a relative mesh path is taken from ``base_dir``."""
+        return ProblemConfig(
+            self.mesh.config(base_dir),
+            self.material.config(),
+            self.load.config(),
+            self.discretisation.config(),
+            self.solver.config(),
+            self.output.config(),
+        )

@@ -1,10 +1,14 @@
-"""MPI helpers: rank-0 work that never deadlocks the other ranks, rank-0 printing."""
+"""MPI helpers: rank-0 work that never deadlocks the other ranks, rank-0 printing, and the
+sums and gathers of row-distributed arrays."""
 
 from __future__ import annotations
 
 import sys
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
+from mpi4py import MPI
 
 
 def on_rank_zero[T](comm, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
@@ -32,3 +36,13 @@ def print0(comm, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("flush", True)
         kwargs.setdefault("file", sys.stdout)
         print(*args, **kwargs)
+
+
+def allreduce_sum(comm, array) -> np.ndarray:
+    """The element-wise sum of ``array`` over the ranks of ``comm``, on every rank."""
+    return comm.allreduce(np.asarray(array), op=MPI.SUM)
+
+
+def allgather_rows(comm, local: np.ndarray) -> np.ndarray:
+    """Every rank's block of rows stacked in rank order (the whole row-distributed array)."""
+    return np.concatenate(comm.allgather(local), axis=0)

@@ -12,10 +12,39 @@ simulator can ``pip install hapticrom`` alone::
     d = np.array([0.0, 0.0, -0.3])                # tool displacement, mm
     force = sim.step_displacement(d)              # reaction force on the tool, N
 
-Units: mm, N. See :mod:`hapticrom.online.simulator` for the contact model.
+Units: mm, N. See :mod:`hapticrom.online.simulator` for the contact model. Every error
+the runtime raises while it runs is a :class:`SimulatorError` (a ``HapticromError``);
+a damaged artifact is an :class:`ArtifactError`.
+
+Modules: :mod:`~hapticrom.online.model` (the loaded artifact), :mod:`~hapticrom.online.simulator`
+(the servo loop's object), :mod:`~hapticrom.online.kernels` (the numba kernels and the state
+buffer's layout), :mod:`~hapticrom.online.scalpel` (the simulator's cutting controller),
+:mod:`~hapticrom.online.cutting`, :mod:`~hapticrom.online.coupled_patch`,
+:mod:`~hapticrom.online.tool_load`, :mod:`~hapticrom.online.cut_render`,
+:mod:`~hapticrom.online.cut_worker` (the cuts), :mod:`~hapticrom.online.latency`,
+:mod:`~hapticrom.online.play`, :mod:`~hapticrom.online.reference` (benchmarks, a scripted
+tool path, the plain-numpy reference).
 """
 
 from hapticrom.online.model import ReducedModel, load
 from hapticrom.shared.artifact import ArtifactError
+from hapticrom.shared.errors import (
+    NoContactError,
+    OutputArrayError,
+    ScalpelInputError,
+    SimulatorBusyError,
+    SimulatorError,
+    StepInputError,
+)
 
-__all__ = ["ArtifactError", "ReducedModel", "load"]
+__all__ = [
+    "ArtifactError",
+    "NoContactError",
+    "OutputArrayError",
+    "ReducedModel",
+    "ScalpelInputError",
+    "SimulatorBusyError",
+    "SimulatorError",
+    "StepInputError",
+    "load",
+]

@@ -18,7 +18,8 @@ from hapticrom.online.model import ReducedModel, load
 from hapticrom.online.reference import NumpySimulator
 
 
-def _percentiles(ns: np.ndarray) -> dict[str, float]:
+def percentiles(ns: np.ndarray) -> dict[str, float]:
+    """p50, p99 and max (microseconds) and the number of calls of latencies ``ns`` (ns)."""
     us = ns / 1e3
     return {
         "p50_us": float(np.percentile(us, 50)),
@@ -28,7 +29,8 @@ def _percentiles(ns: np.ndarray) -> dict[str, float]:
     }
 
 
-def _time_calls(fn, args_list) -> np.ndarray:
+def time_calls(fn, args_list) -> np.ndarray:
+    """The latency (ns) of ``fn(args)`` for each of ``args_list``, call by call."""
     times = np.empty(len(args_list), dtype=np.int64)
     clock = time.perf_counter_ns
     for i, args in enumerate(args_list):
@@ -53,55 +55,52 @@ def measure(
     model: ReducedModel = load(path)
     load_seconds = time.perf_counter() - t0
     sim = model.simulator(interpolation, response)
-    response = sim.response
-    centre = model.sample_points[int(np.argmin(np.linalg.norm(model.chart_points, axis=1)))]
-    sim.set_contact(centre)
-    n = sim.contact_normal.copy()
-    phase = np.linspace(0, 40 * np.pi, steps)
-    depths = model.trained_depth * 0.5 * (1 - np.cos(phase))  # press and release, 20 times
-    displacements = [np.ascontiguousarray(-dep * n) for dep in depths]
-
     gc_was_enabled = gc.isenabled()
     gc.disable()
     try:
-        step = _time_calls(sim.step_displacement, displacements)
-        forces = [np.ascontiguousarray(-f * n) for f in np.linspace(0, model.trained_force, 5000)]
-        step_f = _time_calls(sim.step_force, forces)
-        out = np.zeros_like(model.vertices)
-        sim.step_displacement(-0.5 * model.trained_depth * n)
-        surface = _time_calls(lambda _: sim.surface_displacement(out), range(2000))
-        chart = model.chart_points
-        lo, hi = chart.min(axis=0), chart.max(axis=0)
-        slide = [
-            model.chart_origin + (lo + (hi - lo) * t) @ model.chart_axes
-            for t in np.linspace(0.1, 0.9, 5000)[:, None]
-        ]
-        contact = _time_calls(sim.set_contact, slide)
-        ref = NumpySimulator(model, response, root="newton")  # the kernels' algorithm
-        ref.set_contact(centre)
-        baseline = _time_calls(ref.step_displacement, displacements[:baseline_steps])
+        calls = _time_runtime(model, sim, steps, baseline_steps)
     finally:
         if gc_was_enabled:
             gc.enable()
     result = {
         "artifact": str(path),
         "interpolation": interpolation,
-        "response": response,
+        "response": sim.response,
         "load_and_warm_up_s": load_seconds,
-        "step_displacement": _percentiles(step),
-        "step_force": _percentiles(step_f),
-        "surface_displacement": _percentiles(surface),
-        "set_contact": _percentiles(contact),
-        "numpy_step_displacement": _percentiles(baseline),
+        **{name: percentiles(ns) for name, ns in calls.items()},
         "surface_vertices": len(model.vertices),
     }
-    result["speedup_p50"] = (
-        result["numpy_step_displacement"]["p50_us"] / result["step_displacement"]["p50_us"]
-    )
-    result["speedup_p99"] = (
-        result["numpy_step_displacement"]["p99_us"] / result["step_displacement"]["p99_us"]
-    )
+    numpy, numba = result["numpy_step_displacement"], result["step_displacement"]
+    result["speedup_p50"] = numpy["p50_us"] / numba["p50_us"]
+    result["speedup_p99"] = numpy["p99_us"] / numba["p99_us"]
     return result
+
+
+def _time_runtime(model: ReducedModel, sim, steps: int, baseline_steps: int) -> dict:
+    """Latencies (ns) of each call the benchmark times, by name."""
+    centre = model.sample_points[int(np.argmin(np.linalg.norm(model.chart_points, axis=1)))]
+    sim.set_contact(centre)
+    n = sim.contact_normal.copy()
+    phase = np.linspace(0, 40 * np.pi, steps)
+    depths = model.trained_depth * 0.5 * (1 - np.cos(phase))  # press and release, 20 times
+    displacements = [np.ascontiguousarray(-dep * n) for dep in depths]
+    calls = {"step_displacement": time_calls(sim.step_displacement, displacements)}
+    forces = [np.ascontiguousarray(-f * n) for f in np.linspace(0, model.trained_force, 5000)]
+    calls["step_force"] = time_calls(sim.step_force, forces)
+    out = np.zeros_like(model.vertices)
+    sim.step_displacement(-0.5 * model.trained_depth * n)
+    calls["surface_displacement"] = time_calls(lambda _: sim.surface_displacement(out), range(2000))
+    lo, hi = model.chart_points.min(axis=0), model.chart_points.max(axis=0)
+    slide = [
+        model.chart_origin + (lo + (hi - lo) * t) @ model.chart_axes
+        for t in np.linspace(0.1, 0.9, 5000)[:, None]
+    ]
+    calls["set_contact"] = time_calls(sim.set_contact, slide)
+    ref = NumpySimulator(model, sim.response, root="newton")  # the kernels' algorithm
+    ref.set_contact(centre)
+    steps = displacements[:baseline_steps]
+    calls["numpy_step_displacement"] = time_calls(ref.step_displacement, steps)
+    return calls
 
 
 TARGETS = {
@@ -111,6 +110,7 @@ TARGETS = {
 
 
 def report(result: dict) -> str:
+    """The result of :func:`measure` as a text table with the targets' verdicts."""
     lines = [
         f"{result['artifact']} ({result['interpolation']}, {result.get('response', 'curves')}, "
         f"{result['surface_vertices']} surface "

@@ -57,7 +57,7 @@ class ReducedModel:
     coefficients: np.ndarray
     grassmann: dict | None
     anm: dict | None = None  # POD-ANM series: offsets, records, coefficients, n1, smax
-    cut_region: object = None  # online.cutting.CutRegion of the artifact's cuttable region
+    cut_region: object = None  # online.coupled_patch.CutRegion of its cuttable region
 
     def __post_init__(self):
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
@@ -76,6 +76,7 @@ class ReducedModel:
 
     @classmethod
     def from_artifact(cls, artifact: Artifact) -> ReducedModel:
+        """The model of a verified artifact (arrays converted to the kernels' dtypes)."""
         surface, samples = artifact["surface"], artifact["samples"]
         step = float(samples["depth"][1])  # uniform from 0 (artifact_rules)
         grassmann = None
@@ -123,6 +124,7 @@ class ReducedModel:
 
     @property
     def num_modes(self) -> int:
+        """Modes per sample, n."""
         return self.surface_basis.shape[2]
 
     def simulator(self, interpolation: str = "podi", response: str | None = None, **limits):
@@ -136,6 +138,7 @@ class ReducedModel:
         return Simulator(self, interpolation, response=response, **limits)
 
     def describe(self) -> str:
+        """One line: the campaign's name, sizes, trained range and the artifact's version."""
         a = self.artifact
         return (
             f"{a.group_attrs['model'].get('name', '?')}: {len(self.sample_points)} samples, "
@@ -145,10 +148,22 @@ class ReducedModel:
         )
 
 
+# PressureCoupling's fields: the /cutting datasets they are read from (format 1.3).
+_COUPLING = {
+    "displacement": "element_displacement_stiffness",
+    "coupling": "element_pressure_coupling",
+    "pressure": "element_pressure_stiffness",
+    "pressure_basis": "pressure_basis",
+    "reduced_displacement": "reduced_displacement_stiffness",
+    "reduced_coupling": "reduced_pressure_coupling",
+    "reduced_pressure": "reduced_pressure_stiffness",
+}
+
+
 def _cut_region(artifact: Artifact):
     """The cuttable region (format 1.2; 1.3 adds its pressure coupling) for
-    :mod:`hapticrom.online.cutting`."""
-    from hapticrom.online.cutting import CutRegion, PressureCoupling
+    :mod:`hapticrom.online.coupled_patch`."""
+    from hapticrom.online.coupled_patch import CutRegion, PressureCoupling
 
     c = artifact["cutting"]
     pressure = None
@@ -161,15 +176,7 @@ def _cut_region(artifact: Artifact):
             f"missing {', '.join(missing)}"
         )
     if not missing:
-        pressure = PressureCoupling(
-            displacement=_f8(c["element_displacement_stiffness"]),
-            coupling=_f8(c["element_pressure_coupling"]),
-            pressure=_f8(c["element_pressure_stiffness"]),
-            pressure_basis=_f8(c["pressure_basis"]),
-            reduced_displacement=_f8(c["reduced_displacement_stiffness"]),
-            reduced_coupling=_f8(c["reduced_pressure_coupling"]),
-            reduced_pressure=_f8(c["reduced_pressure_stiffness"]),
-        )
+        pressure = PressureCoupling(**{field: _f8(c[name]) for field, name in _COUPLING.items()})
     try:
         return CutRegion(
             coordinates=_f8(c["coordinates"]),

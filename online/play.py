@@ -40,39 +40,19 @@ def play(
     realtime: bool = True,
     say: Callable[[str], None] = print,
 ) -> dict:
+    """Drive :func:`tool_path` through a simulator of the artifact at ``path`` as a servo
+    loop would, ``rate`` Hz for ``seconds`` (paced in real time, or as fast as possible),
+    reporting through ``say``; returns the achieved rate and the physics' latencies."""
     model = load(path)
     sim = model.simulator(interpolation)
     ticks = int(rate * seconds)
-    points, depths = tool_path(model, ticks)
-    forces = np.zeros((ticks, 3))
-    physics_ns = np.zeros(ticks, dtype=np.int64)
-    d = np.zeros(3)
-    period = 1.0 / rate
-    clock = time.perf_counter
     say(f"playing {model.describe()}")
     pacing = "real time" if realtime else "free running"
     say(
         f"press - slide - release, {ticks} ticks at {rate:g} Hz ({pacing}); force from "
         + ("the POD-ANM series" if sim.response == "anm" else "the stored full-order curves")
     )
-    start = clock()
-    for i in range(ticks):
-        if realtime:
-            target = start + i * period
-            while clock() < target:
-                pass
-        t0 = time.perf_counter_ns()
-        sim.set_contact(points[i])
-        np.multiply(sim.contact_normal, -depths[i], out=d)
-        forces[i] = sim.step_displacement(d)
-        physics_ns[i] = time.perf_counter_ns() - t0
-        if i % max(1, ticks // 15) == 0:
-            outside = "  (outside trained region)" if sim.outside_trained_region else ""
-            say(
-                f"  t {i / rate:6.3f} s  contact {np.round(points[i], 3)} mm  "
-                f"depth {depths[i]:.3f} mm  force {np.linalg.norm(forces[i]):.5f} N{outside}"
-            )
-    elapsed = clock() - start
+    forces, physics_ns, elapsed = _servo_loop(sim, model, ticks, rate, realtime, say)
     us = physics_ns / 1e3
     summary = {
         "ticks": ticks,
@@ -91,3 +71,31 @@ def play(
         f"peak force {summary['max_force_n']:.4f} N"
     )
     return summary
+
+
+def _servo_loop(sim, model, ticks: int, rate: float, realtime: bool, say) -> tuple:
+    """(forces (ticks, 3) N, physics time per tick (ns), seconds in all) of the loop."""
+    points, depths = tool_path(model, ticks)
+    forces = np.zeros((ticks, 3))
+    physics_ns = np.zeros(ticks, dtype=np.int64)
+    d = np.zeros(3)
+    period = 1.0 / rate
+    clock = time.perf_counter
+    start = clock()
+    for i in range(ticks):
+        if realtime:
+            target = start + i * period
+            while clock() < target:
+                pass
+        t0 = time.perf_counter_ns()
+        sim.set_contact(points[i])
+        np.multiply(sim.contact_normal, -depths[i], out=d)
+        forces[i] = sim.step_displacement(d)
+        physics_ns[i] = time.perf_counter_ns() - t0
+        if i % max(1, ticks // 15) == 0:
+            outside = "  (outside trained region)" if sim.outside_trained_region else ""
+            say(
+                f"  t {i / rate:6.3f} s  contact {np.round(points[i], 3)} mm  "
+                f"depth {depths[i]:.3f} mm  force {np.linalg.norm(forces[i]):.5f} N{outside}"
+            )
+    return forces, physics_ns, clock() - start

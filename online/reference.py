@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from hapticrom.online.model import ReducedModel
+from hapticrom.shared.errors import StepInputError
 
 
 def barycentric(model: ReducedModel, point) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -31,6 +32,7 @@ def barycentric(model: ReducedModel, point) -> tuple[np.ndarray, np.ndarray, boo
 
 
 def hermite(force: np.ndarray, slope: np.ndarray, step: float, depth: float) -> float:
+    """The piecewise-cubic Hermite curve F(depth) (uniform knots 0, step, ...), in numpy."""
     last = len(force) - 1
     if depth >= last * step:
         return force[last] + slope[last] * (depth - last * step)
@@ -54,6 +56,10 @@ class NumpySimulator:
         """``root``: "eigen" (polynomial roots, for tests) or "newton" (the kernels'
         algorithm in numpy: the fair baseline for the latency benchmark)."""
         self.model, self.response, self.root = model, response, root
+        # The contact (set_contact): samples, weights, clamped?, normal, curve and slopes.
+        self.vertices, self.weights, self.outside = np.zeros(3, dtype=np.int64), np.zeros(3), False
+        self.normal, self.curve, self.slope = np.zeros(3), np.zeros(0), np.zeros(0)
+        self.depth = 0.0
         if response == "anm":
             a = model.artifact["anm"]
             self.offsets, self.a_max = a["section_offsets"], a["a_max"]
@@ -61,6 +67,7 @@ class NumpySimulator:
             self.coefficient_series = a["coefficients"]
 
     def set_contact(self, point) -> None:
+        """The contact at ``point`` (mm): its samples, weights, normal and curve."""
         m = self.model
         self.vertices, self.weights, self.outside = barycentric(m, point)
         normal = self.weights @ m.sample_normals[self.vertices]
@@ -70,9 +77,10 @@ class NumpySimulator:
         self.depth = 0.0
 
     def step_displacement(self, d) -> np.ndarray:
+        """Tool displacement ``d`` (mm) -> force on the tool (N), a new array."""
         d = np.asarray(d, dtype=float)
         if not np.all(np.isfinite(d)):
-            raise ValueError("displacement is not finite")
+            raise StepInputError("displacement is not finite")
         depth = -float(np.dot(d, self.normal))
         self.depth = max(depth, 0.0)
         if self.response == "anm":
@@ -133,6 +141,7 @@ class NumpySimulator:
         return total, found
 
     def surface_displacement(self) -> np.ndarray:
+        """The surface vertices' displacement (V, 3), mm, at the last step's depth."""
         m = self.model
         if self.response == "anm":
             _, found = self._anm(self.depth)

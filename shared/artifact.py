@@ -25,7 +25,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
 import subprocess
 import sys
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ import numpy as np
 from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.envelope import MAX_BYTES, USERBLOCK, read_verified, seal
 from hapticrom.shared.errors import ArtifactError, HapticromError
+from hapticrom.shared.files import write_checksummed, write_hdf5_atomically
 
 __all__ = ["SCHEMA", "ROOT_ATTRS", "Artifact", "ArtifactError", "read_artifact", "write_artifact"]
 
@@ -77,6 +77,8 @@ class Attr:
 
 @dataclass(frozen=True)
 class Group:
+    """One group of the schema: its name, type, version, datasets and attributes."""
+
     name: str
     type: str
     version: tuple[int, int]
@@ -278,18 +280,20 @@ def write_artifact(path: str | Path, content: dict[str, dict[str, Any]], root_at
     """
     path = Path(path)
     _validate_content(content)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w", userblock_size=USERBLOCK) as f:
-            _write_groups(f, content, root_attrs)
+
+    def sealed_and_readable(tmp: Path) -> None:
         seal(tmp)
         read_artifact(tmp)
-        os.replace(tmp, path)
-        _fsync_directory(path.parent)
+
+    try:
+        write_hdf5_atomically(
+            path,
+            lambda f: _write_groups(f, content, root_attrs),
+            check=sealed_and_readable,
+            userblock_size=USERBLOCK,
+        )
     except OSError as exc:
         raise HapticromError(f"cannot write the artifact {path}: {exc.strerror or exc}") from None
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def _write_groups(f: h5py.File, content: dict, root_attrs: dict) -> None:
@@ -308,19 +312,8 @@ def _write_groups(f: h5py.File, content: dict, root_attrs: dict) -> None:
         for spec in group.fields:
             if not spec.required and spec.name not in content[group.name]:
                 continue
-            array = np.asarray(content[group.name][spec.name])
-            dset = g.create_dataset(spec.name, data=array)
-            dset.attrs["units"] = spec.units
-            dset.attrs["sha256"] = array_digest(array)
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Make the rename durable (POSIX: the directory entry is data of the directory)."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+            array = content[group.name][spec.name]
+            write_checksummed(g, spec.name, array, {"units": spec.units})
 
 
 def _resolve(shape, symbols: dict[str, int], where: str) -> tuple[int, ...]:

@@ -159,3 +159,34 @@ def test_the_written_spec_states_every_rule_and_attribute():
             assert row and row.group(1).strip() == (", ".join(checks) or "-"), field.name
         for attr in group.attrs:
             assert f"`{attr.name}`" in body, f"{group.name} attribute {attr.name} not documented"
+
+
+def test_the_atomic_writer_leaves_the_target_alone_on_failure(tmp_path):
+    """A failure while the content is written (or checked) leaves no partial file behind."""
+    from hapticrom.shared.files import write_checksummed, write_hdf5_atomically
+
+    target = tmp_path / "data.h5"
+    target.write_bytes(b"previous\n")
+
+    def fill(f):
+        write_checksummed(f, "x", np.arange(3.0))
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        write_hdf5_atomically(target, fill)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["data.h5"]
+    assert target.read_bytes() == b"previous\n"
+    write_hdf5_atomically(target, lambda f: write_checksummed(f, "x", np.arange(3.0)))
+    with h5py.File(target, "r") as f:
+        assert f["x"].attrs["sha256"] == array_digest(np.arange(3.0))
+
+
+def test_vertex_normals_point_out_of_a_tetrahedron():
+    from hapticrom.shared.geometry import vertex_normals
+
+    nodes = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # outward
+    normals = vertex_normals(nodes, faces)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+    assert np.all(np.einsum("ij,ij->i", normals, nodes - nodes.mean(axis=0)) > 0)
+    assert not vertex_normals(np.vstack([nodes, [[5.0, 5, 5]]]), faces)[4].any()  # on no face

@@ -83,15 +83,27 @@ def test_missing_config_file(tmp_path):
 
 
 def test_solve_writes_curve_and_takes_petsc_options(mesh_dir, tmp_path):
+    """PETSc options reach PETSc; the ones it never used are one warning line at the end."""
     config = write_config(
         tmp_path / "ok.toml", mesh_dir / "cornea-coarse.msh", 'law = "hgo"', INDENT
     )
-    proc = run_cli("solve", config, "--out", tmp_path / "out", "-hapticrom_snes_converged_reason")
+    proc = run_cli(
+        "solve", config, "--out", tmp_path / "out", "-hapticrom_snes_converged_reason",
+        "-hapticrom_snes_rtoll", "1e-9", "-snes_rtol", "1e-9",
+    )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     # The PETSc option reached SNES (under the hapticrom_ prefix).
     assert "Nonlinear hapticrom_ solve converged" in proc.stdout
     rows = list(csv.DictReader(open(tmp_path / "out" / "curve.csv")))
     assert len(rows) == 2 and float(rows[-1]["disp_z"]) == pytest.approx(-0.1)
+    # The misspelt one and the one without the prefix: one line on stderr, none of PETSc's own
+    warnings = [line for line in proc.stderr.splitlines() if "warning" in line]
+    assert warnings == [
+        "hapticrom: warning: PETSc option(s) never used: -hapticrom_snes_rtoll -snes_rtol "
+        "(misspelt? not under the solver's prefix, hapticrom_ by default? for a solver this "
+        "command does not create?)"
+    ], proc.stderr
+    assert "WARNING! There are options you set" not in proc.stdout + proc.stderr
 
 
 def test_mesh_command_writes_mesh_and_sidecar(tmp_path):
@@ -100,7 +112,8 @@ def test_mesh_command_writes_mesh_and_sidecar(tmp_path):
     info = json.loads((tmp_path / "b.json").read_text())
     assert info["counts"]["cells"] == 40 and "units mm" in proc.stdout
     proc = run_cli("mesh", "kidney", "--out", tmp_path / "k.msh")
-    assert proc.returncode == 2 and "unknown mesh 'kidney'" in proc.stderr
+    assert proc.returncode == 2, proc.stderr
+    assert "argument name: invalid choice: 'kidney' (choose from 'cornea', 'beam'" in proc.stderr
 
 
 @pytest.mark.parametrize(
@@ -441,3 +454,204 @@ def test_accuracy_needs_the_mesh_the_model_was_trained_on(
     line = main_error(capsys, "accuracy", small_artifact, "--work", work)
     assert f"{small_artifact} was trained on {mesh}, which is not found" in line, line
     assert not work.exists()
+
+
+# -- the front door: unknown options, -v/-q, every option explained ------------------------------
+ONLINE_COMMANDS = {
+    "play": ["MODEL"],
+    "bench": ["MODEL"],
+    "report": ["MODEL", "--out", "r"],
+    "export": ["MODEL", "--out", "e"],
+    "check": ["c.toml"],
+}
+
+
+@pytest.mark.parametrize("command", sorted(ONLINE_COMMANDS))
+@pytest.mark.parametrize(
+    "typo, message",
+    [
+        (["-steps", "5"], "unknown option -steps"),
+        (
+            ["-hapticrom_snes_rtol", "1e-9"],
+            "unknown option -hapticrom_snes_rtol; hapticrom {} takes no PETSc options",
+        ),  # fmt: skip
+        (["--stepz", "5"], "unknown option --stepz"),
+        (["-vx"], "unknown option -vx"),
+    ],
+)
+def test_online_commands_refuse_unknown_options(
+    small_artifact, tmp_path, capsys, monkeypatch, command, typo, message
+):
+    """A mistyped option is one line naming it, never silently ignored (nor given to PETSc)."""
+    monkeypatch.chdir(tmp_path)
+    args = [str(small_artifact) if a == "MODEL" else a for a in ONLINE_COMMANDS[command]]
+    line = main_error(capsys, command, *args, *typo)
+    assert line.startswith(f"hapticrom: error: {command}: {message.format(command)}"), line
+    assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["bench", "MODEL", "-steps", "5"], "unknown option -steps; did you mean --steps?"),
+        (["bench", "MODEL", "--step", "5"], "unknown option --step; did you mean --steps?"),
+        (["play", "MODEL", "-free-running"], "did you mean --free-running?"),
+        (["report", "MODEL", "-out", "r"], "did you mean --out?"),
+        (["bench", "MODEL", "--interpolation", "linear"], "invalid choice: 'linear'"),
+        (["bench", "MODEL", "--response", "both"], "invalid choice: 'both'"),
+        (["bench", "MODEL", "extra"], "unexpected argument(s): extra"),
+        (["solve", "c.toml", "-out", "o"], "unknown option -out; did you mean --out?"),
+        (["campaign", "c.toml", "--out", "o", "-snes_monitor", "--restart"],
+         "--restart comes after a PETSc option: the command's own options go first"),
+        (["solve", "c.toml", "--out", "o", "--", "--outt"], "unknown option --outt"),
+        (["train", "c.toml", "--out", "m.h5", "--restat"], "did you mean --restart?"),
+        (["mesh", "beam", "-refinement", "coarse"], "did you mean --refinement?"),
+        (["mesh", "beam", "--refinement", "medium"], "invalid choice: 'medium'"),
+        (["anm", "c.toml", "--out", "o", "--order", "16"], "must lie in [1, 15], got 16"),
+        (["anm", "c.toml", "--out", "o", "--quiet", "--verbose"], "not allowed with argument"),
+    ],
+)  # fmt: skip
+def test_mistakes_name_the_option(small_artifact, tmp_path, capsys, monkeypatch, args, message):
+    monkeypatch.chdir(tmp_path)
+    args = [str(small_artifact) if a == "MODEL" else a for a in args]
+    line = main_error(capsys, *args)
+    assert message in line, line
+    assert not any(tmp_path.iterdir())
+
+
+def test_every_option_has_help_and_choices_are_declared():
+    from hapticrom.cli import build_parser
+
+    parser = build_parser()
+    for name, sub in parser.commands.items():
+        for action in sub._actions:
+            assert action.help, f"hapticrom {name} {action.option_strings or action.dest}"
+        text = sub.format_help()  # also checks the %-formats of the help strings
+        assert "-v, --verbose" in text and "-q, --quiet" in text
+    choices = {
+        (name, a.dest): a.choices for name, sub in parser.commands.items() for a in sub._actions
+    }
+    assert choices["bench", "interpolation"] == ("podi", "grassmann")
+    assert choices["bench", "response"] == ("anm", "curves")
+    assert choices["mesh", "refinement"] == ("coarse", "default", "fine")
+    assert list(choices["mesh", "name"]) == ["cornea", "beam", "hemisphere", "liver"]
+
+
+def play_output(capsys, *options) -> tuple[str, str]:
+    from hapticrom.cli import main
+
+    code = main([*filter(None, options[:1]), "play", *options[1:]])  # a global option first
+    assert code == 0
+    captured = capsys.readouterr()
+    return captured.out, captured.err
+
+
+def test_quiet_and_verbose(small_artifact, capsys):
+    """-q silences the progress and the information, -v adds debug lines; before or after the
+    command. The default output is what it always was."""
+    fast = [str(small_artifact), "--seconds", "0.05", "--free-running"]
+    out, err = play_output(capsys, None, *fast)  # no global option
+    assert out.startswith("playing ") and "achieved" in out and err == ""
+    for quiet in (["-q", *fast], ["--quiet", *fast], [None, *fast, "-q"]):
+        assert play_output(capsys, *quiet) == ("", "")
+    out, err = play_output(capsys, "-v", *fast)
+    assert "achieved" in out
+    assert err.startswith("hapticrom: debug: hapticrom ") and "play: exit status 0" in err
+    err = play_output(capsys, None, *fast, "--verbose")[1]
+    assert err.startswith("hapticrom: debug: ") and "play: exit status 0" in err
+
+
+def test_quiet_keeps_results_warnings_and_errors(small_artifact, tmp_path, capsys):
+    from hapticrom.cli import main
+
+    assert main(["-q", "bench", str(small_artifact), "--steps", "500"]) == 0
+    out = capsys.readouterr().out
+    assert "step_displacement" in out and "target" in out  # the result, not progress
+    assert main(["-q", "report", str(tmp_path / "nope.h5"), "--out", str(tmp_path / "r")]) == 2
+    assert capsys.readouterr().err.startswith("hapticrom: error: artifact ")
+
+
+def test_unused_petsc_options_are_reported_and_taken_back():
+    """In-process (PETSc already running): the options are put in for the command, the unused
+    ones named, and all taken out of PETSc's database afterwards."""
+    pytest.importorskip("petsc4py")
+    from mpi4py import MPI  # noqa: F401
+    from petsc4py import PETSc
+
+    from hapticrom.cli.petsc import PetscOptions, parse_options, unused_message
+
+    assert parse_options(["word", "-a_b", "1", "-flag", "-c", "-2.5", "stray"]) == [
+        ("a_b", "1"), ("flag", None), ("c", "-2.5"),
+    ]  # fmt: skip
+    tokens = ["-hapticrom_test_used", "3", "-hapticrom_test_unused", "-options_left", "no"]
+    options = PetscOptions(tokens)
+    try:
+        options.start()
+        database = PETSc.Options()
+        assert database.getInt("hapticrom_test_used") == 3
+        assert options.unused() == ["-hapticrom_test_unused"]  # -options_left: read at exit
+        assert "never used: -hapticrom_test_unused (misspelt?" in unused_message(options.unused())
+    finally:
+        options.take_back()
+    assert not any(database.hasName(name) for name in ("hapticrom_test_used", "options_left"))
+
+
+def fake_module(monkeypatch, name: str, **functions):
+    """Stand-in for a module another part of the project provides."""
+    import types
+
+    module = types.ModuleType(name)
+    module.__dict__.update(functions)
+    monkeypatch.setitem(sys.modules, name, module)
+    return module
+
+
+def test_check_is_wired(tmp_path, capsys, monkeypatch):
+    from hapticrom.cli import main
+    from hapticrom.shared.errors import InputError
+
+    seen = []
+
+    def check_config(path: Path) -> str:
+        seen.append(path)
+        if path.name == "bad.toml":
+            raise InputError(f"{path}: [load] steps must lie in [1, 100000], got 0")
+        return f"{path}: problem, hgo on cornea.msh, 10 steps: ok"
+
+    import hapticrom.offline  # noqa: F401 - the parent package is the real one
+
+    fake_module(monkeypatch, "hapticrom.offline.check", check_config=check_config)
+    good = tmp_path / "good.toml"
+    assert main(["-q", "check", str(good)]) == 0  # the summary is the result: -q keeps it
+    assert capsys.readouterr().out == f"{good}: problem, hgo on cornea.msh, 10 steps: ok\n"
+    assert seen == [good] and isinstance(seen[0], Path)
+    bad = tmp_path / "bad.toml"
+    line = main_error(capsys, "check", bad)
+    assert line == f"hapticrom: error: {bad}: [load] steps must lie in [1, 100000], got 0"
+    assert "takes no PETSc options" in main_error(capsys, "check", good, "-snes_rtol", "1")
+
+
+def test_export_is_wired(tmp_path, capsys, monkeypatch):
+    from hapticrom.cli import main
+
+    calls = []
+
+    def export_model(model: Path, out: Path, *, frames: int = 20, cut: bool = True):
+        calls.append((model, out, frames, cut))
+        return [out / "surface.vtp", out / "sequence.pvd"]
+
+    fake_module(monkeypatch, "hapticrom.export", export_model=export_model)
+    out = tmp_path / "vtk"
+    assert main(["export", "m.h5", "--out", str(out)]) == 0
+    assert capsys.readouterr().out == f"{out / 'surface.vtp'}\n{out / 'sequence.pvd'}\n"
+    assert main(["-q", "export", "m.h5", "--out", str(out), "--frames", "3", "--no-cut"]) == 0
+    assert calls == [(Path("m.h5"), out, 20, True), (Path("m.h5"), out, 3, False)]
+    capsys.readouterr()
+    assert "argument --frames: must lie in [1, 10,000], got 0" in main_error(
+        capsys, "export", "m.h5", "--out", out, "--frames", "0"
+    )
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    line = main_error(capsys, "export", "m.h5", "--out", blocker)
+    assert line == f"hapticrom: error: export --out {blocker} exists and is not a directory"
+    assert len(calls) == 2

@@ -66,6 +66,8 @@ def test_curve_csv_and_fields(indentation):
     for name in ("displacement", "pressure", "fibre_m0", "fibre_n0"):
         assert f'Name="{name}"' in xdmf
     assert xdmf.count('<Attribute Name="displacement"') == 6  # reference state + 5 increments
+    for name in ("displacement", "pressure", "fibres"):  # VTX: each field at its own degree
+        assert (out / f"fields-{name}.bp" / "md.0").is_file()
 
 
 def test_modified_newton_reaches_the_same_equilibria(mesh_dir, indentation):

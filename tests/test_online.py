@@ -334,7 +334,7 @@ def test_kernels_check_the_length_before_reading(model):
     from hapticrom.online import kernels
 
     sim = _contact(model)
-    for step in (kernels.step_displacement, kernels.step_force):
+    for step in (kernels.step_displacement_curves, kernels.step_force_curves):
         for n in (0, 1, 2, 4):
             memory = np.full(8, -1e3)  # what a reader past the end would find
             buf = sim._buf.copy()
@@ -343,7 +343,7 @@ def test_kernels_check_the_length_before_reading(model):
 
 
 def test_errors_of_the_runtime_are_hapticrom_errors():
-    from hapticrom.online.cutting import ScalpelInputError
+    from hapticrom.online import ScalpelInputError
     from hapticrom.online.simulator import SimulatorBusyError
     from hapticrom.shared.errors import HapticromError
 
@@ -545,3 +545,99 @@ def test_a_loaded_model_is_read_only(model):
     """A simulator cannot change the model other simulators share."""
     writable = [name for name, a in _model_arrays(model).items() if a.flags.writeable]
     assert writable == []
+
+
+def test_every_error_the_runtime_raises_is_a_simulator_error(model):
+    """One error family: whatever a caller gets wrong at run time is a SimulatorError (a
+    HapticromError), and keeps ValueError / RuntimeError for those who catch those."""
+    from hapticrom.shared.errors import HapticromError, InputError, SimulatorError
+
+    sim = model.simulator()
+    out = np.zeros_like(model.vertices)
+    raised = {}
+    for name, call in {
+        "step before contact": lambda: sim.step_displacement(np.zeros(3)),
+        "force step before contact": lambda: sim.step_force(np.zeros(3)),
+        "point not finite": lambda: sim.set_contact([np.nan, 0.0, 0.0]),
+        "point of strings": lambda: sim.set_contact("abc"),
+        "output of a wrong shape": lambda: sim.surface_displacement(out[:2]),
+        "output of a wrong dtype": lambda: sim.surface_displacement(out.astype(np.float32)),
+    }.items():
+        with pytest.raises(HapticromError) as info:
+            call()
+        raised[name] = info.value
+    sim.set_contact(model.sample_points[0])
+    for name, call in {
+        "displacement of a wrong shape": lambda: sim.step_displacement(np.zeros(2)),
+        "force not finite": lambda: sim.step_force([0.0, np.inf, 0.0]),
+        "displacement past the limit": lambda: sim.step_displacement(
+            -2 * sim.max_displacement * sim.contact_normal
+        ),
+    }.items():
+        with pytest.raises(HapticromError) as info:
+            call()
+        raised[name] = info.value
+    for name, error in raised.items():
+        assert isinstance(error, SimulatorError), name
+    for name in ("step before contact", "force step before contact"):
+        assert isinstance(raised[name], online.NoContactError | RuntimeError), name
+    for name in ("output of a wrong shape", "output of a wrong dtype"):
+        assert isinstance(raised[name], online.OutputArrayError | ValueError), name
+    assert isinstance(raised["point not finite"], StepInputError | ValueError)
+    for error in (online.StepInputError, online.ScalpelInputError, online.OutputArrayError):
+        assert issubclass(error, SimulatorError) and issubclass(error, ValueError)
+    for error in (online.SimulatorBusyError, online.NoContactError):
+        assert issubclass(error, SimulatorError) and issubclass(error, RuntimeError)
+    with pytest.raises(InputError):  # a simulator's configuration: the shared InputError
+        model.simulator(max_force=-1.0)
+
+
+@pytest.mark.parametrize("interpolation,response", COMBINATIONS)
+def test_a_simulator_declares_its_state_in_init(model, interpolation, response):
+    """No attribute appears after construction: every call works on declared state."""
+    sim = model.simulator(interpolation, response)
+    declared = set(vars(sim))
+    out = np.zeros_like(model.vertices)
+    for point in points_in_region(model, 3):
+        sim.set_contact(point)
+        f = sim.step_displacement(-0.5 * model.trained_depth * sim.contact_normal)
+        sim.step_force(-f)
+        sim.surface_displacement(out)
+        assert sim.contact_stiffness > 0
+    assert set(vars(sim)) == declared
+
+
+def test_grassmann_frames_follow_the_contact(model):
+    """The Grassmann frames are prepared for the surface of the current contact: after the
+    contact moves, the surface is the one a fresh simulator gives there."""
+    moved, fresh = (model.simulator("grassmann", "curves") for _ in range(2))
+    a, b = points_in_region(model, 2)
+    out, expected = np.zeros_like(model.vertices), np.zeros_like(model.vertices)
+    depth = 0.5 * model.trained_depth
+    moved.set_contact(a)
+    moved.step_displacement(-depth * moved.contact_normal)
+    first = moved.surface_displacement(out).copy()
+    moved.set_contact(b)
+    fresh.set_contact(b)
+    for sim, o in ((moved, out), (fresh, expected)):
+        sim.step_displacement(-depth * sim.contact_normal)
+        sim.surface_displacement(o)
+    np.testing.assert_array_equal(out, expected)
+    assert np.abs(out - first).max() > 0  # the contact moved: another surface
+
+
+def test_contact_stiffness_is_the_slope_of_the_force(model):
+    """d force / d depth against a central difference of the steps: the series' slope at
+    any depth, the curves' at their knots (between them it is interpolated linearly)."""
+    knots = model.depth_step * np.array([2, 5, len(model.force[0]) + 1])
+    series = np.array([0.3, 0.7, 1.2]) * model.trained_depth
+    for response, depths in (("anm", series), ("curves", knots)):
+        sim = _contact(model, response)
+        n = sim.contact_normal.copy()
+        for d in depths:
+            h = 1e-6 * model.trained_depth
+            f_hi = np.linalg.norm(sim.step_displacement(-(d + h) * n))
+            f_lo = np.linalg.norm(sim.step_displacement(-(d - h) * n))
+            sim.step_displacement(-d * n)
+            slope = (f_hi - f_lo) / (2 * h)
+            assert sim.contact_stiffness == pytest.approx(slope, rel=1e-4)

@@ -17,7 +17,7 @@ from hapticrom.offline.studies.cutting import (
     surface_point,
     tangent_and_load,
 )
-from hapticrom.online.cutting import CutPatch, CutRegion, CutTopology
+from hapticrom.online.coupled_patch import CoupledPatch, CutRegion
 
 pytestmark = pytest.mark.serial
 STUDY = CuttingStudy(refinement="coarse", test_point=(3.4, 0.0))  # load away from the lips
@@ -56,7 +56,7 @@ def test_online_cut_topology_matches_the_explicit_cut_mesh(setting):
     intact, cut, origin, *_, region, supported = setting
     faces, _ = interior_faces(intact.cells)
     selected = faces[limbal_arc(intact, STUDY.incision)]
-    topology = CutTopology.of_region(region)
+    topology = region.intact_topology()
     # Cut in two events (as a scalpel would), which must end as the one-shot cut.
     half = len(selected) // 2
     topology.cut(selected[:half])
@@ -66,7 +66,7 @@ def test_online_cut_topology_matches_the_explicit_cut_mesh(setting):
     np.testing.assert_array_equal(_first_seen(topology.cells), _first_seen(cut.cells))
     np.testing.assert_array_equal(topology.origin[topology.cells], origin[cut.cells])
     # In one event, the numbering is the explicit cut's too.
-    once = CutTopology.of_region(region)
+    once = region.intact_topology()
     once.cut(selected)
     np.testing.assert_array_equal(once.cells, cut.cells)
     np.testing.assert_array_equal(once.origin, origin)
@@ -83,9 +83,9 @@ def _first_seen(cells: np.ndarray) -> np.ndarray:
 def test_online_patch_solves_the_offline_coupled_system(setting, layers):
     intact, cut, origin, K_intact, K_cut, f_intact, f_cut, A, region, supported = setting
     faces, _ = interior_faces(intact.cells)
-    topology = CutTopology.of_region(region)
+    topology = region.intact_topology()
     topology.cut(faces[limbal_arc(intact, STUDY.incision)])
-    patch = CutPatch(topology, region, layers)
+    patch = CoupledPatch(topology, region, layers)
     cut_supported = supported | {i for i in range(len(origin)) if origin[i] in supported}
     offline = couple(K_intact, K_cut, A, origin, patch_around(cut.cells, lip_nodes(origin),
                                                                layers, cut_supported))  # fmt: skip
@@ -135,10 +135,10 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
 
     intact = build("cornea", "coarse")  # region node i is mesh node i (the ball holds all)
     faces, _ = interior_faces(intact.cells)
-    topology = CutTopology.of_region(region)
+    topology = region.intact_topology()
     new_nodes = topology.cut(faces[limbal_arc(intact, STUDY.incision)])
     assert len(new_nodes) == 9
-    patch = CutPatch(topology, region, 1)
+    patch = CoupledPatch(topology, region, 1)
     assert patch.size > region.reduced_stiffness.shape[0]
 
     # A format 1.2 file (no pressure coupling) still loads, without it; a damaged
@@ -179,7 +179,7 @@ def test_artifact_cutting_region_round_trip(mesh_dir, tmp_path):
 
 @pytest.mark.parametrize("n", [1, 127, 128, 129, 700])
 def test_blocked_triangular_solve_matches_numpy(n):
-    from hapticrom.online.cutting import solve_lower
+    from hapticrom.online.coupled_patch import solve_lower
 
     rng = np.random.default_rng(n)
     M = rng.standard_normal((n, n))

@@ -314,7 +314,7 @@ POLAR = {"centre": [0.0, 0.0, 0.0], "radius": 3.0, "rings": 3, "per_ring": [6, 1
         ({}, ["no positions"]),
         ({"points": []}, ["no positions"]),
         ({"points": [[0.0, 0.0, 0.0]], "radius": 2.0}, ["[positions]", "unknown", "radius"]),
-        ({"points": [[0.0, 0.0]]}, ["points[0]", "three numbers"]),
+        ({"points": [[0.0, 0.0]]}, ["points[0]", "three finite numbers"]),
         ({"points": [[0.0, "a", 0.0]]}, ["points[0]", "number"]),
         ({"points": "origin"}, ["points", "list"]),
         ({"points": [[0, 0, 0]], "snap_tolerance": -1.0}, ["snap_tolerance", "positive"]),
@@ -335,7 +335,7 @@ POLAR = {"centre": [0.0, 0.0, 0.0], "radius": 3.0, "rings": 3, "per_ring": [6, 1
         ({"farthest": [{"n": 4, "radius": 2.0}]}, ["radius", "centre"]),
         ({"farthest": [{"n": 4, "centre": [0, 0, 0], "radius": -2.0}]}, ["radius", "positive"]),
         ({"farthest": [{"centre": [0, 0, 0]}]}, ["missing", "n"]),
-        ({"farthest": [{"n": 4, "centre": [0, 0]}]}, ["centre", "three numbers"]),
+        ({"farthest": [{"n": 4, "centre": [0, 0]}]}, ["centre", "three finite numbers"]),
     ],
 )
 def test_bad_tables(table, words):

@@ -27,19 +27,29 @@ from hapticrom.shared.artifact import read_artifact
 pytestmark = pytest.mark.mpi
 
 
-@pytest.mark.parametrize("method", ["snapshots", "svd"])
-def test_reduction_on_two_ranks_equals_one(mesh_dir, tmp_path_factory, method):
+def solved_on_rank_zero(tmp_path_factory, name: str, text: str, serial_reduction=False) -> Path:
+    """A campaign (TOML ``text``) solved by rank 0 alone, and reduced there too if asked;
+    its directory, on every rank (skips unless run on 2 ranks or more)."""
     comm = MPI.COMM_WORLD
     if comm.size < 2:
         pytest.skip("run under mpirun -n 2")
-    root = Path(comm.bcast(str(tmp_path_factory.mktemp("red")) if comm.rank == 0 else None))
+    root = Path(comm.bcast(str(tmp_path_factory.mktemp(name)) if comm.rank == 0 else None))
     if comm.rank == 0:
-        text = campaign_toml(mesh_dir / "cornea-coarse.msh", rings=2, per_ring=4)
-        (root / "c.toml").write_text(text + f'\n[pod]\nmethod = "{method}"\n')
+        (root / "c.toml").write_text(text)
         config = CampaignConfig.from_toml(root / "c.toml")
         run_campaign(config, root / "store", MPI.COMM_SELF, verbose=False)
-        reduce_campaign(root / "store", root / "serial.h5", MPI.COMM_SELF, verbose=False)
+        if serial_reduction:
+            reduce_campaign(root / "store", root / "serial.h5", MPI.COMM_SELF, verbose=False)
     comm.barrier()
+    return root
+
+
+@pytest.mark.parametrize("method", ["snapshots", "svd"])
+def test_reduction_on_two_ranks_equals_one(mesh_dir, tmp_path_factory, method):
+    comm = MPI.COMM_WORLD
+    text = campaign_toml(mesh_dir / "cornea-coarse.msh", rings=2, per_ring=4)
+    text += f'\n[pod]\nmethod = "{method}"\n'
+    root = solved_on_rank_zero(tmp_path_factory, "red", text, serial_reduction=True)
     reduce_campaign(root / "store", root / "parallel.h5", comm, verbose=False)
     if comm.rank != 0:
         return
@@ -74,16 +84,9 @@ def test_reduction_on_two_ranks_equals_one(mesh_dir, tmp_path_factory, method):
 def test_cutting_region_on_two_ranks(mesh_dir, tmp_path_factory):
     """The element-condensed reduced stiffness, reduced over 2 ranks, matches its elements."""
     comm = MPI.COMM_WORLD
-    if comm.size < 2:
-        pytest.skip("run under mpirun -n 2")
-    root = Path(comm.bcast(str(tmp_path_factory.mktemp("cutred")) if comm.rank == 0 else None))
-    if comm.rank == 0:
-        text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=2, per_ring=3)
-        text += "\n[anm]\nenabled = false\n[cutting]\ncentre = [0.0, 0.0, -3.0]\nradius = 20.0\n"
-        (root / "c.toml").write_text(text)
-        config = CampaignConfig.from_toml(root / "c.toml")
-        run_campaign(config, root / "store", MPI.COMM_SELF, verbose=False)
-    comm.barrier()
+    text = campaign_toml(mesh_dir / "cornea-coarse.msh", steps=2, per_ring=3)
+    text += "\n[anm]\nenabled = false\n[cutting]\ncentre = [0.0, 0.0, -3.0]\nradius = 20.0\n"
+    root = solved_on_rank_zero(tmp_path_factory, "cutred", text)
     reduce_campaign(root / "store", root / "parallel.h5", comm, verbose=False)
     if comm.rank != 0:
         return

@@ -175,8 +175,50 @@ def test_missing_artifact_is_a_clear_error(tmp_path, capsys):
 
 def test_without_matplotlib_says_what_to_install(small_artifact, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` now fails
-    with pytest.raises(HapticromError, match="pip install matplotlib"):
+    with pytest.raises(HapticromError, match="pip install matplotlib") as error:
         write_report(small_artifact, tmp_path / "out")
+    assert "pip install 'hapticrom[report]'" in str(error.value)
+
+
+def test_report_import_path_imports_no_finite_element_stack(small_artifact, tmp_path):
+    """Everything ``hapticrom report`` imports, up to the runtime's answers: nothing of the
+    offline trainer (DOLFINx, PETSc, MPI, gmsh, hapticrom.offline)."""
+    code = textwrap.dedent(
+        f"""
+        import sys
+        import hapticrom.cli, hapticrom.report
+        from hapticrom.report import content, figures, heldout, page, surface, timing
+        from hapticrom.cli import build_parser
+        from hapticrom.cli.parser import parse
+        args, petsc = parse(build_parser(), ["report", {str(small_artifact)!r}, "--out", "x"])
+        assert args.command == "report" and petsc == []
+        from hapticrom.online.model import load
+        model = load({str(small_artifact)!r})
+        content.summary_rows(model), content.deformed_surface(model, 0)
+        timing.step_latencies_us(model, 0, 10)
+        offline = ("dolfinx", "petsc4py", "slepc4py", "mpi4py", "ufl", "basix", "ffcx", "gmsh")
+        bad = [m for m in sys.modules if m.split(".")[0] in offline]
+        bad += [m for m in sys.modules if m.startswith("hapticrom.offline")]
+        print(sorted(bad) or "clean")
+        """
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=600
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "clean"
+
+
+def test_report_modules_import_nothing_from_offline():
+    """The source says so too: no ``hapticrom.offline`` import anywhere in the report."""
+    import hapticrom.report
+
+    imports = re.compile(
+        r"^\s*(from hapticrom(\.offline| import offline)|import hapticrom\.offline)"
+    )
+    for path in Path(hapticrom.report.__file__).parent.glob("*.py"):
+        lines = [line for line in path.read_text().splitlines() if imports.match(line)]
+        assert not lines, (path, lines)
 
 
 def test_command_runs_without_the_offline_stack(small_artifact, tmp_path):

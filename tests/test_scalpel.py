@@ -111,9 +111,10 @@ def test_a_background_cut_ends_as_the_waited_one(model):
     summary = [(e.faces, e.new_nodes, e.patch_unknowns) for e in waited.cut_events]
     assert len(summary) >= 2
     assert [(e.faces, e.new_nodes, e.patch_unknowns) for e in background.cut_events] == summary
-    np.testing.assert_array_equal(background._cutting.topology.cells,
-                                  waited._cutting.topology.cells)  # fmt: skip
-    np.testing.assert_allclose(background._cutting.ratio, waited._cutting.ratio, rtol=1e-12)
+    np.testing.assert_array_equal(background.cutting.cuts.topology.cells,
+                                  waited.cutting.cuts.topology.cells)  # fmt: skip
+    np.testing.assert_allclose(background.cutting.cuts.ratio, waited.cutting.cuts.ratio,
+                               rtol=1e-12)  # fmt: skip
     np.testing.assert_allclose(background.step_displacement(-0.03 * n),
                                waited.step_displacement(-0.03 * n), rtol=1e-12)  # fmt: skip
     u_waited = waited.surface_displacement(np.zeros_like(model.vertices)).copy()
@@ -126,18 +127,18 @@ def test_a_failed_background_cut_changes_nothing(model, monkeypatch):
     the topology is as before, a later cut works; the GIL switch interval is restored."""
     import sys
 
-    from hapticrom.online.cutting import Scalpel
+    from hapticrom.online.cutting import Cuts
 
     switch = sys.getswitchinterval()
     sim = model.simulator()
     sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0], background=True)
     n = sim.contact_normal.copy()
-    original = Scalpel._compliances
+    original = Cuts._compliances
 
     def failing(self, patch):
         raise np.linalg.LinAlgError("not positive definite (test)")
 
-    monkeypatch.setattr(Scalpel, "_compliances", failing)
+    monkeypatch.setattr(Cuts, "_compliances", failing)
     with pytest.warns(RuntimeWarning, match="cut failed"):
         for depth in (0.005, 0.01, 0.02, 0.04):
             sim.step_displacement(-depth * n)
@@ -146,10 +147,10 @@ def test_a_failed_background_cut_changes_nothing(model, monkeypatch):
         while sim.cut_pending:
             sim.step_displacement(-0.04 * n)
     assert isinstance(sim.cut_error, np.linalg.LinAlgError)
-    assert sim.cut_events == [] and sim._cutting.topology.cut_faces == set()
-    assert sim._cutting._next.cut_faces == set()  # the worker's topology too
+    assert sim.cut_events == [] and sim.cutting.cuts.topology.cut_faces == set()
+    assert sim.cutting.cuts.next.cut_faces == set()  # the worker's topology too
     assert sys.getswitchinterval() == switch
-    monkeypatch.setattr(Scalpel, "_compliances", original)
+    monkeypatch.setattr(Cuts, "_compliances", original)
     sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0], background=True)
     sim.step_displacement(-0.04 * n)
     sim.finish_cuts()
@@ -157,7 +158,7 @@ def test_a_failed_background_cut_changes_nothing(model, monkeypatch):
     reference.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
     reference.step_displacement(-0.04 * n)
     assert [e.faces for e in sim.cut_events] == [e.faces for e in reference.cut_events]
-    assert sim._cutting.topology.cut_faces == reference._cutting.topology.cut_faces
+    assert sim.cutting.cuts.topology.cut_faces == reference.cutting.cuts.topology.cut_faces
     assert sys.getswitchinterval() == switch
 
 
@@ -174,7 +175,7 @@ def test_the_scalpel_cuts_under_force_control(model):
 
 
 def test_bad_scalpel_input_leaves_the_state_alone(model):
-    from hapticrom.online.cutting import ScalpelInputError
+    from hapticrom.online import ScalpelInputError
 
     sim = model.simulator()
     sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
@@ -236,7 +237,7 @@ def test_force_control_yields_more_where_cut(model):
     push = -0.5 * model.trained_force * sim.contact_normal
     d_cut = sim.step_force(push).copy()
     d_intact = intact.step_force(push).copy()
-    ratio = sim._cutting.ratio[sim._vertex]  # cut / intact stiffness at the contact
+    ratio = sim.cutting.cuts.ratio[sim.cutting.vertex]  # cut / intact stiffness at the contact
     assert ratio < 1
     np.testing.assert_allclose(np.linalg.norm(d_cut), np.linalg.norm(d_intact) / ratio)
 
@@ -298,7 +299,7 @@ def test_cut_softening_matches_the_full_order_with_the_cut_meshed(hgo_model, tmp
     from hapticrom.meshes import build
     from hapticrom.meshes.cut import cut_mesh, interior_faces
     from hapticrom.meshes.msh import write_msh
-    from hapticrom.online.cutting import CutPatch, CutTopology, _compliance
+    from hapticrom.online.coupled_patch import CoupledPatch, compliance
 
     model, mesh_file, config = hgo_model
     assert model.cut_region.pressure is not None  # a Q1P0 model exports its pressure coupling
@@ -308,12 +309,12 @@ def test_cut_softening_matches_the_full_order_with_the_cut_meshed(hgo_model, tmp
     for depth in (0.01, 0.02, 0.03):
         sim.step_displacement(-depth * n)
     assert sim.cut_events, "the scalpel did not cut"
-    scalpel = sim._cutting
-    vertex = sim._vertex
+    scalpel = sim.cutting
+    vertex = scalpel.vertex
     point, direction = model.vertices[vertex], -scalpel.normals[vertex]
     # The same faces cut in the mesh.
     nodes = np.asarray(model.artifact["cutting"]["nodes"])
-    keys = {tuple(sorted(nodes[list(f)])) for f in scalpel.topology.cut_faces}
+    keys = {tuple(sorted(nodes[list(f)])) for f in scalpel.cuts.topology.cut_faces}
     intact = build("cornea", "coarse")
     faces, _ = interior_faces(intact.cells)
     chosen = np.array([i for i, f in enumerate(faces) if tuple(sorted(f)) in keys])
@@ -328,7 +329,8 @@ def test_cut_softening_matches_the_full_order_with_the_cut_meshed(hgo_model, tmp
     # The reduced part: with its pressure condensed per element it is locked (D = 1e-5,
     # snapshots at large strain: measured 2.7x too stiff);
     # with the reduced pressure basis (what the coupling keeps outside the patch) it is not.
-    on_region, _, B_uncut, uncut = scalpel._loads
+    loads = scalpel.cuts.loads
+    on_region, B_uncut, uncut = loads.vertices, loads.B_uncut, loads.uncut
     k = int(np.flatnonzero(on_region == vertex)[0])
     b = B_uncut[: uncut.G, k]
     locked = b @ np.linalg.solve(model.cut_region.reduced_stiffness, b)
@@ -338,10 +340,11 @@ def test_cut_softening_matches_the_full_order_with_the_cut_meshed(hgo_model, tmp
     # The uncut coupled model has the full order's compliance, however small its patch
     # (with the element-condensed reduced part, a 1-ring patch was 32 % too stiff here).
     for layers in (1, 2):
-        cells = CutPatch(scalpel.topology, model.cut_region, layers).cells
-        patch = CutPatch(CutTopology.of_region(model.cut_region), model.cut_region, 1, cells)
-        loads = scalpel._tool_loads(patch, np.array([vertex]))
-        assert _compliance(patch, loads)[0] == pytest.approx(c_intact, rel=0.1)
+        cells = CoupledPatch(scalpel.cuts.topology, model.cut_region, layers).cells
+        region = model.cut_region
+        patch = CoupledPatch(region.intact_topology(), region, 1, cells)
+        loads = scalpel.cuts.tool.loads(patch, np.array([vertex]))
+        assert compliance(patch, loads)[0] == pytest.approx(c_intact, rel=0.1)
     # The cut's softening of the contact: within 10 % of the full order's.
     softening = 1.0 - sim.cut_stiffness_ratio
     assert softening == pytest.approx(1.0 - full_order_ratio, rel=0.1)
@@ -395,11 +398,11 @@ def test_placing_the_scalpel_again_allocates_nothing(model):
 
 def test_the_scalpel_finds_the_nearest_vertex_exactly(model):
     """The placement's grid search against a brute-force search over every vertex."""
-    from hapticrom.online.cutting import ScalpelInputError
+    from hapticrom.online import ScalpelInputError
 
     sim = model.simulator()
     sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
-    scalpel = sim._cutting
+    scalpel = sim.cutting
     V = model.vertices
     rng = np.random.default_rng(3)
     reach = 2.0 * scalpel.cell_size
@@ -421,26 +424,26 @@ def test_the_scalpel_finds_the_nearest_vertex_exactly(model):
         blade = np.cross(normal, np.eye(3)[np.argmin(np.abs(normal))])  # in the tangent plane
         sim.scalpel(p, blade)
         placed += 1
-        assert sim._scalpel_vertex == vertex and sim._vertex == region
-        np.testing.assert_allclose(sim._blade, blade / np.linalg.norm(blade), atol=1e-12)
-        across = np.cross(sim._blade, scalpel.normals[vertex])
-        np.testing.assert_allclose(sim._across, across / np.linalg.norm(across), atol=1e-12)
+        assert scalpel.scalpel_vertex == vertex and scalpel.vertex == region
+        np.testing.assert_allclose(scalpel.blade, blade / np.linalg.norm(blade), atol=1e-12)
+        across = np.cross(scalpel.blade, scalpel.normals[vertex])
+        np.testing.assert_allclose(scalpel.across, across / np.linalg.norm(across), atol=1e-12)
     assert placed > 100 and refused > 10
 
 
 def test_scalpel_inputs_of_other_types_and_shapes(model):
-    from hapticrom.online.cutting import ScalpelInputError
+    from hapticrom.online import ScalpelInputError
 
     sim = model.simulator()
     point = on_surface(4.6)
     sim.scalpel(point, np.array([0.0, 1.0, 0.0]))
-    frame = (sim._scalpel_vertex, sim._blade.copy(), sim._across.copy())
+    frame = (sim.cutting.scalpel_vertex, sim.cutting.blade.copy(), sim.cutting.across.copy())
     for p, b in ((point.tolist(), (0, 1, 0)), (point.astype(np.float32), np.array([0, 1, 0]))):
         sim.scalpel(p, b)
-        assert sim._scalpel_vertex == frame[0]
-        np.testing.assert_allclose(sim._blade, frame[1], atol=1e-6)
+        assert sim.cutting.scalpel_vertex == frame[0]
+        np.testing.assert_allclose(sim.cutting.blade, frame[1], atol=1e-6)
     sim.scalpel(point, np.array([0.0, 1.0, 0.0]))
-    before = (sim.contact_normal.copy(), sim._blade.copy(), sim._vertex)
+    before = (sim.contact_normal.copy(), sim.cutting.blade.copy(), sim.cutting.vertex)
     for p, b, message in (
         (point[:2], [0.0, 1.0, 0.0], r"shape \(2,\)"),
         (np.r_[point, 0.0], [0.0, 1.0, 0.0], r"shape \(4,\)"),
@@ -452,8 +455,8 @@ def test_scalpel_inputs_of_other_types_and_shapes(model):
         with pytest.raises(ScalpelInputError, match=message):
             sim.scalpel(p, b)
         np.testing.assert_array_equal(sim.contact_normal, before[0])
-        np.testing.assert_array_equal(sim._blade, before[1])
-        assert sim._vertex == before[2]
+        np.testing.assert_array_equal(sim.cutting.blade, before[1])
+        assert sim.cutting.vertex == before[2]
 
 
 def test_a_force_step_with_a_cut_stays_within_the_displacement_limit(model):
@@ -513,3 +516,41 @@ def test_placing_the_scalpel_again_at_the_same_place_is_the_same_state(model):
     np.testing.assert_array_equal(shortcut.step_displacement(-0.05 * full.contact_normal),
                                   full.step_displacement(-0.05 * full.contact_normal))  # fmt: skip
     assert shortcut.weights[0].tolist() == full.weights[0].tolist()
+
+
+def test_the_tool_radius_is_the_model_attribute(model, monkeypatch):
+    """The tool load's radius is /model's contact_radius (checked and covered by the
+    artifact's digest), not a value from the campaign's raw JSON."""
+    attrs = model.artifact.group_attrs["model"]
+    monkeypatch.setitem(attrs, "contact_radius", 0.25 * float(attrs["contact_radius"]))
+    monkeypatch.setitem(model.artifact.attrs["campaign"]["load"], "contact_radius", 99.0)
+    sim = model.simulator()
+    sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
+    assert sim.cutting.tool_radius == attrs["contact_radius"]
+    assert sim.cutting.cuts.tool.radius == attrs["contact_radius"]
+
+
+def test_cutting_state_is_declared_in_init(model):
+    """The simulator holds one cutting component; neither it nor the cuts grow attributes
+    while placing, cutting (waited and in the background) and rendering."""
+    sim = model.simulator()
+    declared = set(vars(sim))
+    assert sim.cutting is None and "cutting" in declared
+    sim.scalpel(on_surface(4.6), [0.0, 1.0, 0.0])
+    parts = {"controller": sim.cutting, "cuts": sim.cutting.cuts, "worker": sim.cutting.cuts.worker,
+             "lips": sim.cutting.lips}  # fmt: skip
+    before = {name: set(vars(part)) for name, part in parts.items()}
+    n = sim.contact_normal.copy()
+    out = np.zeros_like(model.vertices)
+    for depth in (0.01, 0.02, 0.04):
+        sim.step_displacement(-depth * n)
+    sim.scalpel(on_surface(4.6, 8.0), [0.0, 1.0, 0.0], background=True)
+    sim.step_displacement(-0.04 * n)
+    sim.finish_cuts()
+    sim.step_force(-1e-4 * n)
+    sim.set_contact(on_surface(4.4))
+    sim.surface_displacement(out)
+    sim.cut_surface()
+    assert sim.cut_events
+    assert set(vars(sim)) == declared
+    assert {name: set(vars(part)) for name, part in parts.items()} == before

@@ -1,7 +1,7 @@
 """Tool positions of a training campaign on a surface group (mm).
 
-Pure numpy (no DOLFINx or PETSc), so a campaign file fails here, early and
-cheaply. A position is a node of the surface group (read with
+Pure numpy and pydantic (no DOLFINx or PETSc), so a campaign file fails here,
+early and cheaply. A position is a node of the surface group (read with
 :func:`hapticrom.meshes.msh.read_surface`) with its outward unit normal, the
 direction the tool pushes against. The campaign TOML table::
 
@@ -22,6 +22,10 @@ Explicit points come first, then the samplers in the order their kind first
 appears in the table (all ``polar`` tables, then all ``farthest`` ones in the
 example); a node already taken is skipped. The plan depends on the inputs only.
 
+The tables are typed models (:class:`PositionsTable`, :class:`PolarTable`,
+:class:`FarthestTable`, :mod:`hapticrom.offline.tables`); the samplers and
+:class:`PositionsSpec` built in code are checked by the same models.
+
 Snapping is reported, not silent: every position keeps the point it was asked
 at and its distance to the node it got (an explicit point or a polar centre:
 the distance in space; a ring point: in the tangent plane of the ring, since
@@ -35,20 +39,36 @@ because their node was already taken; the campaign prints it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, fields
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import (
+    BeforeValidator,
+    Field,
+    PlainValidator,
+    PrivateAttr,
+    WithJsonSchema,
+    model_validator,
+)
 
 from hapticrom.meshes.msh import Surface, face_area_vectors
+from hapticrom.offline.tables import (
+    Table,
+    boolean,
+    check_integer,
+    check_value,
+    integer,
+    invalid,
+    number,
+    rule,
+    validate,
+    vector,
+)
 from hapticrom.shared.errors import InputError
 
 Vector = tuple[float, float, float]
 
-POSITIONS_KEYS = ("points", "snap_tolerance", "polar", "farthest")
-POLAR_KEYS = ("centre", "radius", "rings", "per_ring", "include_centre", "phase_deg")
-POLAR_REQUIRED = ("centre", "radius", "rings", "per_ring")
-FARTHEST_KEYS = ("n", "centre", "radius")
 # Below this length of the global x axis projected on the tangent plane (x
 # within about 14 degrees of the normal) the first tangent comes from y instead.
 TANGENT_FALLBACK = 0.25
@@ -99,13 +119,7 @@ class PolarSampler:
     phase_deg: float = 0.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "centre", _vector(self.centre, "centre"))
-        object.__setattr__(self, "radius", _number(self.radius, "radius", positive=True))
-        object.__setattr__(self, "rings", _integer(self.rings, "rings"))
-        object.__setattr__(self, "per_ring", _per_ring(self.per_ring, self.rings))
-        if not isinstance(self.include_centre, bool):
-            raise InputError(f"include_centre must be true or false, got {self.include_centre!r}")
-        object.__setattr__(self, "phase_deg", _number(self.phase_deg, "phase_deg"))
+        _checked(self, PolarTable)
 
     def ring_counts(self) -> tuple[int, ...]:
         """Points on each ring, innermost first."""
@@ -129,13 +143,7 @@ class FarthestSampler:
     radius: float | None = None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "n", _integer(self.n, "n"))
-        if self.centre is not None:
-            object.__setattr__(self, "centre", _vector(self.centre, "centre"))
-        if self.radius is not None:
-            if self.centre is None:
-                raise InputError("radius needs a centre = [x, y, z]")
-            object.__setattr__(self, "radius", _number(self.radius, "radius", positive=True))
+        _checked(self, FarthestTable)
 
 
 @dataclass(frozen=True)
@@ -150,59 +158,164 @@ class PositionsSpec:
     snap_tolerance: float = 1.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.points, list | tuple):
-            raise InputError(f"points must be a list of [x, y, z], got {self.points!r}")
-        points = tuple(_vector(p, f"points[{i}]") for i, p in enumerate(self.points))
+        points = tuple(check_value(Points, self.points, "points"))
         object.__setattr__(self, "points", points)
         samplers = tuple(self.samplers)
         for sampler in samplers:
             if not isinstance(sampler, PolarSampler | FarthestSampler):
                 raise InputError(f"not a position sampler: {sampler!r}")
         object.__setattr__(self, "samplers", samplers)
-        tolerance = _number(self.snap_tolerance, "snap_tolerance", positive=True)
+        tolerance = check_value(PositiveNumber, self.snap_tolerance, "snap_tolerance")
         object.__setattr__(self, "snap_tolerance", tolerance)
         if not points and not samplers:
             raise InputError("no positions: give points, [[polar]] or [[farthest]] samplers")
 
 
-# --- validation helpers: messages name the key; the TOML parser adds the table ---------------
+def _checked(sampler, table: type[Table]) -> None:
+    """Check a sampler's fields with its table's model and keep the values it read."""
+    given = {f.name: getattr(sampler, f.name) for f in fields(sampler)}
+    checked = validate(table, {k: v for k, v in given.items() if v is not None})
+    for name in given:
+        object.__setattr__(sampler, name, getattr(checked, name))
 
 
-def _number(value: Any, key: str, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise InputError(f"{key} must be a number, got {value!r}")
-    if not math.isfinite(value):
-        raise InputError(f"{key} must be finite, got {value!r}")
-    if positive and value <= 0:
-        raise InputError(f"{key} must be positive, got {value!r}")
-    return float(value)
+# --- the TOML tables --------------------------------------------------------------------------
+
+Number = number(as_float=True)
+PositiveNumber = number(gt=0, as_float=True)
+Count = integer(ge=1)
+Point = vector()
+Boolean = boolean()
 
 
-def _integer(value: Any, key: str) -> int:
-    """A positive integer (counts of rings, points, samples)."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise InputError(f"{key} must be an integer, got {value!r}")
-    if value <= 0:
-        raise InputError(f"{key} must be positive, got {value!r}")
-    return int(value)
+def _list_of_points(value: Any) -> list:
+    if isinstance(value, tuple | np.ndarray):
+        return list(value)
+    if not isinstance(value, list):
+        raise invalid(f"must be a list of points [x, y, z], got {value!r}")
+    return value
 
 
-def _vector(value: Any, key: str) -> Vector:
-    if not isinstance(value, list | tuple | np.ndarray) or len(value) != 3:
-        raise InputError(f"{key} must be three numbers [x, y, z], got {value!r}")
-    x, y, z = (_number(c, key) for c in value)
-    return (x, y, z)
+Points = Annotated[list[Point], BeforeValidator(_list_of_points)]
 
 
-def _per_ring(value: Any, rings: int) -> int | tuple[int, ...]:
-    if isinstance(value, list | tuple):
-        if len(value) != rings:
-            raise InputError(f"per_ring has {len(value)} entries but rings = {rings}")
-        return tuple(_integer(v, "per_ring") for v in value)
-    return _integer(value, "per_ring")
+def _per_ring(value: Any) -> int | tuple[int, ...]:
+    if not isinstance(value, list | tuple):
+        return check_integer(value, ge=1)
+    if not value or any(
+        isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1 for v in value
+    ):
+        raise invalid(f"must be positive integers, one per ring, got {value!r}")
+    return tuple(int(v) for v in value)
 
 
-# --- the TOML table ---------------------------------------------------------------------------
+PerRing = Annotated[
+    int | tuple[int, ...],
+    PlainValidator(_per_ring),
+    WithJsonSchema(
+        {
+            "anyOf": [
+                {"type": "integer", "minimum": 1},
+                {"type": "array", "items": {"type": "integer", "minimum": 1}, "minItems": 1},
+            ]
+        }
+    ),
+]
+
+
+def _one_or_many(value: Any) -> list:
+    """A single ``[positions.polar]`` table is accepted as well as an array ``[[...]]``."""
+    if isinstance(value, dict):
+        return [value]
+    if not isinstance(value, list | tuple):
+        raise invalid(f"must be a table or an array of tables, got {value!r}")
+    return list(value)
+
+
+class PolarTable(Table):
+    """``[[positions.polar]]``: rings about a centre (see :class:`PolarSampler`)."""
+
+    missing = {"centre": "centre = [x, y, z]"}
+    centre: Point = Field(description="mm, snapped to the nearest surface node")
+    radius: PositiveNumber = Field(description="mm, of the outermost ring")
+    rings: Count = Field(description="number of rings")
+    per_ring: PerRing = Field(description="points on every ring, or a list of one per ring")
+    include_centre: Boolean = Field(True, description="the centre node itself first")
+    phase_deg: Number = Field(0.0, description="angle of each ring's first point (degrees)")
+
+    @model_validator(mode="after")
+    def _one_count_per_ring(self) -> PolarTable:
+        """A list ``per_ring`` has one entry per ring."""
+        if isinstance(self.per_ring, tuple) and len(self.per_ring) != self.rings:
+            raise invalid(f"per_ring has {len(self.per_ring)} entries but rings = {self.rings}")
+        return self
+
+
+class FarthestTable(Table):
+    """``[[positions.farthest]]``: farthest-point sampling (see :class:`FarthestSampler`)."""
+
+    n: Count = Field(description="number of surface nodes to pick")
+    centre: Point | None = Field(None, description="mm; with radius: only nodes in that ball")
+    radius: PositiveNumber | None = Field(None, description="mm, needs centre")
+
+    @model_validator(mode="after")
+    def _radius_needs_centre(self) -> FarthestTable:
+        """A radius is about a centre."""
+        if self.radius is not None and self.centre is None:
+            raise invalid("radius needs a centre = [x, y, z]")
+        return self
+
+
+def _one_or_many_schema(schema: dict[str, Any]) -> None:
+    """The JSON Schema of ``polar`` and ``farthest``: an array of tables, or one table."""
+    for key in ("polar", "farthest"):
+        many = schema["properties"][key]
+        one = many["items"]
+        schema["properties"][key] = {
+            "anyOf": [{"type": "array", "items": one}, one],
+            "description": many.get("description", ""),
+        }
+
+
+class PositionsTable(Table, json_schema_extra=_one_or_many_schema):
+    """``[positions]``: explicit points, then samplers, as the module doc says.
+
+    ``spec`` is the :class:`PositionsSpec`, built as the table is checked.
+    """
+
+    points: Points = Field(default_factory=list, description="mm, snapped to surface nodes")
+    snap_tolerance: PositiveNumber = Field(
+        1.0, description="mm; a point farther from every node is an error"
+    )
+    polar: Annotated[list[PolarTable], BeforeValidator(_one_or_many)] = Field(
+        default_factory=list, description="rings in the tangent plane about a centre"
+    )
+    farthest: Annotated[list[FarthestTable], BeforeValidator(_one_or_many)] = Field(
+        default_factory=list, description="greedy farthest-point sampling"
+    )
+    _spec: PositionsSpec | None = PrivateAttr(None)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _build_spec(cls, data: Any, handler) -> PositionsTable:
+        """The samplers in the order their kind first appears (tomllib keeps the file's)."""
+        table = handler(data)
+        samplers: list[PolarSampler | FarthestSampler] = []
+        for kind in (key for key in data if key in ("polar", "farthest")):
+            for t in getattr(table, kind):
+                sampler = PolarSampler if kind == "polar" else FarthestSampler
+                samplers.append(
+                    sampler(**{name: getattr(t, name) for name in type(t).model_fields})
+                )
+        table._spec = rule(
+            lambda: PositionsSpec(tuple(table.points), tuple(samplers), table.snap_tolerance)
+        )
+        return table
+
+    @property
+    def spec(self) -> PositionsSpec:
+        """The positions to plan."""
+        return self._spec
 
 
 def positions_from_dict(data: dict, where: str = "positions") -> PositionsSpec:
@@ -212,57 +325,7 @@ def positions_from_dict(data: dict, where: str = "positions") -> PositionsSpec:
     non-positive radius / rings / n / snap_tolerance, a per_ring list whose
     length is not rings, or no positions at all.
     """
-    _check_table(data, f"[{where}]", POSITIONS_KEYS)
-    samplers: list[PolarSampler | FarthestSampler] = []
-    # Kinds in the order they first appear (tomllib keeps the file's order).
-    for key, value in data.items():
-        if key in ("polar", "farthest"):
-            samplers.extend(_sampler_tables(key, value, where))
-    return _build(
-        f"[{where}]",
-        PositionsSpec,
-        points=data.get("points", ()),
-        samplers=samplers,
-        snap_tolerance=data.get("snap_tolerance", 1.0),
-    )
-
-
-def _sampler_tables(kind: str, value: Any, where: str) -> list[PolarSampler | FarthestSampler]:
-    # A single [positions.polar] table is accepted as well as an array [[positions.polar]].
-    tables = [value] if isinstance(value, dict) else value
-    if not isinstance(tables, list):
-        raise InputError(f"[{where}] {kind} must be tables [[{where}.{kind}]], got {value!r}")
-    samplers = []
-    for number, table in enumerate(tables, start=1):
-        label = f"[[{where}.{kind}]] #{number}"
-        if kind == "polar":
-            _check_table(table, label, POLAR_KEYS, POLAR_REQUIRED)
-            samplers.append(_build(label, PolarSampler, **table))
-        else:
-            _check_table(table, label, FARTHEST_KEYS, ("n",))
-            samplers.append(_build(label, FarthestSampler, **table))
-    return samplers
-
-
-def _check_table(table: Any, label: str, allowed: tuple, required: tuple = ()) -> None:
-    if not isinstance(table, dict):
-        raise InputError(f"{label} must be a table, got {table!r}")
-    unknown = sorted(set(table) - set(allowed))
-    if unknown:
-        raise InputError(
-            f"{label} unknown key(s) {', '.join(unknown)}; allowed: {', '.join(allowed)}"
-        )
-    missing = [key for key in required if key not in table]
-    if missing:
-        raise InputError(f"{label} missing key(s) {', '.join(missing)}")
-
-
-def _build(label: str, cls, **kwargs):
-    """``cls(**kwargs)`` with the table's label put in front of a validation error."""
-    try:
-        return cls(**kwargs)
-    except InputError as error:
-        raise InputError(f"{label} {error}") from None
+    return validate(PositionsTable, data, where=tuple(where.split("."))).spec
 
 
 # --- planning ---------------------------------------------------------------------------------

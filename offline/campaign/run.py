@@ -18,7 +18,6 @@ Progress is reported by world rank 0: a bar with an ETA, a line per solve
 from __future__ import annotations
 
 import datetime
-import hashlib
 import io
 import json
 import math
@@ -32,22 +31,21 @@ from mpi4py import MPI
 
 from hapticrom import __version__
 from hapticrom.meshes.msh import read_surface
+from hapticrom.offline.campaign.config import (  # noqa: F401 (the campaign's names, re-exported)
+    CONTROL_MODES,
+    INNER_PRODUCTS,
+    POD_METHODS,
+    ANMConfig,
+    CampaignConfig,
+    CampaignLoad,
+    PODConfig,
+)
 from hapticrom.offline.campaign.positions import (
-    PositionsSpec,
     ToolPosition,
     plan_with_report,
-    positions_from_dict,
     positions_table,
 )
 from hapticrom.offline.campaign.store import FORMAT, VERSION, SnapshotStore, csr_datasets
-from hapticrom.offline.config import (
-    LOAD_COMMON_KEYS,
-    LoadConfig,
-    ProblemConfig,
-    _Reader,
-    load_common,
-    read_toml,
-)
 from hapticrom.offline.fe.dofs import CanonicalOrder
 from hapticrom.offline.fe.formulation import HyperelasticModel
 from hapticrom.offline.fe.fullorder import FullOrderModel
@@ -71,203 +69,14 @@ from hapticrom.offline.progress import ProgressBar
 from hapticrom.shared.checksum import file_digest
 from hapticrom.shared.errors import HapticromError, InputError, SolverError
 
-CONTROL_MODES = ("displacement", "force")
-INNER_PRODUCTS = ("euclidean", "volume")
-POD_METHODS = ("snapshots", "svd")
 _TAG_REPORT, _TAG_DONE = 7301, 7302
-
-
-@dataclass(frozen=True)
-class CampaignLoad:
-    """The tool load of every position, scaled by a load factor from 0 to 1.
-
-    ``magnitude``: mm (displacement control) or N (force control) at load factor 1;
-    ``direction``: "normal" (into the surface, along its inward normal at the
-    position) or a fixed vector (normalised).
-    """
-
-    mode: str
-    magnitude: float
-    direction: str | tuple[float, float, float] = "normal"
-    contact_radius: float = 0.5
-    surface: str = "loadable"
-    steps: int = 10
-    max_step_cuts: int = 8
-    predictor: str = "secant"
-
-    def unit_direction(self, position: ToolPosition) -> np.ndarray:
-        if self.direction == "normal":
-            return -np.asarray(position.normal, dtype=float)
-        d = np.asarray(self.direction, dtype=float)
-        return d / np.linalg.norm(d)
-
-    def at(self, position: ToolPosition) -> LoadConfig:
-        vector = tuple(float(v) for v in self.magnitude * self.unit_direction(position))
-        return LoadConfig(
-            mode=self.mode,
-            contact_point=tuple(position.point),
-            contact_radius=self.contact_radius,
-            surface=self.surface,
-            steps=self.steps,
-            max_step_cuts=self.max_step_cuts,
-            predictor=self.predictor,
-            **{self.mode: vector},
-        )
-
-
-@dataclass(frozen=True)
-class PODConfig:
-    """Truncation and inner product of the POD (thesis §2.2.2: eigenvalue ratio 1e-8)."""
-
-    eigenvalue_ratio: float | None = 1e-8
-    energy: float | None = None
-    max_modes: int | None = None
-    inner_product: str = "euclidean"
-    method: str = "snapshots"
-
-
-@dataclass(frozen=True)
-class ANMConfig:
-    """POD-ANM series per sample (thesis ch. 3), computed by the reduction step."""
-
-    enabled: bool = True
-    order: int = 6
-    tolerance: float = 1e-4
-
-
-@dataclass(frozen=True)
-class CampaignConfig:
-    name: str
-    problem: ProblemConfig  # mesh, material, discretisation, solver (its load is unused)
-    load: CampaignLoad
-    positions: PositionsSpec
-    pod: PODConfig = PODConfig()
-    anm: ANMConfig = ANMConfig()
-    cutting: object = None  # CuttingConfig or None: the artifact's cuttable region
-    raw: dict = field(default_factory=dict, compare=False)
-
-    @classmethod
-    def from_toml(cls, path: str | Path) -> CampaignConfig:
-        path = Path(path)
-        data = read_toml(path, "campaign file")
-        return cls.from_dict(data, base_dir=path.parent, source=str(path))
-
-    @classmethod
-    def from_dict(cls, data: dict, base_dir: str | Path = ".", source: str = "campaign"):
-        r = _Reader(source)
-        known = {"campaign", "mesh", "material", "discretisation", "solver", "load"}
-        r.keys(data, "", known | {"positions", "pod", "anm", "cutting"})
-        problem = ProblemConfig.from_dict(
-            {
-                **{
-                    k: data[k]
-                    for k in ("mesh", "material", "discretisation", "solver")
-                    if k in data
-                },
-                "load": {"mode": "force", "force": [0.0, 0.0, 0.0]},
-                "output": {"xdmf": False},
-            },
-            base_dir=base_dir,
-            source=source,
-        )
-        meta = r.table(data, "campaign")
-        r.keys(meta, "campaign", {"name", "description"})
-        name = meta.get("name", Path(source).stem)
-        anm = _anm(r, r.table(data, "anm"))
-        if anm.enabled and problem.material.params.get("fibre_tension_only") is True:
-            r.fail(
-                "anm",
-                "the POD-ANM series need an analytic energy and fibre_tension_only = true "
-                "switches the fibres on and off: set [anm] enabled = false or "
-                "fibre_tension_only = false",
-            )
-        return cls(
-            name=str(name),
-            problem=problem,
-            load=_campaign_load(r, r.table(data, "load", required=True)),
-            positions=positions_from_dict(r.table(data, "positions", required=True)),
-            pod=_pod(r, r.table(data, "pod")),
-            anm=anm,
-            cutting=_cutting(r, data["cutting"]) if "cutting" in data else None,
-            raw=data,
-        )
-
-    def campaign_hash(self) -> str:
-        """Identity of the campaign: its configuration and the bytes of its mesh.
-
-        The ``[anm]`` and ``[cutting]`` tables are left out: they only change the
-        reduction, not the solves.
-        """
-        solves = {k: v for k, v in self.raw.items() if k not in ("anm", "cutting")}
-        h = hashlib.sha256(json.dumps(solves, sort_keys=True, default=str).encode())
-        h.update(file_digest(self.problem.mesh.file).encode())
-        return h.hexdigest()
-
-
-def _campaign_load(r: _Reader, t: dict) -> CampaignLoad:
-    """The campaign's [load] table; the keys it shares with a problem's are checked alike."""
-    r.keys(t, "load", {"mode", "magnitude", "direction", *LOAD_COMMON_KEYS})
-    mode = r.choice(t, "load", "mode", CONTROL_MODES, None)
-    direction = t.get("direction", "normal")
-    if direction != "normal":
-        direction = r.vector(t, "load", "direction")
-        if np.linalg.norm(direction) == 0:
-            r.fail("load", "direction must not be the zero vector")
-    return CampaignLoad(
-        mode=mode,
-        magnitude=r.number(t, "load", "magnitude", positive=True),
-        direction=direction,
-        **load_common(r, t),
-    )
-
-
-def _pod(r: _Reader, t: dict) -> PODConfig:
-    r.keys(t, "pod", {"eigenvalue_ratio", "energy", "max_modes", "inner_product", "method"})
-    ratio = r.number(t, "pod", "eigenvalue_ratio", 1e-8, positive=True)
-    energy = t.get("energy")
-    if energy is not None and not 0 < r.number(t, "pod", "energy") <= 1:
-        r.fail("pod", f"energy must lie in (0, 1], got {energy}")
-    max_modes = t.get("max_modes")
-    if max_modes is not None:
-        max_modes = r.number(t, "pod", "max_modes", positive=True, integer=True)
-    return PODConfig(
-        eigenvalue_ratio=ratio,
-        energy=energy,
-        max_modes=max_modes,
-        inner_product=r.choice(t, "pod", "inner_product", INNER_PRODUCTS, "euclidean"),
-        method=r.choice(t, "pod", "method", POD_METHODS, "snapshots"),
-    )
-
-
-def _anm(r: _Reader, t: dict) -> ANMConfig:
-    r.keys(t, "anm", {"enabled", "order", "tolerance"})
-    enabled = t.get("enabled", True)
-    if not isinstance(enabled, bool):
-        r.fail("anm", f"enabled must be true or false, got {enabled!r}")
-    order = r.number(t, "anm", "order", 6, positive=True, integer=True)
-    if not 1 <= order <= 15:
-        r.fail("anm", f"order must be between 1 and 15, got {order}")
-    tolerance = r.number(t, "anm", "tolerance", 1e-4, positive=True)
-    if not tolerance < 1:
-        r.fail("anm", f"tolerance must be below 1, got {tolerance}")
-    return ANMConfig(enabled=enabled, order=order, tolerance=tolerance)
-
-
-def _cutting(r: _Reader, t: dict):
-    from hapticrom.offline.cutting.export import CuttingConfig
-
-    r.keys(t, "cutting", {"centre", "radius", "patch_layers", "cut_force"})
-    return CuttingConfig(
-        centre=tuple(r.vector(t, "cutting", "centre", required=True)),
-        radius=r.number(t, "cutting", "radius", positive=True),
-        patch_layers=r.number(t, "cutting", "patch_layers", 2, positive=True, integer=True),
-        cut_force=r.number(t, "cutting", "cut_force", 0.02, positive=True),
-    )
 
 
 # -- running -----------------------------------------------------------------------
 @dataclass
 class CampaignReport:
+    """What a campaign run did: counts, failures, timing, the physics sanity."""
+
     positions: int
     solved_now: int
     resumed: int
@@ -281,6 +90,7 @@ class CampaignReport:
 
 
 def campaign_manifest(config: CampaignConfig, positions: list[ToolPosition]) -> dict[str, Any]:
+    """The manifest.json of a campaign: its identity (hash, mesh digest), positions, units."""
     mesh = config.problem.mesh.file
     return {
         "format": FORMAT,
@@ -427,46 +237,62 @@ def _write_operators(config: CampaignConfig, organ, group: MPI.Comm, store: Snap
         )
 
 
-def _solve_position(config, position, organ, group):
-    """One full load path; returns (datasets, attrs) on the group's root, None elsewhere."""
-    problem = replace(config.problem, load=config.load.at(position))
-    t0 = time.perf_counter()
-    model = FullOrderModel(problem, comm=group, organ=organ, verbose=False)
-    order = CanonicalOrder(model.model.V)
-    pressure_order = CanonicalOrder(model.model.Q) if model.model.p is not None else None
-    snapshots, pressures = [], []
+@dataclass
+class _LoadPath:
+    """One position's converged states, gathered on the group's root (canonical order)."""
+
+    snapshots: list[np.ndarray]  # displacement per converged increment (root only)
+    pressures: list[np.ndarray]  # element-wise pressure per increment (root, mixed only)
+    records: list  # StepRecord per converged increment
+    forces: Any  # tool force per increment, N
+    displacements: Any  # tool displacement per increment, mm
+    status: str = "solved"
+    message: str = ""
+
+
+def _solve_load_path(model: FullOrderModel, order, pressure_order, group) -> _LoadPath:
+    """Solve the whole load path, gathering each converged state to the group's root.
+
+    A solve that fails keeps what converged; the position is marked failed.
+    """
+    path = _LoadPath([], [], [], [], [])
 
     def on_step(record, force, disp):
         u = order.gather(model.model.u.x.array)
         p = pressure_order.gather(model.model.p.x.array) if pressure_order else None
         if group.rank == 0:
-            snapshots.append(u)
+            path.snapshots.append(u)
             if p is not None:
-                pressures.append(p)
+                path.pressures.append(p)
 
-    status, message = "solved", ""
     try:
         result = model.solve(on_step=on_step)
-        records, forces, disps = result.records, result.force, result.displacement
-    except SolverError as exc:  # keep what converged; the position is marked failed
-        status, message = "failed", str(exc)
-        records, forces, disps = model.history
+        path.records, path.forces = result.records, result.force
+        path.displacements = result.displacement
+    except SolverError as exc:
+        path.status, path.message = "failed", str(exc)
+        path.records, path.forces, path.displacements = model.history
+    return path
+
+
+def _load_and_contact(config, model: FullOrderModel, order):
+    """(The load vector at load factor 1 under force control (None otherwise), the contact
+    patch's local blocks); collective over the group."""
     if config.load.mode == "force":
         model.set_load(1.0)
-        f = load_vector(model.model, order)
-        contact_local = model.patch.blocks(model.model.V)
-    else:
-        f = None
-        contact_local = model.patch_blocks
-    contact = order.gather_blocks(contact_local)
-    if group.rank != 0:
-        return None
+        return load_vector(model.model, order), model.patch.blocks(model.model.V)
+    return None, model.patch_blocks
+
+
+def _position_datasets(path: _LoadPath, order, pressure_order, contact, f, sanity) -> dict:
+    """The datasets of a position's record (root of the group)."""
     n = order.num_dofs
+    records = path.records
     datasets = {
-        "displacement": np.array(snapshots).reshape(-1, n),
+        "displacement": np.array(path.snapshots).reshape(-1, n),
         "load_factor": np.array([r.load_factor for r in records]),
-        "force": np.asarray(forces).reshape(-1, 3),
-        "contact_displacement": np.asarray(disps).reshape(-1, 3),
+        "force": np.asarray(path.forces).reshape(-1, 3),
+        "contact_displacement": np.asarray(path.displacements).reshape(-1, 3),
         "newton_iterations": np.array([r.newton_iterations for r in records], dtype=np.int64),
         "step_cuts": np.array([r.step_cuts for r in records], dtype=np.int64),
         "contact_nodes": contact,
@@ -474,21 +300,41 @@ def _solve_position(config, position, organ, group):
     if f is not None:
         datasets["load_vector"] = f
     if pressure_order is not None:  # element-wise pressure (MPa), canonical cell order
-        datasets["pressure"] = np.array(pressures).reshape(-1, pressure_order.num_dofs)
-    datasets.update(_sanity_datasets(model.sanity))
-    direction = config.load.unit_direction(position)
-    attrs = {
-        "status": status,
-        "message": message,
+        datasets["pressure"] = np.array(path.pressures).reshape(-1, pressure_order.num_dofs)
+    datasets.update(_sanity_datasets(sanity))
+    return datasets
+
+
+def _position_attrs(config, position, path: _LoadPath, sanity, seconds: float) -> dict:
+    """The attributes of a position's record: its outcome, where and how it was loaded."""
+    return {
+        "status": path.status,
+        "message": path.message,
         "point": np.asarray(position.point),
         "normal": np.asarray(position.normal),
-        "direction": direction,
+        "direction": config.load.unit_direction(position),
         "mode": config.load.mode,
         "magnitude": config.load.magnitude,
         "units": "displacement mm, force N (tool on tissue), load_vector N",
-        "seconds": time.perf_counter() - t0,
-        "sanity": dumps(model.sanity.summary()),
+        "seconds": seconds,
+        "sanity": dumps(sanity.summary()),
     }
+
+
+def _solve_position(config, position, organ, group):
+    """One full load path; returns (datasets, attrs) on the group's root, None elsewhere."""
+    problem = replace(config.problem, load=config.load.at(position))
+    t0 = time.perf_counter()
+    model = FullOrderModel(problem, comm=group, organ=organ, verbose=False)
+    order = CanonicalOrder(model.model.V)
+    pressure_order = CanonicalOrder(model.model.Q) if model.model.p is not None else None
+    path = _solve_load_path(model, order, pressure_order, group)
+    f, contact_local = _load_and_contact(config, model, order)
+    contact = order.gather_blocks(contact_local)
+    if group.rank != 0:
+        return None
+    datasets = _position_datasets(path, order, pressure_order, contact, f, model.sanity)
+    attrs = _position_attrs(config, position, path, model.sanity, time.perf_counter() - t0)
     return datasets, attrs
 
 
@@ -518,6 +364,146 @@ def campaign_sanity(store: SnapshotStore) -> dict:
     return campaign_summary(records, len(manifest["positions"]))
 
 
+class ProgressLog:
+    """World rank 0's log of the finished positions: a line each, and the progress bar.
+
+    The root of every other group sends its reports to rank 0 (tag ``_TAG_REPORT``)
+    and, when its share is done, an empty message (tag ``_TAG_DONE``); rank 0
+    receives them between its own solves and waits for every group at the end.
+    """
+
+    def __init__(self, comm: MPI.Comm, groups: int, total: int, done: int, verbose: bool):
+        self.comm, self.groups = comm, groups
+        self.reports: list[dict] = []  # rank 0: every report of this run
+        self.groups_done = 0
+        self.bar = ProgressBar(total, already_done=done) if comm.rank == 0 else None
+        if not verbose and self.bar is not None:
+            self.bar.stream = io.StringIO()  # quiet runs (tests) keep the log in memory
+
+    def add(self, report: dict) -> None:
+        """A group's root: log a finished position (rank 0) or send it there."""
+        if self.comm.rank == 0:
+            self._announce(report)
+            self._drain(block_until_done=False)
+        else:
+            self.comm.send(report, dest=0, tag=_TAG_REPORT)
+
+    def close(self, group: MPI.Comm) -> None:
+        """Every rank, once its group's share is done: rank 0 waits for the other groups."""
+        if group.rank == 0 and self.comm.rank != 0:
+            self.comm.send(None, dest=0, tag=_TAG_DONE)
+        if self.comm.rank == 0:
+            self._drain(block_until_done=True)
+
+    def _announce(self, report: dict) -> None:
+        """World rank 0: log a finished position and move the bar."""
+        cuts = f", {report['cuts']} step cut(s)" if report["cuts"] else ""
+        state = "" if report["status"] == "solved" else f"  FAILED: {report['message']}"
+        point = tuple(round(c, 3) for c in report["point"])
+        line = (
+            f"position {report['index']:3d} {point} group {report['group']}: "
+            f"{report['steps']} steps, {report['its']} Newton its{cuts}, "
+            f"{report['seconds']:.1f} s{state}"
+        )
+        print(line, file=self.bar.stream, flush=True)
+        for warning in report["warnings"]:
+            print(f"  warning: {warning}", file=self.bar.stream, flush=True)
+        self.bar.advance()
+        self.reports.append(report)
+
+    def _drain(self, block_until_done: bool) -> None:
+        """World rank 0: take the other groups' messages (all of them, if blocking)."""
+        status = MPI.Status()
+        while True:
+            if not block_until_done and not self.comm.iprobe(MPI.ANY_SOURCE, MPI.ANY_TAG, status):
+                return
+            if block_until_done and self.groups_done == self.groups - 1:
+                return
+            message = self.comm.recv(source=MPI.ANY_SOURCE, tag=MPI.ANY_TAG, status=status)
+            if status.Get_tag() == _TAG_DONE:
+                self.groups_done += 1
+            else:
+                self._announce(message)
+
+
+@dataclass
+class _Groups:
+    """The world split into solve groups of ``ranks_per_solve`` ranks: how many, this
+    rank's group's index and its communicator."""
+
+    count: int
+    index: int
+    comm: MPI.Comm
+
+
+def _split_groups(comm: MPI.Comm, ranks_per_solve: int) -> _Groups:
+    """The solve groups (collective; ``ranks_per_solve`` divides the number of ranks)."""
+    index = comm.rank // ranks_per_solve
+    return _Groups(comm.size // ranks_per_solve, index, comm.Split(color=index, key=comm.rank))
+
+
+def _position_report(position, group_index: int, datasets: dict, attrs: dict) -> dict:
+    """What the log says of a solved (or failed) position."""
+    return {
+        "index": position.index,
+        "point": list(position.point),
+        "group": group_index,
+        "steps": len(datasets["load_factor"]),
+        "its": int(datasets["newton_iterations"].sum()),
+        "cuts": int(datasets["step_cuts"].sum()),
+        "seconds": attrs["seconds"],
+        "status": attrs["status"],
+        "message": attrs["message"],
+        "warnings": warning_lines(json.loads(attrs["sanity"]), f"position {position.index}"),
+    }
+
+
+def _solve_share(config, mine, organ, groups: _Groups, store, log: ProgressLog, comm) -> None:
+    """Solve and store this group's positions ``mine``; HapticromError on every rank if
+    any group failed (naming the groups)."""
+    error = None
+    try:
+        for position in mine:
+            record = _solve_position(config, position, organ, groups.comm)
+            if groups.comm.rank == 0:
+                datasets, attrs = record
+                store.write_position(position.index, datasets, attrs)
+                log.add(_position_report(position, groups.index, datasets, attrs))
+    except HapticromError as exc:
+        error = f"group {groups.index}: {exc}"
+    finally:
+        log.close(groups.comm)
+    errors = [e for e in comm.allgather(error) if e]
+    if errors:
+        raise HapticromError("; ".join(errors))
+
+
+def _print_summary(log, plan, failed, wall, comm, ranks_per_solve, sanity) -> None:
+    """World rank 0: the closing lines of a campaign run."""
+    solved = [r for r in log.reports if r["status"] == "solved"]
+    per_solve = np.mean([r["seconds"] for r in solved]) if solved else math.nan
+    print(
+        f"campaign done: {len(log.reports)} solve(s) this run ({len(plan.done)} resumed), "
+        f"{len(failed)} failed, {wall:.1f} s wall, {per_solve:.1f} s per solve "
+        f"(one group), {comm.size} rank(s), {ranks_per_solve} per solve",
+        *summary_lines(sanity),
+        sep="\n",
+        flush=True,
+    )
+
+
+def _campaign_line(config, plan, comm, groups: _Groups, ranks_per_solve) -> str:
+    """The first line of a campaign run: what is solved, on how many ranks."""
+    load = config.load
+    return (
+        f"campaign '{config.name}': {len(plan.positions)} tool positions "
+        f"({len(plan.done)} already stored{', resuming' if plan.resumed else ''}), "
+        f"{load.mode} control, {load.magnitude} "
+        f"{'mm' if load.mode == 'displacement' else 'N'} in {load.steps} steps; "
+        f"{comm.size} rank(s) in {groups.count} group(s) of {ranks_per_solve}"
+    )
+
+
 def run_campaign(
     config: CampaignConfig,
     out_dir: str | Path,
@@ -540,125 +526,33 @@ def run_campaign(
     say = (lambda s: print0(comm, s)) if verbose else (lambda s: None)
     store = SnapshotStore(out_dir)
     plan = on_rank_zero(comm, _plan, config, store, restart)
-    positions, resumed, done, redo = plan.positions, plan.resumed, plan.done, plan.redo
-    n_groups = comm.size // ranks_per_solve
-    group_index = comm.rank // ranks_per_solve
-    group = comm.Split(color=group_index, key=comm.rank)
-    todo = [p for p in positions if p.index not in set(done)]
-    say(
-        f"campaign '{config.name}': {len(positions)} tool positions "
-        f"({len(done)} already stored{', resuming' if resumed else ''}), "
-        f"{config.load.mode} control, {config.load.magnitude} "
-        f"{'mm' if config.load.mode == 'displacement' else 'N'} in {config.load.steps} steps; "
-        f"{comm.size} rank(s) in {n_groups} group(s) of {ranks_per_solve}"
-    )
+    groups = _split_groups(comm, ranks_per_solve)
+    todo = [p for p in plan.positions if p.index not in set(plan.done)]
+    say(_campaign_line(config, plan, comm, groups, ranks_per_solve))
     _announce_plan(plan, say)
-
-    organ = load_organ(config.problem.mesh.file, group)
-    _ensure_operators(config, organ, comm, group, group_index, store, say)
-
-    mine = todo[group_index::n_groups]
-    bar = ProgressBar(len(positions), already_done=len(done)) if comm.rank == 0 else None
-    if not verbose and bar is not None:
-        bar.stream = io.StringIO()  # quiet runs (tests) keep the log in memory
-    error = None
-    reports = []
-
-    def announce(report: dict) -> None:
-        """World rank 0: log a finished position and move the bar."""
-        cuts = f", {report['cuts']} step cut(s)" if report["cuts"] else ""
-        state = "" if report["status"] == "solved" else f"  FAILED: {report['message']}"
-        point = tuple(round(c, 3) for c in report["point"])
-        line = (
-            f"position {report['index']:3d} {point} group {report['group']}: "
-            f"{report['steps']} steps, {report['its']} Newton its{cuts}, "
-            f"{report['seconds']:.1f} s{state}"
-        )
-        print(line, file=bar.stream, flush=True)
-        for warning in report["warnings"]:
-            print(f"  warning: {warning}", file=bar.stream, flush=True)
-        bar.advance()
-        reports.append(report)
-
-    def drain(block_until_done: bool) -> None:
-        nonlocal groups_done
-        status = MPI.Status()
-        while True:
-            if not block_until_done and not comm.iprobe(MPI.ANY_SOURCE, MPI.ANY_TAG, status):
-                return
-            if block_until_done and groups_done == n_groups - 1:
-                return
-            message = comm.recv(source=MPI.ANY_SOURCE, tag=MPI.ANY_TAG, status=status)
-            if status.Get_tag() == _TAG_DONE:
-                groups_done += 1
-            else:
-                announce(message)
-
-    groups_done = 0
-    try:
-        for position in mine:
-            record = _solve_position(config, position, organ, group)
-            if group.rank == 0:
-                datasets, attrs = record
-                store.write_position(position.index, datasets, attrs)
-                report = {
-                    "index": position.index,
-                    "point": list(position.point),
-                    "group": group_index,
-                    "steps": len(datasets["load_factor"]),
-                    "its": int(datasets["newton_iterations"].sum()),
-                    "cuts": int(datasets["step_cuts"].sum()),
-                    "seconds": attrs["seconds"],
-                    "status": attrs["status"],
-                    "message": attrs["message"],
-                    "warnings": warning_lines(
-                        json.loads(attrs["sanity"]), f"position {position.index}"
-                    ),
-                }
-                if comm.rank == 0:
-                    announce(report)
-                    drain(block_until_done=False)
-                else:
-                    comm.send(report, dest=0, tag=_TAG_REPORT)
-    except HapticromError as exc:
-        error = f"group {group_index}: {exc}"
-    finally:
-        if group.rank == 0 and comm.rank != 0:
-            comm.send(None, dest=0, tag=_TAG_DONE)
-        if comm.rank == 0:
-            drain(block_until_done=True)
-    errors = [e for e in comm.allgather(error) if e]
-    if errors:
-        raise HapticromError("; ".join(errors))
-
+    organ = load_organ(config.problem.mesh.file, groups.comm)
+    _ensure_operators(config, organ, comm, groups.comm, groups.index, store, say)
+    log = ProgressLog(comm, groups.count, len(plan.positions), len(plan.done), verbose)
+    _solve_share(config, todo[groups.index :: groups.count], organ, groups, store, log, comm)
     failed = on_rank_zero(comm, _failed_positions, store)
     sanity = on_rank_zero(comm, _write_campaign_sanity, store)
     wall = time.perf_counter() - t_start
     if comm.rank == 0 and verbose:
-        solved = [r for r in reports if r["status"] == "solved"]
-        per_solve = np.mean([r["seconds"] for r in solved]) if solved else math.nan
-        print(
-            f"campaign done: {len(reports)} solve(s) this run ({len(done)} resumed), "
-            f"{len(failed)} failed, {wall:.1f} s wall, {per_solve:.1f} s per solve "
-            f"(one group), {comm.size} rank(s), {ranks_per_solve} per solve",
-            *summary_lines(sanity),
-            sep="\n",
-            flush=True,
-        )
+        _print_summary(log, plan, failed, wall, comm, ranks_per_solve, sanity)
     refinement = None
     if refinement_check:
-        first = next(p for p in positions if p.index == 0)
+        first = next(p for p in plan.positions if p.index == 0)
         refinement = refinement_check_position(config, first, store, comm)
     return CampaignReport(
         refinement=refinement,
-        positions=len(positions),
+        positions=len(plan.positions),
         solved_now=len(todo),
-        resumed=len(done),
+        resumed=len(plan.done),
         failed=failed,
         wall_seconds=wall,
         ranks=comm.size,
         ranks_per_solve=ranks_per_solve,
-        redone=sorted(redo),
+        redone=sorted(plan.redo),
         sanity=sanity,
     )
 

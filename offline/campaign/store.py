@@ -9,9 +9,10 @@ Layout of a campaign directory::
                             and element-wise pressure snapshots, forces, contact nodes)
 
 Every file is written under a temporary name in the same directory, flushed
-to disk, then renamed: a crash (even SIGKILL) at any moment leaves either the
-complete file or none, never a half-written one that reads as valid. Every
-dataset carries its SHA-256 (``hapticrom.shared.checksum``), verified on read.
+to disk, then renamed (``hapticrom.shared.files``, as the artifact): a crash
+(even SIGKILL) at any moment leaves either the complete file or none, never a
+half-written one that reads as valid. Every dataset carries its SHA-256
+(``hapticrom.shared.checksum``), verified on read.
 All arrays are in the canonical DOF order of :mod:`hapticrom.offline.fe.dofs`, so
 campaigns run on different numbers of ranks store the same data.
 
@@ -26,7 +27,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -36,39 +36,30 @@ import scipy.sparse
 
 from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.errors import InputError
+from hapticrom.shared.files import (
+    PARTIAL_MARK,
+    read_versioned_json,
+    write_checksummed,
+    write_hdf5_atomically,
+    write_text_atomically,
+)
 
 FORMAT = "hapticrom-campaign"
 VERSION = 2  # 2: pressure snapshots and the mixed tangent blocks
 MESH_KEYS = ("file", "sha256")
 
 
-def _atomic_path(path: Path) -> Path:
-    return path.with_name(f".{path.name}.partial-{os.getpid()}")
-
-
-def _fsync_and_rename(tmp: Path, path: Path) -> None:
-    with open(tmp, "rb") as f:
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
-
-
 def write_h5(path: Path, datasets: dict[str, np.ndarray], attrs: dict[str, Any]) -> None:
     """Write datasets (with checksums) and attributes to ``path`` atomically."""
-    tmp = _atomic_path(path)
-    with h5py.File(tmp, "w") as f:
+
+    def fill(f: h5py.File) -> None:
         for key, value in attrs.items():
             f.attrs[key] = value
         for name, array in datasets.items():
-            array = np.asarray(array)
-            dset = f.create_dataset(name, data=array)
-            dset.attrs["sha256"] = array_digest(array)
+            write_checksummed(f, name, array)
         f.attrs["complete"] = True
-    _fsync_and_rename(tmp, path)
+
+    write_hdf5_atomically(path, fill)
 
 
 def read_h5(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -121,6 +112,7 @@ def _manifest_problem(data: dict) -> str | None:
 
 
 def csr_datasets(prefix: str, K: scipy.sparse.csr_matrix) -> dict[str, np.ndarray]:
+    """The datasets ``prefix/data``, ``/indices``, ``/indptr``, ``/shape`` of a CSR matrix."""
     return {
         f"{prefix}/data": K.data,
         f"{prefix}/indices": K.indices.astype(np.int64),
@@ -130,6 +122,7 @@ def csr_datasets(prefix: str, K: scipy.sparse.csr_matrix) -> dict[str, np.ndarra
 
 
 def csr_from(data: dict[str, np.ndarray], prefix: str) -> scipy.sparse.csr_matrix:
+    """The CSR matrix stored by :func:`csr_datasets` under ``prefix``."""
     return scipy.sparse.csr_matrix(
         (data[f"{prefix}/data"], data[f"{prefix}/indices"], data[f"{prefix}/indptr"]),
         shape=tuple(data[f"{prefix}/shape"]),
@@ -146,6 +139,7 @@ class SnapshotStore:
     # -- manifest --------------------------------------------------------------
     @property
     def manifest_path(self) -> Path:
+        """The campaign's manifest.json."""
         return self.root / "manifest.json"
 
     def manifest(self) -> dict:
@@ -153,19 +147,7 @@ class SnapshotStore:
         path = self.manifest_path
         if not path.is_file():
             raise InputError(f"{self.root} is not a campaign directory (no manifest.json)")
-        try:
-            data = json.loads(path.read_bytes().decode("utf-8"))
-        except OSError as exc:
-            raise InputError(f"{path} cannot be read ({exc.strerror or exc})") from None
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(f"{path} is damaged: not valid JSON ({exc})") from None
-        if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise InputError(f"{path} is not a {FORMAT} manifest")
-        if data.get("version") != VERSION:
-            raise InputError(
-                f"{path}: campaign format version {data.get('version')} "
-                f"is not supported (this hapticrom reads version {VERSION})"
-            )
+        data = read_versioned_json(path, FORMAT, VERSION, "manifest")
         problem = _manifest_problem(data)
         if problem:
             raise InputError(f"{path} is damaged: {problem}")
@@ -177,7 +159,7 @@ class SnapshotStore:
         Returns True when resuming. Call on one rank only.
         """
         self.solves.mkdir(parents=True, exist_ok=True)
-        for stale in self.root.rglob(".*.partial-*"):  # left by a killed run
+        for stale in self.root.rglob(f".*{PARTIAL_MARK}*"):  # left by a killed run
             stale.unlink()
         if self.manifest_path.is_file() and not restart:
             existing = self.manifest()
@@ -191,13 +173,12 @@ class SnapshotStore:
             for old in self.solves.glob("position-*.h5"):
                 old.unlink()
             (self.root / "operators.h5").unlink(missing_ok=True)
-        tmp = _atomic_path(self.manifest_path)
-        tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-        _fsync_and_rename(tmp, self.manifest_path)
+        write_text_atomically(self.manifest_path, json.dumps(manifest, indent=2) + "\n")
         return False
 
     # -- records ---------------------------------------------------------------
     def position_path(self, index: int) -> Path:
+        """The record of tool position ``index``."""
         return self.solves / f"position-{index:04d}.h5"
 
     def completed(self) -> list[int]:
@@ -241,20 +222,26 @@ class SnapshotStore:
         return solved, redo
 
     def write_position(self, index: int, datasets: dict, attrs: dict) -> None:
+        """Store the record of position ``index`` (atomic, checksummed)."""
         write_h5(self.position_path(index), datasets, {"index": index, **attrs})
 
     def read_position(self, index: int) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """The record of position ``index``, checksums verified: (datasets, attributes)."""
         return read_h5(self.position_path(index))
 
     @property
     def operators_path(self) -> Path:
+        """The stored operators (operators.h5)."""
         return self.root / "operators.h5"
 
     def has_operators(self) -> bool:
+        """Whether operators.h5 exists (intact or not)."""
         return self.operators_path.is_file()
 
     def write_operators(self, datasets: dict, attrs: dict) -> None:
+        """Store the operators (atomic, checksummed)."""
         write_h5(self.operators_path, datasets, attrs)
 
     def read_operators(self) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """The stored operators, checksums verified: (datasets, attributes)."""
         return read_h5(self.operators_path)

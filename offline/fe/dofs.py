@@ -20,6 +20,7 @@ import dolfinx
 import numpy as np
 from dolfinx import fem
 from mpi4py import MPI
+from petsc4py import PETSc
 
 from hapticrom.shared.errors import InputError
 
@@ -105,6 +106,7 @@ class CanonicalOrder:
 
     @property
     def num_dofs(self) -> int:
+        """Global number of DOFs, bs * num_nodes."""
         return self.bs * self.num_nodes
 
     def canonical_dofs(self, local_blocks: np.ndarray) -> np.ndarray:
@@ -144,7 +146,11 @@ class CanonicalOrder:
 
 
 def owned_canonical_rows(comm: MPI.Comm, n: int) -> tuple[int, int]:
-    """The contiguous block [start, stop) of n canonical rows this rank holds in the POD."""
-    base, extra = divmod(n, comm.size)
-    start = comm.rank * base + min(comm.rank, extra)
-    return start, start + base + (1 if comm.rank < extra else 0)
+    """The contiguous block [start, stop) of n canonical rows this rank holds in the POD.
+
+    PETSc's split (``PetscSplitOwnership``): the first ``n % size`` ranks hold one row more.
+    Collective.
+    """
+    local, _ = PETSc.Sys.splitOwnership(n, comm=comm)
+    start = comm.exscan(local) or 0  # rank 0 receives None
+    return start, start + local

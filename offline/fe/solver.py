@@ -90,6 +90,8 @@ def configure(prefix: str, options: dict, snes: PETSc.SNES) -> None:
 
 @dataclass
 class NewtonReport:
+    """The outcome of one Newton solve: converged or not, why, iterations, residual, time."""
+
     converged: bool
     reason: int
     reason_name: str
@@ -178,6 +180,7 @@ class NewtonSolver:
 
     @property
     def snes(self) -> PETSc.SNES:
+        """The PETSc nonlinear solver."""
         return self.problem.solver
 
     def solve(self, modified: bool = False) -> NewtonReport:
@@ -245,7 +248,50 @@ class IncrementalLoading:
         for w, a in zip(self.newton.unknowns, state, strict=True):
             w.x.array[:] = a
 
+    def _target(self, lam: float, dlam: float) -> float:
+        """The next load factor, landing exactly on the nominal grid k/steps when close."""
+        target = lam + dlam
+        grid = round(target * self.steps) / self.steps
+        if abs(target - grid) < 1e-9 * (1.0 / self.steps) and grid > lam:
+            return grid
+        return target
+
+    def _predict(self, lam: float, target: float, now: list, previous) -> None:
+        """Secant predictor: extrapolate the last two converged states to ``target``."""
+        if self.predictor == "secant" and previous is not None and lam > previous[0]:
+            ratio = (target - lam) / (lam - previous[0])
+            for w, a, before in zip(self.newton.unknowns, now, previous[1], strict=True):
+                w.x.array[:] = a + ratio * (a - before)
+
+    def _attempt(self, target: float, converged_state: list) -> tuple[NewtonReport, int]:
+        """Newton at load factor ``target`` (modified Newton falls back to full Newton);
+        the report and the iterations of every attempt."""
+        self.set_load(target)
+        report = self.newton.solve(modified=self.modified_newton)
+        iterations = report.iterations
+        if not report.converged and self.modified_newton:
+            # A frozen tangent may not reach the solution: full Newton before cutting.
+            self.log(
+                f"  modified Newton failed at load factor {target:.6g} ({report.reason_name}); "
+                "retrying with full Newton"
+            )
+            self._restore(converged_state)
+            self.set_load(target)
+            report = self.newton.solve(modified=False)
+            iterations += report.iterations
+        return report, iterations
+
+    def _diverged(self, target: float, report: NewtonReport, dlam: float, lam: float):
+        """The error of an increment that failed at the smallest increment."""
+        return SolverError(
+            f"Newton diverged at load factor {target:.6g} ({report.reason_name}) even "
+            f"with the smallest increment {dlam:.3g} ({self.max_step_cuts} halvings of "
+            f"1/{self.steps}); the last converged state is at load factor {lam:.6g}"
+            + (" (a limit point? force control cannot pass one)" if lam > 0 else "")
+        )
+
     def run(self, on_step: Callable[[StepRecord], None]) -> list[StepRecord]:
+        """Load from factor 0 to 1; ``on_step(record)`` after every converged increment."""
         nominal = 1.0 / self.steps
         # The smallest increment tried: max_step_cuts halvings of the nominal one.
         floor = nominal / 2**self.max_step_cuts
@@ -255,41 +301,15 @@ class IncrementalLoading:
         cuts, successes_since_cut = 0, 0
         while lam < 1.0 - 1e-12:
             dlam = min(dlam, 1.0 - lam)
-            target = lam + dlam
-            grid = round(target * self.steps) / self.steps
-            if abs(target - grid) < 1e-9 * nominal and grid > lam:
-                target = grid  # land exactly on the nominal grid lam = k/steps
+            target = self._target(lam, dlam)
             converged_state = self._state()
-            if self.predictor == "secant" and previous is not None and lam > previous[0]:
-                ratio = (target - lam) / (lam - previous[0])
-                for w, now, before in zip(
-                    self.newton.unknowns, converged_state, previous[1], strict=True
-                ):
-                    w.x.array[:] = now + ratio * (now - before)
-            self.set_load(target)
+            self._predict(lam, target, converged_state, previous)
             t0 = time.perf_counter()
-            report = self.newton.solve(modified=self.modified_newton)
-            iterations = report.iterations
-            if not report.converged and self.modified_newton:
-                # A frozen tangent may not reach the solution: full Newton before cutting.
-                self.log(
-                    f"  modified Newton failed at load factor {target:.6g} ({report.reason_name}); "
-                    "retrying with full Newton"
-                )
-                self._restore(converged_state)
-                self.set_load(target)
-                report = self.newton.solve(modified=False)
-                iterations += report.iterations
+            report, iterations = self._attempt(target, converged_state)
             if report.converged:
-                previous = (lam, converged_state)
-                lam = target
-                record = StepRecord(
-                    step=len(records) + 1,
-                    load_factor=lam,
-                    newton_iterations=iterations,
-                    step_cuts=cuts,
-                    seconds=time.perf_counter() - t0,
-                )
+                previous, lam = (lam, converged_state), target
+                record = StepRecord(len(records) + 1, lam, iterations, cuts,
+                                    time.perf_counter() - t0)  # fmt: skip
                 records.append(record)
                 on_step(record)
                 cuts = 0
@@ -303,12 +323,7 @@ class IncrementalLoading:
             successes_since_cut = 0
             if dlam / 2 < floor * (1 - 1e-9):
                 self.set_load(lam)
-                raise SolverError(
-                    f"Newton diverged at load factor {target:.6g} ({report.reason_name}) even "
-                    f"with the smallest increment {dlam:.3g} ({self.max_step_cuts} halvings of "
-                    f"1/{self.steps}); the last converged state is at load factor {lam:.6g}"
-                    + (" (a limit point? force control cannot pass one)" if lam > 0 else "")
-                )
+                raise self._diverged(target, report, dlam, lam)
             dlam /= 2
             self.log(
                 f"  step cut: Newton failed at load factor {target:.6g} "

@@ -54,6 +54,7 @@ import numpy as np
 import ufl
 from dolfinx import fem
 from mpi4py import MPI
+from scipy.optimize import brentq
 
 from hapticrom.offline.fe.formulation import HyperelasticModel, mixed_energy_density
 from hapticrom.shared.errors import InputError, SolverError
@@ -163,10 +164,12 @@ class ReducedSpace:
 
     @property
     def n(self) -> int:
+        """Number of displacement modes."""
         return self.A.shape[1]
 
     @property
     def n_p(self) -> int:
+        """Number of pressure modes (0 without a pressure)."""
         return 0 if self.B is None else self.B.shape[1]
 
 
@@ -190,7 +193,7 @@ def snapshot_space(
     states. Pressure modes: at most ceil(n_u / 2) (see :mod:`.reduction`).
     Scale: alpha by the size of the last state's coordinates, lam by 1.
     """
-    from hapticrom.offline.reduce.pod import Truncation, pod
+    from hapticrom.offline.reduce.pod import Truncation, pod, pressure_basis
 
     truncation = truncation or Truncation()
     lam = np.asarray(load_factor, dtype=float)
@@ -211,9 +214,7 @@ def snapshot_space(
         raise InputError("the snapshots have no displacement mode beyond the lifting")
     B = None
     if P is not None:
-        pr = pod(P, comm, None, Truncation(eigenvalue_ratio=1e-8))
-        n_u = A.shape[1] + (1 if mode == "displacement" else 0)
-        B = pr.basis_local[:, : max(1, min(pr.n_modes, math.ceil(n_u / 2)))]
+        B = pressure_basis(P, comm, A.shape[1] + (1 if mode == "displacement" else 0))
     space = ReducedSpace(A=A, g=g, f=f, B=B, load_size=float(load_size), mode=mode)
     alpha_last = comm.allreduce(A.T @ Q[:, -1], op=MPI.SUM)
     s_alpha = max(float(np.linalg.norm(alpha_last)), 1e-30)
@@ -231,6 +232,7 @@ class ReducedResidual:
         self.evaluations = 0
 
     def fields(self, y: np.ndarray):
+        """(u, p) owned rows at reduced unknowns y: u = lam g + A alpha, p = B beta."""
         s = self.space
         alpha, beta, lam = y[: self.n], y[self.n : self.n + self.n_p], y[-1]
         u = lam * s.g + s.A @ alpha
@@ -292,9 +294,11 @@ class Section:
 
     @property
     def order(self) -> int:
+        """Order N of the series."""
         return self.Y.shape[0] - 1
 
     def truncated(self, order: int, a_max: float) -> Section:
+        """The same section cut to order ``order``, valid to ``a_max``."""
         return Section(self.Y[: order + 1].copy(), self.response[: order + 1].copy(), a_max)
 
     def load(self, a):
@@ -302,9 +306,11 @@ class Section:
         return np.polynomial.polynomial.polyval(a, self.Y[:, -1])
 
     def state(self, a) -> np.ndarray:
+        """Reduced unknowns y(a) (Horner)."""
         return np.polynomial.polynomial.polyval(a, self.Y)
 
     def value(self, a):
+        """Response at a (Horner)."""
         return np.polynomial.polynomial.polyval(a, self.response)
 
     def end(self) -> tuple[float, float]:
@@ -354,38 +360,36 @@ class Branch:
         raise ValueError(f"load factor {load} is outside the branch")
 
     def response_at(self, load: float) -> float:
+        """The response where the load factor equals ``load``."""
         s, a = self.locate(load)
         return float(s.value(a))
 
     def state_at(self, load: float) -> np.ndarray:
+        """The reduced unknowns where the load factor equals ``load``."""
         s, a = self.locate(load)
         return s.state(a)
 
     @property
     def load_range(self) -> tuple[float, float]:
+        """(first, last) load factor the branch covers."""
         return float(self.sections[0].load(0.0)), self.sections[-1].end()[0]
 
 
 def root(section: Section, load: float) -> float:
-    """a in [0, a_max] with lam(a) = load: bracketed Newton on the polynomial."""
-    lo, hi = 0.0, section.a_max
-    flo = float(section.load(lo)) - load
-    if flo == 0.0:
-        return 0.0
-    dY = np.polynomial.polynomial.polyder(section.Y[:, -1])
-    a = lo + (hi - lo) * (load - float(section.load(lo))) / (section.end()[0] - section.load(lo))
-    for _ in range(60):
-        fa = float(section.load(a)) - load
-        if abs(fa) <= 1e-15 * max(1.0, abs(load)):
-            return a
-        if (fa > 0) == (flo > 0):
-            lo, flo = a, fa
-        else:
-            hi = a
-        d = float(np.polynomial.polynomial.polyval(a, dY))
-        step = a - fa / d if d != 0 else 0.5 * (lo + hi)
-        a = step if lo < step < hi else 0.5 * (lo + hi)
-    return a
+    """a in [0, a_max] with lam(a) = load: Brent's method on the polynomial (scipy's brentq).
+
+    A load outside [lam(0), lam(a_max)] by rounding (``Branch.locate`` accepts 1e-14)
+    gives the nearer end.
+    """
+    lo, hi = 0.0, float(section.a_max)
+
+    def residual(a: float) -> float:
+        return float(section.load(a)) - load
+
+    f_lo, f_hi = residual(lo), residual(hi)
+    if f_lo == 0.0 or f_hi == 0.0 or (f_lo > 0) == (f_hi > 0):
+        return lo if abs(f_lo) <= abs(f_hi) else hi
+    return brentq(residual, lo, hi, xtol=1e-15 * hi)
 
 
 def _inner(x, y, scale):

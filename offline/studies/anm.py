@@ -57,6 +57,7 @@ def _owned(w: fem.Function) -> np.ndarray:
 
 
 def load_direction(fom: FullOrderModel) -> np.ndarray:
+    """Unit vector along the problem's load vector."""
     v = fom.load_vector
     return v / np.linalg.norm(v)
 
@@ -110,6 +111,8 @@ def reduced_space(
 
 @dataclass
 class StudyResult:
+    """The study's reference, continuation, error tables, space sizes and timings."""
+
     reference: Snapshots
     branch: Branch
     first_section_errors: list[dict]  # per order
@@ -122,6 +125,45 @@ def _relative_errors(branch_or_section, lams, reference, scale):
     return np.abs(np.array([branch_or_section(l) for l in lams]) - reference) / scale
 
 
+def every_other(snaps: Snapshots) -> Snapshots:
+    """The snapshots of every other increment (the first, third, ...)."""
+    return Snapshots(
+        snaps.load_factor[::2],
+        snaps.u[:, ::2],
+        None if snaps.p is None else snaps.p[:, ::2],
+        snaps.response[::2],
+    )
+
+
+def first_section_errors(branch: Branch, reference: Snapshots, options: ANMOptions, say):
+    """Per order k = 1..N: the first section truncated at order k, its validity load and
+    its largest error (relative to max |response|) at the reference points inside it."""
+    lams, ref = reference.load_factor, reference.response
+    size = float(np.abs(ref).max())
+    first = branch.sections[0]
+    per_order = []
+    for k in range(1, options.order + 1):
+        a_max = (
+            validity_radius(first.Y[: k + 1], branch.scale, options.tolerance)
+            if k >= 2
+            else math.nan
+        )
+        section = first.truncated(k, a_max if math.isfinite(a_max) else first.a_max)
+        lam_max = float(section.load(section.a_max)) if math.isfinite(a_max) else math.nan
+        inside = lams[lams <= lam_max] if math.isfinite(lam_max) else lams[:0]
+        err_inside = float(
+            _relative_errors(
+                lambda l, s=section: _single(s, l), inside, ref[: inside.size], size
+            ).max()
+        ) if inside.size else math.nan  # fmt: skip
+        per_order.append({"order": k, "validity_load": lam_max, "max_error_inside": err_inside})
+        say(
+            f"  first section, order {k:2d}: valid to load factor {lam_max:.4g}, "
+            f"max error inside {100 * err_inside:.3f} %"
+        )
+    return per_order
+
+
 def run_study(
     fom: FullOrderModel,
     options: ANMOptions | None = None,
@@ -129,19 +171,14 @@ def run_study(
     out_dir: str | Path | None = None,
     verbose: bool = True,
 ) -> StudyResult:
+    """The study of the module docstring on one full-order problem (collective)."""
     comm = fom.comm
     options = options or ANMOptions()
     say = (lambda s: print0(comm, s)) if verbose else (lambda s: None)
     t0 = time.perf_counter()
     snaps = solve_with_snapshots(fom)
     t_full = time.perf_counter() - t0
-    # Every other increment is a snapshot; the others are held out.
-    train = Snapshots(
-        snaps.load_factor[::2],
-        snaps.u[:, ::2],
-        None if snaps.p is None else snaps.p[:, ::2],
-        snaps.response[::2],
-    )
+    train = every_other(snaps)  # the other increments are held out
     t0 = time.perf_counter()
     space, scale = reduced_space(fom, train, truncation)
     residual = ReducedResidual(ComplexResidual(fom.model), space, comm)
@@ -158,26 +195,9 @@ def run_study(
         f"continuation: {len(branch.sections)} section(s) to load factor "
         f"{branch.load_range[1]:.4g}, {branch.evaluations} residual evaluations, {t_anm:.2f} s"
     )
-    lams, ref = snaps.load_factor, snaps.response
-    size = float(np.abs(ref).max())
-    errors = _relative_errors(branch.response_at, lams, ref, size)
-    first = branch.sections[0]
-    per_order = []
-    for k in range(1, options.order + 1):
-        a_max = validity_radius(first.Y[: k + 1], scale, options.tolerance) if k >= 2 else math.nan
-        section = first.truncated(k, a_max if math.isfinite(a_max) else first.a_max)
-        lam_max = float(section.load(section.a_max)) if math.isfinite(a_max) else math.nan
-        inside = lams[lams <= lam_max] if math.isfinite(lam_max) else lams[:0]
-        err_inside = float(
-            _relative_errors(
-                lambda l, s=section: _single(s, l), inside, ref[: inside.size], size
-            ).max()
-        ) if inside.size else math.nan  # fmt: skip
-        per_order.append({"order": k, "validity_load": lam_max, "max_error_inside": err_inside})
-        say(
-            f"  first section, order {k:2d}: valid to load factor {lam_max:.4g}, "
-            f"max error inside {100 * err_inside:.3f} %"
-        )
+    size = float(np.abs(snaps.response).max())
+    errors = _relative_errors(branch.response_at, snaps.load_factor, snaps.response, size)
+    per_order = first_section_errors(branch, snaps, options, say)
     say(
         f"continuation at order {options.order}: max error {100 * errors.max():.4f} % "
         "of max |response| at the full-Newton points"

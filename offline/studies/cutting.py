@@ -38,6 +38,8 @@ ANTERIOR_RADIUS = 7.8  # mm, the cornea generator's default
 
 @dataclass
 class CuttingStudy:
+    """The study's settings: mesh, incision, tool load, training positions, patch."""
+
     refinement: str = "default"
     incision: LimbalArc = field(default_factory=lambda: LimbalArc(5.2, -30.0, 30.0, 0.7))
     force: float = 0.002  # N, soft tip, normal to the surface (about 0.04 mm: nearly linear)
@@ -60,6 +62,7 @@ def surface_point(rho: float, degrees: float) -> list[float]:
 
 
 def inward_normal(point) -> list[float]:
+    """Unit inward normal of the anterior sphere at ``point``."""
     c = np.array([0.0, 0.0, -ANTERIOR_RADIUS])
     n = c - np.asarray(point)
     return (n / np.linalg.norm(n)).tolist()
@@ -128,36 +131,22 @@ def linear_solve(K, f, supported: set) -> np.ndarray:
     return u
 
 
-def run_study(study: CuttingStudy, work: Path, comm=None, out: Path | None = None) -> dict:
-    from mpi4py import MPI
-
-    comm = comm or MPI.COMM_SELF
-    timings = {}
-    intact, cut, origin, files = meshes(study, work)
-    selected = limbal_arc(intact, study.incision)
-
-    t0 = time.perf_counter()
+def training_basis(study: CuttingStudy, mesh_file: Path, comm) -> tuple[np.ndarray, int]:
+    """The reduced basis trained on the intact organ (SVD, eigenvalues above 1e-10 of the
+    first) from every state at the training positions, and the number of snapshots."""
     snapshots = []
     for rho, angles in study.training:
         for angle in angles:
-            states, _ = _solve(files["intact"], surface_point(rho, angle), study, comm)
+            states, _ = _solve(mesh_file, surface_point(rho, angle), study, comm)
             snapshots += states
     Q = np.column_stack(snapshots)
     U, s, _ = np.linalg.svd(Q, full_matrices=False)
     n = int(np.sum(s**2 >= 1e-10 * s[0] ** 2))
-    A = U[:, :n]
-    timings["training_s"] = time.perf_counter() - t0
+    return U[:, :n], Q.shape[1]
 
-    point = surface_point(*study.test_point)
-    t0 = time.perf_counter()
-    reference_states, _ = _solve(files["cut"], point, study, comm)
-    u_ref = reference_states[-1]
-    timings["full_order_cut_s"] = time.perf_counter() - t0
-    K_cut, f_cut = tangent_and_load(files["cut"], point, study, comm)
-    K_intact, _ = tangent_and_load(files["intact"], point, study, comm)
 
-    supported = supported_nodes(intact, origin)
-    t0 = time.perf_counter()
+def patch_seeds(study: CuttingStudy, cut, origin: np.ndarray, point) -> np.ndarray:
+    """The nodes the patch grows from: the cut's lips (and the tool's contact, if asked)."""
     seeds = lip_nodes(origin)
     if study.patch_at_tool:
         # The cells under the tool: those with a node within its radius (or at the
@@ -165,6 +154,53 @@ def run_study(study: CuttingStudy, work: Path, comm=None, out: Path | None = Non
         distance = np.linalg.norm(cut.nodes - np.asarray(point), axis=1)
         under = np.union1d(np.flatnonzero(distance <= study.tip_radius), [np.argmin(distance)])
         seeds = np.union1d(seeds, cut.cells[np.any(np.isin(cut.cells, under), axis=1)])
+    return seeds
+
+
+def lip_pairs(intact, origin: np.ndarray) -> np.ndarray:
+    """(original, copy) node pairs of the cut mesh, one row per duplicated node."""
+    first_copy = len(intact.nodes)
+    return np.column_stack([origin[first_copy:], np.arange(first_copy, len(origin))])
+
+
+def opening(u: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """The distance (mm) between each node and its copy in the displacement ``u``."""
+    v = u.reshape(-1, 3)
+    return np.linalg.norm(v[pairs[:, 1]] - v[pairs[:, 0]], axis=1)
+
+
+def _errors(u_ref, u_coupled, u_blind, u_linear, pairs) -> dict:
+    """The relative L2 errors against the reference and the openings of the cut."""
+    return {
+        "error_coupled": relative_l2(u_coupled, u_ref),
+        "error_blind": relative_l2(u_blind, u_ref),
+        "error_linear_full_order": relative_l2(u_linear, u_ref),
+        "max_opening_reference_mm": float(opening(u_ref, pairs).max()),
+        "max_opening_coupled_mm": float(opening(u_coupled, pairs).max()),
+        "max_displacement_mm": float(np.abs(u_ref).max()),
+    }
+
+
+def run_study(study: CuttingStudy, work: Path, comm=None, out: Path | None = None) -> dict:
+    """The study of the module docstring (meshes in ``work``, figures in ``out``): sizes,
+    errors and timings."""
+    from mpi4py import MPI
+
+    comm = comm or MPI.COMM_SELF
+    timings = {}
+    intact, cut, origin, files = meshes(study, work)
+    t0 = time.perf_counter()
+    A, snapshot_count = training_basis(study, files["intact"], comm)
+    timings["training_s"] = time.perf_counter() - t0
+    point = surface_point(*study.test_point)
+    t0 = time.perf_counter()
+    u_ref = _solve(files["cut"], point, study, comm)[0][-1]
+    timings["full_order_cut_s"] = time.perf_counter() - t0
+    K_cut, f_cut = tangent_and_load(files["cut"], point, study, comm)
+    K_intact, _ = tangent_and_load(files["intact"], point, study, comm)
+    supported = supported_nodes(intact, origin)
+    t0 = time.perf_counter()
+    seeds = patch_seeds(study, cut, origin, point)
     patch = patch_around(cut.cells, seeds, study.patch_layers, supported)
     coupled = couple(K_intact, K_cut, A, origin, patch)
     timings["couple_and_factorise_s"] = time.perf_counter() - t0
@@ -173,35 +209,23 @@ def run_study(study: CuttingStudy, work: Path, comm=None, out: Path | None = Non
     timings["coupled_solve_s"] = time.perf_counter() - t0
     u_blind = coupled.TA @ np.linalg.solve(A.T @ (K_intact @ A), coupled.TA.T @ f_cut)
     u_linear = linear_solve(K_cut, f_cut, supported)
-
-    pairs = np.column_stack([origin[len(intact.nodes) :], np.arange(len(intact.nodes),
-                                                                    len(origin))])  # fmt: skip
-
-    def opening(u):
-        v = u.reshape(-1, 3)
-        return np.linalg.norm(v[pairs[:, 1]] - v[pairs[:, 0]], axis=1)
-
+    pairs = lip_pairs(intact, origin)
     result = {
         "refinement": study.refinement,
         "nodes": len(cut.nodes),
-        "cut_faces": int(len(selected)),
+        "cut_faces": int(len(limbal_arc(intact, study.incision))),
         "duplicated_nodes": int(len(pairs)),
-        "modes": n,
-        "snapshots": Q.shape[1],
+        "modes": A.shape[1],
+        "snapshots": snapshot_count,
         "patch_cells": int(patch.cells.size),
         "patch_dofs": int(patch.dofs.size),
         "coupled_unknowns": coupled.size,
-        "error_coupled": relative_l2(u_coupled, u_ref),
-        "error_blind": relative_l2(u_blind, u_ref),
-        "error_linear_full_order": relative_l2(u_linear, u_ref),
-        "max_opening_reference_mm": float(opening(u_ref).max()),
-        "max_opening_coupled_mm": float(opening(u_coupled).max()),
-        "max_displacement_mm": float(np.abs(u_ref).max()),
+        **_errors(u_ref, u_coupled, u_blind, u_linear, pairs),
         "timings": timings,
     }
     if out is not None:
-        result["figures"] = [str(p) for p in _figures(out, cut, u_ref, u_coupled, u_blind, pairs,
-                                                     point)]  # fmt: skip
+        figures = _figures(out, cut, u_ref, u_coupled, u_blind, pairs, point)
+        result["figures"] = [str(p) for p in figures]
     return result
 
 

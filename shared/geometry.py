@@ -1,0 +1,40 @@
+"""Surface geometry shared by the trainer and the runtime: face area vectors, vertex normals.
+
+numpy only (the runtime imports it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def corner_area_vectors(p: np.ndarray) -> np.ndarray:
+    """Area vectors (f, 3) of faces given by their corner coordinates ``p`` (f, 3|4, 3), mm^2.
+
+    For a quadrangle, half the cross product of its diagonals: exact for a
+    planar one and the mean area vector of a warped one. The right-hand rule
+    of the corner order gives the direction.
+    """
+    if p.shape[1] == 3:
+        return 0.5 * np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    return 0.5 * np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 1])
+
+
+def face_area_vectors(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area vectors (f, 3) of triangles or quadrangles ``faces`` (indices into ``nodes``), mm^2."""
+    return corner_area_vectors(nodes[faces])
+
+
+def vertex_normals(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit vertex normals (k, 3): the area-weighted mean of the adjacent faces' normals.
+
+    Summing area vectors is that weighted mean up to length. A node on no
+    face, or whose adjacent normals cancel, gets the zero vector (callers that
+    need every normal check for it).
+    """
+    sums = np.zeros_like(nodes, dtype=np.float64)
+    area = face_area_vectors(nodes, faces)
+    for corner in range(faces.shape[1]):
+        np.add.at(sums, faces[:, corner], area)
+    lengths = np.sqrt(np.einsum("ij,ij->i", sums, sums))
+    return sums / np.maximum(lengths, np.finfo(np.float64).tiny)[:, None]

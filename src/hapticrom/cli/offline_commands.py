@@ -1,0 +1,370 @@
+"""The offline commands (``mesh``, ``solve``, ``campaign``, ``reduce``, ``train``, ``anm``,
+``accuracy``): their parsers and what they do. They need the ``offline`` extra and run
+under ``mpirun -n N``; all but ``mesh`` take PETSc options at the end of the line."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from hapticrom.cli.args import float_in, int_in, model_argument, new_command, number_option
+from hapticrom.cli.console import log, rank
+from hapticrom.cli.outputs import check_campaign_dir, check_out_dir, check_out_file
+from hapticrom.cli.petsc import offline_command
+from hapticrom.shared.errors import HapticromError
+
+# Held-out positions of `hapticrom accuracy`: each is a full-order solve (minutes on the
+# default cornea).
+DEFAULT_HELD_OUT = 8
+MAX_HELD_OUT = 1000
+MAX_ANM_ORDER = 15  # as hapticrom.offline.reduce.anm.ANMOptions checks
+
+# What each command does, in one line (hapticrom --help).
+HELP = {
+    "mesh": "generate an organ mesh (gmsh .msh + .json) [offline]",
+    "solve": "full-order nonlinear solve of a TOML configuration [offline]",
+    "campaign": "solve a training campaign into a snapshot directory [offline]",
+    "reduce": "POD and reduced operators of a campaign [offline]",
+    "train": "campaign + reduce in one go [offline]",
+    "anm": "POD-ANM of one problem against full Newton: curves, tables [offline]",
+    "accuracy": "the reduced model against full-order solves at held-out positions [offline]",
+}
+
+
+# -- mesh ------------------------------------------------------------------------------------
+def mesh_parameters(items: list[str] | None) -> dict[str, int | float | str]:
+    """``--set key=value`` items as generator keyword arguments (numbers where they parse)."""
+    params: dict[str, int | float | str] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise HapticromError(f"--set expects key=value, got {item!r}")
+        for kind in (int, float, str):
+            try:
+                params[key] = kind(value)
+                break
+            except ValueError:
+                continue
+    return params
+
+
+@offline_command(petsc=False)
+def cmd_mesh(args, petsc) -> int:
+    """Generate an organ mesh and its JSON sidecar (rank 0 only)."""
+    from hapticrom.meshes import generate
+
+    params = mesh_parameters(args.set)
+    incision = None
+    if args.limbal_incision:
+        from hapticrom.meshes.cut import LimbalArc
+
+        incision = LimbalArc(*args.limbal_incision)
+    out = Path(args.out) if args.out else Path("meshes") / f"{args.name}.msh"
+    check_out_file(out, f"mesh --out {out}", make_parents=True)
+    if rank() == 0:
+        info = generate(args.name, out, refinement=args.refinement, incision=incision, **params)
+        counts = info["counts"]
+        log.info(
+            f"wrote {out} ({info['cell_type']}, {counts['nodes']} nodes, {counts['cells']} "
+            f"cells, units mm) and {out.with_suffix('.json')}"
+        )
+    return 0
+
+
+def add_mesh(sub) -> None:
+    """``hapticrom mesh NAME``."""
+    from hapticrom.meshes import MESHES, REFINEMENTS  # pure numpy: gmsh only when meshing
+
+    p = new_command(sub, "mesh", cmd_mesh, HELP["mesh"])
+    p.add_argument("name", choices=list(MESHES), help="the organ: %(choices)s")
+    p.add_argument("--out", metavar="FILE", help="output .msh path (default meshes/NAME.msh)")
+    p.add_argument(
+        "--refinement",
+        default="default",
+        choices=REFINEMENTS,
+        help="element size: %(choices)s (default %(default)s)",
+    )
+    p.add_argument(
+        "--set", action="append", metavar="KEY=VALUE", help="override a generator parameter"
+    )
+    p.add_argument(
+        "--limbal-incision",
+        nargs=4,
+        type=float,
+        metavar=("RADIUS", "START", "END", "DEPTH"),
+        help="cornea: mesh a limbal relaxing incision explicitly (mm, degrees, thickness fraction)",
+    )
+
+
+# -- solve -----------------------------------------------------------------------------------
+@offline_command()
+def cmd_solve(args, petsc) -> int:
+    """One full-order nonlinear solve; exit status 1 if no load step converged."""
+    from hapticrom.offline.config import ProblemConfig
+
+    config = ProblemConfig.from_toml(args.config)  # fails before MPI/PETSc on a bad file
+    out = check_out_dir(args.out, f"solve --out {args.out}")
+    petsc.start()
+    from hapticrom.offline.fe.fullorder import solve_config
+
+    result = solve_config(config, out_dir=out)
+    xdmf = f" and {out / 'fields.xdmf'}" if config.output.xdmf else ""
+    log.info(f"wrote {out / 'curve.csv'}, {out / 'sanity.json'}{xdmf}")
+    if args.refinement_check:
+        from mpi4py import MPI
+
+        from hapticrom.offline.fe.sanity import check_refinement
+
+        check_refinement(config, result, out, MPI.COMM_WORLD)
+    return 0 if result.records else 1
+
+
+def add_solve(sub) -> None:
+    """``hapticrom solve CONFIG --out DIR``."""
+    p = new_command(sub, "solve", cmd_solve, HELP["solve"])
+    p.add_argument("config", help="problem configuration (.toml)")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="output directory (curve.csv, sanity.json, fields.xdmf)",
+    )
+    p.add_argument(
+        "--refinement-check",
+        action="store_true",
+        help="solve again on the next finer built-in mesh (in OUT/refinement) and report "
+        "the difference at the last step",
+    )
+
+
+# -- campaign, reduce, train -------------------------------------------------------------------
+def run_campaign_of(args, config, work: Path) -> bool:
+    """Run the campaign ``config`` into ``work`` as the options say; whether a solve failed."""
+    from hapticrom.offline.campaign.run import run_campaign
+
+    report = run_campaign(
+        config,
+        work,
+        ranks_per_solve=args.ranks_per_solve,
+        restart=args.restart,
+        refinement_check=args.refinement_check,
+    )
+    return bool(report.failed)
+
+
+@offline_command()
+def cmd_campaign(args, petsc) -> int:
+    """Solve a training campaign; exit status 1 if a solve failed."""
+    from hapticrom.offline.campaign.run import CampaignConfig
+
+    config = CampaignConfig.from_toml(args.campaign)
+    out = check_campaign_dir(args.out, f"campaign --out {args.out}", args.restart)
+    petsc.start()
+    return 1 if run_campaign_of(args, config, out) else 0
+
+
+@offline_command()
+def cmd_reduce(args, petsc) -> int:
+    """POD and reduced operators of a solved campaign, written as an artifact."""
+    from hapticrom.offline.campaign.store import SnapshotStore
+
+    reduction = None
+    if args.campaign:
+        from hapticrom.offline.campaign.run import CampaignConfig
+
+        reduction = CampaignConfig.from_toml(args.campaign)
+    SnapshotStore(args.campaign_dir).manifest()  # a campaign directory, intact manifest
+    out = check_out_file(args.out, f"reduce --out {args.out}")
+    petsc.start()
+    from hapticrom.offline.reduce.reduction import reduce_campaign
+
+    reduce_campaign(args.campaign_dir, out, reduction=reduction)
+    return 0
+
+
+@offline_command()
+def cmd_train(args, petsc) -> int:
+    """Campaign and reduction in one go; exit status 1 if a solve failed."""
+    from hapticrom.offline.campaign.run import CampaignConfig
+
+    config = CampaignConfig.from_toml(args.campaign)
+    out = check_out_file(args.out, f"train --out {args.out}")
+    work = args.work or str(out.with_suffix(".campaign"))
+    work = check_campaign_dir(work, f"train --work {work}", args.restart)
+    petsc.start()
+    from hapticrom.offline.reduce.reduction import reduce_campaign
+
+    failed = run_campaign_of(args, config, work)
+    reduce_campaign(work, out, reduction=config)
+    return 1 if failed else 0
+
+
+def campaign_options(p) -> None:
+    """The options ``campaign`` and ``train`` share."""
+    p.add_argument("campaign", help="campaign configuration (.toml)")
+    number_option(
+        p,
+        "--ranks-per-solve",
+        int_in(1, 1 << 20),
+        1,
+        "K",
+        "ranks cooperating on each solve; the N ranks form N/K groups (default 1)",
+    )
+    p.add_argument(
+        "--restart", action="store_true", help="discard what the directory holds and start over"
+    )
+    p.add_argument(
+        "--refinement-check",
+        action="store_true",
+        help="afterwards, solve position 0 again on the next finer built-in mesh (in "
+        "CAMPAIGN_DIR/refinement) and report the difference (CAMPAIGN_DIR/refinement.json)",
+    )
+
+
+def add_campaign_reduce_train(sub) -> None:
+    """``hapticrom campaign``, ``reduce`` and ``train``."""
+    p = new_command(sub, "campaign", cmd_campaign, HELP["campaign"])
+    campaign_options(p)
+    p.add_argument(
+        "--out", required=True, metavar="DIR", help="campaign directory (resumed if it exists)"
+    )
+
+    p = new_command(sub, "reduce", cmd_reduce, HELP["reduce"])
+    p.add_argument("campaign_dir", help="directory written by `hapticrom campaign`")
+    p.add_argument("--out", required=True, metavar="FILE", help="reduced model (.h5)")
+    p.add_argument(
+        "--campaign",
+        metavar="TOML",
+        help="the campaign's TOML, to reduce with its current [anm] and [cutting] tables",
+    )
+
+    p = new_command(sub, "train", cmd_train, HELP["train"])
+    campaign_options(p)
+    p.add_argument("--out", required=True, metavar="FILE", help="reduced model (.h5)")
+    p.add_argument(
+        "--work", metavar="DIR", help="campaign directory (default: OUT with suffix .campaign)"
+    )
+
+
+# -- anm -------------------------------------------------------------------------------------
+@offline_command()
+def cmd_anm(args, petsc) -> int:
+    """POD-ANM of one problem against full Newton: curves and tables."""
+    from hapticrom.offline.config import ProblemConfig
+
+    config = ProblemConfig.from_toml(args.config)
+    check_out_dir(args.out, f"anm --out {args.out}")
+    petsc.start()
+    from hapticrom.offline.fe.fullorder import FullOrderModel
+    from hapticrom.offline.reduce.anm import ANMOptions
+    from hapticrom.offline.reduce.pod import Truncation
+    from hapticrom.offline.studies.anm import run_study
+
+    options = ANMOptions(order=args.order, tolerance=args.tolerance)
+    fom = FullOrderModel(config, verbose=log.isEnabledFor(logging.INFO))
+    run_study(fom, options, Truncation(eigenvalue_ratio=args.eigenvalue_ratio), out_dir=args.out)
+    return 0
+
+
+def add_anm(sub) -> None:
+    """``hapticrom anm CONFIG --out DIR``."""
+    p = new_command(sub, "anm", cmd_anm, HELP["anm"])
+    p.add_argument("config", help="problem configuration (.toml)")
+    p.add_argument(
+        "--out", required=True, metavar="DIR", help="output directory (anm-*.csv, anm-curves.png)"
+    )
+    number_option(
+        p,
+        "--order",
+        int_in(1, MAX_ANM_ORDER),
+        6,
+        "N",
+        f"order N of the series (default 6, at most {MAX_ANM_ORDER})",
+    )
+    number_option(
+        p,
+        "--tolerance",
+        float_in(0.0, 1.0),
+        1e-4,
+        "TOL",
+        "validity tolerance of a section, in (0, 1) (default 1e-4)",
+    )
+    number_option(
+        p,
+        "--eigenvalue-ratio",
+        float_in(0.0, 1.0),
+        1e-8,
+        "RATIO",
+        "POD truncation: eigenvalues below RATIO x the largest are dropped (default 1e-8)",
+    )
+
+
+# -- accuracy --------------------------------------------------------------------------------
+@offline_command()
+def cmd_accuracy(args, petsc) -> int:
+    """The held-out check; exit status 1 if a held-out solve failed."""
+    from hapticrom.offline.accuracy import default_work, plan_held_out
+
+    json_path = check_out_file(args.json, f"accuracy --json {args.json}") if args.json else None
+    plan = plan_held_out(args.model, args.positions, args.seed)  # the model, its mesh
+    work = args.work or str(default_work(args.model, args.positions, args.seed))
+    work = check_campaign_dir(work, f"accuracy --work {work}", args.restart)
+    petsc.start()
+    from hapticrom.offline.accuracy import run_accuracy
+
+    result = run_accuracy(plan, work, restart=args.restart, json_path=json_path)
+    return 1 if result is not None and result.failed else 0
+
+
+def accuracy_description() -> str:
+    """``hapticrom accuracy --help``: what it measures, the targets, the exit status."""
+    from hapticrom.shared.accuracy import FIELD_TARGET, FORCE_TARGETS
+
+    return (
+        "Solve the full-order model at held-out tool positions as in the model's training "
+        "campaign, and compare the reduced model there at every load step: normal force and "
+        f"surface displacement. Targets: force {100 * FORCE_TARGETS['anm']:g} %% (POD-ANM) and "
+        f"{100 * FORCE_TARGETS['curves']:g} %% (curves), surface field {100 * FIELD_TARGET:g} "
+        "%% (relative L2). Exit status 0 when the check ran, whatever the verdicts; 1 if a "
+        "held-out solve failed; 2 for bad input."
+    )
+
+
+def add_accuracy(sub) -> None:
+    """``hapticrom accuracy MODEL``."""
+    p = new_command(
+        sub, "accuracy", cmd_accuracy, HELP["accuracy"], description=accuracy_description()
+    )
+    model_argument(p)
+    number_option(
+        p,
+        "--positions",
+        int_in(1, MAX_HELD_OUT),
+        DEFAULT_HELD_OUT,
+        "N",
+        f"held-out positions, one full-order solve each (default {DEFAULT_HELD_OUT}, "
+        f"at most {MAX_HELD_OUT:,})",
+    )
+    p.add_argument(
+        "--seed",
+        type=int_in(0, 2**32 - 1),
+        metavar="S",
+        help="random surface nodes of the trained region, reproducible from S "
+        "(default: centroids of the sample triangles, snapped to surface nodes)",
+    )
+    p.add_argument(
+        "--work",
+        metavar="DIR",
+        help="held-out campaign directory, resumed if it exists "
+        "(default: MODEL with suffix .heldout-N or .heldout-N-seedS)",
+    )
+    p.add_argument("--restart", action="store_true", help="discard what the work directory holds")
+    p.add_argument(
+        "--json", metavar="FILE", help="also write the errors here (hapticrom report --accuracy)"
+    )
+
+
+def add_offline_commands(sub) -> None:
+    """Every offline command, in the order of the pipeline."""
+    for add in (add_mesh, add_solve, add_campaign_reduce_train, add_anm, add_accuracy):
+        add(sub)
