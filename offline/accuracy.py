@@ -216,7 +216,8 @@ def default_work(model: str | Path, count: int, seed: int | None) -> Path:
 
 # -- the full-order solves --------------------------------------------------------------------
 def held_out_config(plan: HeldOutPlan):
-    from hapticrom.offline.campaign.run import CampaignConfig
+    """The campaign configuration of the held-out solves."""
+    from hapticrom.offline.campaign.config import CampaignConfig
 
     return CampaignConfig.from_dict(plan.campaign, source=f"held-out campaign of {plan.model}")
 
@@ -231,6 +232,7 @@ def solve_held_out(plan: HeldOutPlan, work, comm=MPI.COMM_WORLD, restart=False, 
 
 # -- the comparison (rank 0, online runtime) ----------------------------------------------------
 def combinations(model) -> list[str]:
+    """The interpolation + response combinations the model offers, default first."""
     names = ["podi+curves"]
     if model.grassmann:
         names.append("grassmann+curves")
@@ -240,6 +242,7 @@ def combinations(model) -> list[str]:
 
 
 def relative_l2(approx: np.ndarray, exact: np.ndarray) -> float:
+    """||approx - exact|| / ||exact|| (NaN for an exact zero)."""
     norm = float(np.linalg.norm(exact))
     return float(np.linalg.norm(approx - exact)) / norm if norm > 0 else float("nan")
 
@@ -269,6 +272,7 @@ def compare_position(model, index: int, data: dict, attrs: dict) -> tuple[list[S
 
 
 def force_error(step: Step, name: str) -> float:
+    """Relative normal-force error of combination ``name`` at a step (NaN at zero force)."""
     if step.f_fem <= 0:
         return float("nan")
     return abs(step.force[name] - step.f_fem) / step.f_fem
@@ -296,6 +300,8 @@ def summarise(steps: list[Step], names: list[str]) -> dict[str, dict]:
 
 @dataclass
 class AccuracyResult:
+    """A held-out check: the plan, every compared step, the summary per combination."""
+
     plan: HeldOutPlan
     steps: list[Step]
     summary: dict[str, dict]
@@ -379,6 +385,7 @@ def steps_text(result: AccuracyResult) -> str:
 
 
 def summary_text(result: AccuracyResult) -> str:
+    """The summary table of a check: largest errors, targets and verdicts."""
     positions = len({s.position for s in result.steps})
     lines = [
         f"\nsummary: largest errors over {positions} held-out position(s) and every load step",

@@ -27,10 +27,12 @@ class ProgressBar:
         self.stream = stream or sys.stdout
 
     def advance(self, n: int = 1) -> None:
+        """Count ``n`` more units done and redraw."""
         self.done += n
         self.render()
 
     def line(self) -> str:
+        """The bar as one line: done / total, percentage, elapsed time and ETA."""
         width = 30
         frac = self.done / self.total if self.total else 1.0
         bar = "#" * int(round(width * frac)) + "." * (width - int(round(width * frac)))
@@ -43,4 +45,5 @@ class ProgressBar:
         )
 
     def render(self) -> None:
+        """Print the bar (rank 0's stream)."""
         print(self.line(), file=self.stream, flush=True)

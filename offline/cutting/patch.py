@@ -45,6 +45,7 @@ class CutPatch:
 
     @property
     def dofs(self) -> np.ndarray:
+        """The patch's displacement DOFs (3 per node, canonical numbering)."""
         return (3 * self.nodes[:, None] + np.arange(3)).ravel()
 
 
@@ -93,6 +94,7 @@ class CoupledModel:
 
     @property
     def size(self) -> int:
+        """Unknowns of the coupled system: reduced coordinates plus patch DOFs."""
         return self.n + self.patch.dofs.size
 
 

@@ -60,6 +60,7 @@ class ContactPatch:
     def around_point(
         cls, organ: OrganMesh, point, radius: float, group: str = "loadable"
     ) -> ContactPatch:
+        """The facets of ``group`` within ``radius`` (mm) of ``point``."""
         comm = organ.mesh.comm
         point = np.asarray(point, dtype=float)
         candidates = organ.facets(group)
@@ -75,6 +76,7 @@ class ContactPatch:
 
     @classmethod
     def whole_group(cls, organ: OrganMesh, group: str) -> ContactPatch:
+        """Every facet of ``group`` (a load spread over the whole surface group)."""
         facets = organ.facets(group)
         mid, _ = _facet_midpoints_and_radii(organ.mesh, facets)
         comm = organ.mesh.comm

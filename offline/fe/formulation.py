@@ -42,9 +42,11 @@ class Element:
 
     @property
     def mixed(self) -> bool:
+        """Whether the element carries a pressure field."""
         return self.pressure is not None
 
     def default_quadrature_degree(self) -> int:
+        """Quadrature degree that integrates the element's energy well."""
         # 2x2x2 Gauss for trilinear hexahedra, 3x3x3 for triquadratic; degree 4 for P2 tets.
         return 2 * self.displacement_degree
 
@@ -74,6 +76,7 @@ DEFAULT_ELEMENT = {"hexahedron": "Q1P0", "tetrahedron": "P2P0"}
 
 
 def choose_element(cell_type: str, name: str) -> Element:
+    """The element named ``name`` for ``cell_type`` (InputError if unknown or mismatched)."""
     if cell_type not in ELEMENTS:
         raise InputError(f"unsupported cell type {cell_type}; use hexahedra or tetrahedra")
     if name == "auto":
@@ -166,6 +169,7 @@ class HyperelasticModel:
 
     # -- energy and its derivatives --------------------------------------------
     def deformation_gradient(self):
+        """F = I + grad u."""
         return ufl.Identity(3) + ufl.grad(self.u)
 
     def strain_energy_density(self):
@@ -175,12 +179,15 @@ class HyperelasticModel:
         )
 
     def internal_energy(self):
+        """Strain energy of the body (mJ = N mm)."""
         return self.strain_energy_density() * self.dx
 
     def external_work(self):
+        """Work of the tool's dead load on the loaded surface (mJ)."""
         return ufl.dot(self.traction, self.u) * self.load_weight * self.ds(self.LOAD_TAG)
 
     def potential_energy(self):
+        """Total potential energy Pi = internal energy - external work (mJ)."""
         return self.internal_energy() - self.external_work()
 
     def residual_forms(self, include_load: bool = True) -> list:
@@ -189,6 +196,7 @@ class HyperelasticModel:
         return [ufl.derivative(Pi, w, ufl.TestFunction(w.function_space)) for w in self.unknowns]
 
     def jacobian_forms(self, residuals: list) -> list[list]:
+        """The block Jacobian of ``residuals`` by UFL differentiation."""
         return [
             [ufl.derivative(R, w, ufl.TrialFunction(w.function_space)) for w in self.unknowns]
             for R in residuals

@@ -45,6 +45,7 @@ class SolveResult:
 
     @property
     def newton_iterations(self) -> int:
+        """Newton iterations over all converged increments."""
         return sum(r.newton_iterations for r in self.records)
 
 
@@ -123,6 +124,7 @@ class FullOrderModel:
             self.patch_blocks = blocks
 
     def set_load(self, load_factor: float) -> None:
+        """Apply the load at ``load_factor`` (prescribed displacement or traction)."""
         mode = self.config.load.mode
         if mode == "displacement":
             self.tool_bc_value.value[:] = load_factor * self.load_vector
@@ -144,6 +146,7 @@ class FullOrderModel:
 
     # -- solve -----------------------------------------------------------------
     def describe(self) -> str:
+        """One line: mesh, element, DOFs, law and load."""
         dofs = self.model.num_dofs()
         load = self.config.load
         units = {"force": "N", "displacement": "mm", "traction": "MPa"}[load.mode]

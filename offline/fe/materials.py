@@ -65,6 +65,7 @@ class MaterialLaw:
         return {f.name: float(getattr(self, f.name)) for f in fields(self) if f.type == "float"}
 
     def energy_split(self, F, c, fibres=None) -> EnergySplit:  # pragma: no cover - abstract
+        """The energy's volumetric and isochoric/fibre parts at F (UFL)."""
         raise NotImplementedError
 
     def strain_energy(self, F, c=None, fibres=None):
@@ -102,6 +103,7 @@ class SaintVenantKirchhoff(IsotropicLaw):
     name: ClassVar[str] = "svk"
 
     def energy_split(self, F, c, fibres=None) -> EnergySplit:
+        """The energy's volumetric and isochoric/fibre parts at F (UFL)."""
         c = self._constants(c)
         lmbda, mu = _lame(c["E"], c["nu"])
         C, _ = _kinematics(F)
@@ -122,6 +124,7 @@ class NeoHookean(IsotropicLaw):
     name: ClassVar[str] = "neo-hookean"
 
     def energy_split(self, F, c, fibres=None) -> EnergySplit:
+        """The energy's volumetric and isochoric/fibre parts at F (UFL)."""
         c = self._constants(c)
         lmbda, mu = _lame(c["E"], c["nu"])
         C, J = _kinematics(F)
@@ -170,6 +173,7 @@ class HolzapfelGasser(MaterialLaw):
             self._require(getattr(self, k) > 0, f"{k} must be positive")
 
     def energy_split(self, F, c, fibres=None) -> EnergySplit:
+        """The energy's volumetric and isochoric/fibre parts at F (UFL)."""
         if fibres is None:
             raise InputError("material 'hgo' needs the fibre fields m0, n0 of the mesh")
         c = self._constants(c)

@@ -39,6 +39,7 @@ class OrganMesh:
 
     @property
     def cell_type(self) -> str:
+        """DOLFINx's name of the cell type (hexahedron, tetrahedron)."""
         return self.mesh.topology.cell_type.name
 
     def facets(self, group: str) -> np.ndarray:
@@ -51,6 +52,7 @@ class OrganMesh:
         return self.facet_tags.find(self.groups[group])
 
     def default_contact_point(self) -> np.ndarray:
+        """The mesh's default tool position (mm), from its sidecar."""
         return np.asarray(self.info["default_contact_point"], dtype=float)
 
     def fibre_fields(self) -> tuple[fem.Function, fem.Function]:

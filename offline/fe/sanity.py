@@ -101,9 +101,11 @@ class StepSanity:
 
     @property
     def compression(self) -> float:
+        """Largest compression, 1 - smallest principal stretch."""
         return 1.0 - self.stretch_min
 
     def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict."""
         return {**asdict(self), "compression": self.compression}
 
 
@@ -135,9 +137,11 @@ class SanityReport:
 
     @property
     def flagged(self) -> bool:
+        """Whether anything was flagged."""
         return bool(self.flags)
 
     def worst(self) -> dict[str, Any]:
+        """The worst value of each measure over the load path."""
         return worst_values(self.steps)
 
     def warnings(self, label: str) -> list[str]:
@@ -157,6 +161,7 @@ class SanityReport:
         }
 
     def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict."""
         return {**self.summary(), "steps": [s.to_dict() for s in self.steps]}
 
 
@@ -447,6 +452,7 @@ class SanityMonitor:
             return NOT_CHECKED
 
     def report(self, failure: str | None = None) -> SanityReport:
+        """The judged report of the steps recorded so far (``failure``: why the solve stopped)."""
         return judge(self.steps, self.fom.law.name, self.fom.config.load.mode, failure)
 
 

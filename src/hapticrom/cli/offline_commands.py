@@ -155,7 +155,7 @@ def run_campaign_of(args, config, work: Path) -> bool:
 @offline_command()
 def cmd_campaign(args, petsc) -> int:
     """Solve a training campaign; exit status 1 if a solve failed."""
-    from hapticrom.offline.campaign.run import CampaignConfig
+    from hapticrom.offline.campaign.config import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
     out = check_campaign_dir(args.out, f"campaign --out {args.out}", args.restart)
@@ -170,7 +170,7 @@ def cmd_reduce(args, petsc) -> int:
 
     reduction = None
     if args.campaign:
-        from hapticrom.offline.campaign.run import CampaignConfig
+        from hapticrom.offline.campaign.config import CampaignConfig
 
         reduction = CampaignConfig.from_toml(args.campaign)
     SnapshotStore(args.campaign_dir).manifest()  # a campaign directory, intact manifest
@@ -185,7 +185,7 @@ def cmd_reduce(args, petsc) -> int:
 @offline_command()
 def cmd_train(args, petsc) -> int:
     """Campaign and reduction in one go; exit status 1 if a solve failed."""
-    from hapticrom.offline.campaign.run import CampaignConfig
+    from hapticrom.offline.campaign.config import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
     out = check_out_file(args.out, f"train --out {args.out}")
