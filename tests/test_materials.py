@@ -241,6 +241,7 @@ def test_fibre_tension_only_switch(hgo, hgo_tension_only):
         ("hgo", {"stiffness": 1.0}, "has no parameter stiffness"),
         ("hgo", {"C1": "soft"}, "must be a finite number"),
         ("hgo", {"C1": float("nan")}, "must be a finite number"),
+        ("hgo", {"C1": 10**400}, "must be a finite number"),
     ],
 )
 def test_bad_material_input(name, params, message):

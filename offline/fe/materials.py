@@ -206,6 +206,13 @@ ALIASES = {
 }
 
 
+def _finite(v: int | float) -> bool:
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an integer beyond float range (TOML integers are unbounded)
+        return False
+
+
 def make_law(name: str, **params) -> MaterialLaw:
     """Build a law from its name and parameters; a clear InputError on anything unknown."""
     key = ALIASES.get(name.lower(), name.lower())
@@ -224,7 +231,7 @@ def make_law(name: str, **params) -> MaterialLaw:
             if not isinstance(v, bool):
                 raise InputError(f"material '{key}': fibre_tension_only must be true or false")
             continue
-        if isinstance(v, bool) or not (isinstance(v, int | float) and math.isfinite(v)):
+        if isinstance(v, bool) or not (isinstance(v, int | float) and _finite(v)):
             raise InputError(f"material '{key}': parameter {k} must be a finite number, got {v!r}")
     try:
         return cls(**params)
