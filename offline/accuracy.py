@@ -13,8 +13,8 @@ Held-out positions, inside the trained region and never a training position:
   layout: one per triangle, in the order of angle and radius), snapped to the nearest
   surface node;
 - with a seed, surface nodes drawn at random (``numpy.random.default_rng(seed)``) among
-  those of the tool's surface group that lie inside the samples' triangulation in the
-  chart and face the same way as the samples.
+  those of the tool's surface group that the runtime locates inside the samples'
+  triangulation on the surface.
 
 Selection is numpy; the solves go through :func:`~hapticrom.offline.campaign.run.run_campaign`
 (its progress bar); the comparison uses the online runtime; output is a text table on
@@ -34,8 +34,10 @@ from mpi4py import MPI
 
 from hapticrom.meshes.msh import Surface, read_surface
 from hapticrom.offline.mpi import on_rank_zero
+from hapticrom.online.model import inside_trained_region
 from hapticrom.shared.accuracy import QUANTITIES, TARGETS, target, verdict
 from hapticrom.shared.errors import HapticromError, InputError
+from hapticrom.shared.geometry import plan_view
 
 FORMAT, VERSION = "hapticrom-accuracy", 2
 RESPONSE_COLUMNS = {"curves": "curves", "anm": "ANM"}
@@ -46,7 +48,7 @@ class HeldOutPosition:
     """A held-out tool position: a surface node (mm), how far the snap moved it, why chosen."""
 
     point: tuple[float, float, float]
-    moved: float  # mm, in the chart, from the chosen point to the node (0: a node was drawn)
+    moved: float  # mm, in plan view, from the chosen point to the node (0: a node was drawn)
     source: str
 
 
@@ -75,9 +77,11 @@ class Step:
 
 
 # -- selection (numpy) -------------------------------------------------------------------
-def chart_coordinates(samples: dict, x: np.ndarray) -> np.ndarray:
-    """Chart coordinates (..., 2) mm of points ``x`` (..., 3): axes (x - origin)."""
-    return (np.asarray(x) - samples["chart_origin"]) @ samples["chart_axes"].T
+def plan_coordinates(samples: dict, x: np.ndarray) -> np.ndarray:
+    """Coordinates (..., 2) mm of points ``x`` (..., 3) in the samples' plan view
+    (:func:`~hapticrom.shared.geometry.plan_view`): for ordering and distances only."""
+    origin, axes, _ = plan_view(samples["points"], samples["normals"])
+    return (np.asarray(x) - origin) @ axes.T
 
 
 def trained_nodes(samples: dict, surface: Surface) -> set[int]:
@@ -86,25 +90,13 @@ def trained_nodes(samples: dict, surface: Surface) -> set[int]:
     return {int(i) for i in np.argmin(d, axis=1)}
 
 
-def in_triangles(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """(N,) True where a 2-D point lies in (or on) one of the triangles."""
-    a = vertices[triangles[:, 0]]
-    edges = np.stack([vertices[triangles[:, 1]] - a, vertices[triangles[:, 2]] - a], axis=-1)
-    offsets = points[:, None, :] - a[None]  # (N, S, 2)
-    lam = np.linalg.solve(edges[None], offsets[..., None])[..., 0]  # (N, S, 2)
-    tol = 1e-9
-    inside = (lam >= -tol).all(axis=-1) & (lam.sum(axis=-1) <= 1 + tol)
-    return inside.any(axis=1)
-
-
 def region_nodes(samples: dict, surface: Surface) -> np.ndarray:
-    """Surface nodes of the trained region: inside the samples' triangulation in the chart,
-    facing the same way as the samples (a plane chart also sees the far side of a cap)."""
-    inside = in_triangles(
-        chart_coordinates(samples, surface.nodes), samples["chart_points"], samples["triangles"]
+    """Surface nodes of the trained region: where the runtime locates a contact inside the
+    samples' triangulation on the surface (not clamped)."""
+    inside = inside_trained_region(
+        samples["points"], samples["normals"], samples["triangles"], surface.nodes
     )
-    facing = surface.normals @ samples["normals"].mean(axis=0) > 0
-    return np.flatnonzero(inside & facing)
+    return np.flatnonzero(inside)
 
 
 def centroid_positions(samples: dict, surface: Surface, count: int) -> list[HeldOutPosition]:
@@ -116,8 +108,9 @@ def centroid_positions(samples: dict, surface: Surface, count: int) -> list[Held
     one whose node is a training position or already taken gives way to the next unpicked
     triangle.
     """
-    chart, triangles = samples["chart_points"], samples["triangles"]
-    centroids = chart[triangles].mean(axis=1)
+    triangles = samples["triangles"]
+    centroids = plan_coordinates(samples, samples["points"])[triangles].mean(axis=1)
+    centroids3 = samples["points"][triangles].mean(axis=1)
     order = np.argsort(np.arctan2(centroids[:, 1], centroids[:, 0]) + 10 * np.hypot(*centroids.T))
     spread = order[np.linspace(0, len(order) - 1, min(count, len(order))).astype(int)]
     picked = {int(t) for t in spread}
@@ -125,14 +118,12 @@ def centroid_positions(samples: dict, surface: Surface, count: int) -> list[Held
     region = region_nodes(samples, surface)
     taken, positions = trained_nodes(samples, surface), []
     for t in candidates if len(region) else []:
-        x = samples["chart_origin"] + centroids[t] @ samples["chart_axes"]
+        x = centroids3[t]
         node = int(region[np.argmin(np.linalg.norm(surface.nodes[region] - x, axis=1))])
         if node in taken:
             continue
         taken.add(node)
-        moved = float(
-            np.linalg.norm(chart_coordinates(samples, surface.nodes[node]) - centroids[t])
-        )
+        moved = float(np.linalg.norm(plan_coordinates(samples, surface.nodes[node]) - centroids[t]))
         point = tuple(float(c) for c in surface.nodes[node])
         positions.append(HeldOutPosition(point, moved, f"centroid of sample triangle {t}"))
         if len(positions) == count:
@@ -340,7 +331,7 @@ def positions_text(plan: HeldOutPlan) -> str:
     if plan.method == "centroids":
         how = (
             "centroids of sample triangles, snapped to the nearest surface node of the trained "
-            "region; 'snap moved': from the centroid to the node, in the chart"
+            "region; 'snap moved': from the centroid to the node, in plan view"
         )
     else:
         how = f"random surface nodes of the trained region, seed {plan.seed}"

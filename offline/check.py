@@ -1,4 +1,5 @@
-"""``hapticrom check CONFIG``: validate a solve or campaign file, and its JSON Schema.
+"""``hapticrom check CONFIG``: validate a solve or campaign file (or a ``mesh import`` rules
+file), and its JSON Schema.
 
 :func:`check_config` reads a TOML file, tells a solve from a campaign by its
 tables and checks it with the same table models the commands use
@@ -27,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from hapticrom.offline.campaign.config import CampaignFile
-from hapticrom.offline.campaign.positions import PolarSampler
+from hapticrom.offline.campaign.positions import asked_count
 from hapticrom.offline.config import SolveFile, read_toml
 from hapticrom.offline.tables import Table, validate
 
@@ -37,8 +38,16 @@ CAMPAIGN_TABLES = ("campaign", "positions", "pod", "anm", "cutting")
 SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 
 
+# A rules file of `hapticrom mesh import` (hapticrom.meshes.import_rules): it has these tables.
+RULES_KIND = "mesh-import-rules"
+RULES_TABLES = ("clamped", "loadable")
+
+
 def config_kind(data: dict[str, Any]) -> str:
-    """``"campaign"`` if the file has a table only a campaign has, else ``"solve"``."""
+    """``"mesh-import-rules"`` if the file has ``[clamped]`` or ``[loadable]``, else
+    ``"campaign"`` if it has a table only a campaign has, else ``"solve"``."""
+    if any(table in data for table in RULES_TABLES):
+        return RULES_KIND
     return "campaign" if any(table in data for table in CAMPAIGN_TABLES) else "solve"
 
 
@@ -50,6 +59,10 @@ def check_config(path: Path) -> str:
     path = Path(path)
     data = read_toml(path)
     kind = config_kind(data)
+    if kind == RULES_KIND:
+        from hapticrom.meshes.import_rules import RulesFile, summary
+
+        return f"{path}: {RULES_KIND} {summary(validate(RulesFile, data, str(path)))}: OK"
     checked = validate(KINDS[kind], data, str(path))
     if kind == "campaign":
         return f"{path}: {_campaign_summary(checked, path)}: OK"
@@ -66,32 +79,34 @@ def _campaign_summary(campaign: CampaignFile, path: Path) -> str:
     name = campaign.campaign.name or path.stem
     asked, exact = positions_asked(campaign)
     positions = f"{asked} positions" if exact else f"up to {asked} positions"
+    greedy = campaign.positions.spec.greedy
+    if greedy is not None:
+        positions += (
+            f" then greedy up to {greedy.max_solves} solves (indicator target "
+            f"{100 * greedy.target:g} %)"
+        )
     law, mode = campaign.material.law, campaign.load.mode
     return f"campaign '{name}', {positions}, {law}, {mode} control"
 
 
 def positions_asked(campaign: CampaignFile) -> tuple[int, bool]:
-    """How many tool positions the ``[positions]`` table asks for, and whether exactly.
-
-    Points and ring points count one each; a farthest-point sampler up to ``n`` (it
-    stops at the candidate nodes). Points that snap to a node already taken are
-    dropped when the campaign plans them on the mesh.
-    """
-    spec = campaign.positions.spec
-    count, exact = len(spec.points), True
-    for sampler in spec.samplers:
-        if isinstance(sampler, PolarSampler):
-            count += int(sampler.include_centre) + sum(sampler.ring_counts())
-        else:
-            count, exact = count + sampler.n, False
-    return count, exact
+    """How many (initial) tool positions the ``[positions]`` table asks for, and whether
+    exactly (:func:`~hapticrom.offline.campaign.positions.asked_count`)."""
+    return asked_count(campaign.positions.spec)
 
 
 def config_json_schema(kind: str) -> dict[str, Any]:
-    """The JSON Schema (draft 2020-12) of a ``"solve"`` or ``"campaign"`` configuration file."""
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
-    schema = _tidy(KINDS[kind].model_json_schema())
+    """The JSON Schema (draft 2020-12) of a ``"solve"`` or ``"campaign"`` configuration file
+    (or of a ``"mesh-import-rules"`` file, which has no committed copy in ``schemas/``)."""
+    if kind == RULES_KIND:
+        from hapticrom.meshes.import_rules import RulesFile
+
+        model = RulesFile
+    elif kind in KINDS:
+        model = KINDS[kind]
+    else:
+        raise ValueError(f"kind must be one of {', '.join([*KINDS, RULES_KIND])}, got {kind!r}")
+    schema = _tidy(model.model_json_schema())
     return {
         "$schema": SCHEMA_DIALECT,
         **schema,

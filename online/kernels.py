@@ -79,14 +79,16 @@ ANM_SMAX = 17  # the most sections of a sample
 ANM_SLOPE = 18  # the blended dF/ddepth at the last depth (N/mm)
 ANM_BEYOND = 19  # 1 if a neighbour's last section ends before the last depth
 MAX_DEPTH = 20  # the largest depth a force step may return (mm): see step_force_*
-CHART = 21  # (2) the contact's chart coordinates (mm)
-WEIGHTS = 23  # (3) its barycentric weights in the sample triangle
+TRIANGLE = 21  # the sample triangle holding the contact (its index, as a float)
+HEIGHT = 22  # the contact's height (mm) above that triangle, along the blended normal
+WEIGHTS = 23  # (3) the contact's barycentric weights in the sample triangle
 FRAME = 26  # (6) the scalpel's unit blade, the unit normal of the blade's plane
 PLACED = 32  # (2) the scalpel's surface vertex and region vertex (or -1), as floats
 PLACEMENT = 34  # (6) the last placement's position and blade (NaN: none since)
 CONTACTS = 40  # contacts prepared so far (a count: what depends on the contact is stale)
 SAMPLES = 41  # (3) the contact's three samples (indices, as floats) of those weights
-CURVE = 44  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
+LOCATE_SCRATCH = 44  # (3) locate's (u, v, h) of the triangle being tried
+CURVE = 47  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
 # POD-ANM (response "anm"), at buf[ANM_BASE] = CURVE + 2 K: three neighbour blocks, each a
 # header then SMAX section records (the neighbour's sections, artifact order).
 BLOCK_WEIGHT, BLOCK_COUNT, BLOCK_SECTION, BLOCK_A, BLOCK_RECORDS = 0, 1, 2, 3, 4
@@ -113,29 +115,40 @@ def buffer_size(knots: int, n1: int = 0, smax: int = 0) -> int:
 
 # -- the table: what set_contact and the scalpel read of the model ---------------------------
 # One read-only float64 array per simulator (indices stored as floats: exact), a header
-T_SAMPLES, T_KNOTS, T_TRIANGLES, T_STRIDE, T_SECTIONS, T_SCALPEL, T_VERTICES = range(7)
+T_SAMPLES, T_KNOTS, T_TRIANGLES, T_STRIDE, T_SECTIONS, T_SCALPEL, T_VERTICES, T_EDGES = range(8)
 T_HEADER = 8
 GRID_ORIGIN, GRID_CELL, GRID_DIMS, GRID_STARTS = 0, 3, 4, 7  # a point_grid's parts
 # (P samples, K knots, S sample triangles, the section records' stride or 0, Z sections,
-# where the scalpel's part starts, V surface vertices or 0 without it), then the contact's
-# part: chart origin (3), chart axes (2, 3), chart points (P, 2), sample normals (P, 3),
-# forces (P, K), slopes (P, K), POD-ANM section records (Z, stride), sample triangles
-# (S, 3), POD-ANM section offsets (P + 1, with the records); then the scalpel's part:
-# reach, region reach, the surface vertices' point_grid, the vertices (V, 3), their
-# normals (V, 3), their region nodes (V; -1 outside the region). Row-major throughout.
+# where the scalpel's part starts, V surface vertices or 0 without it, E border edges),
+# then the contact's part: sample points (P, 3), sample normals (P, 3), forces (P, K),
+# slopes (P, K), sample triangles (S, 3), the triangulation's border edges (E, 3),
+# POD-ANM section records (Z, stride) and section offsets (P + 1, with the records); then
+# the scalpel's part: reach, region reach, the surface vertices' point_grid, the vertices
+# (V, 3), their normals (V, 3), their region nodes (V; -1 outside the region). Row-major.
 
 
-def contact_table(origin, axes, chart_points, normals, forces, slopes, triangles,
-                  records=None, offsets=None) -> np.ndarray:  # fmt: skip
+def border_edges(triangles) -> np.ndarray:
+    """The edges of exactly one triangle (the triangulation's border), (E, 3): the edge's
+    two samples as ordered in its triangle, then the triangle's third sample."""
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    edges = np.vstack([t[:, [0, 1, 2]], t[:, [1, 2, 0]], t[:, [2, 0, 1]]])
+    _, inverse, counts = np.unique(
+        np.sort(edges[:, :2], axis=1), axis=0, return_inverse=True, return_counts=True
+    )
+    return edges[counts[inverse.ravel()] == 1]
+
+
+def contact_table(points, normals, forces, slopes, triangles, records=None,
+                  offsets=None) -> np.ndarray:  # fmt: skip
     """The model's arrays :func:`prepare_contact` reads, packed into one read-only array."""
     P, K = np.shape(forces)
     stride, Z = (0, 0) if records is None else np.shape(records)[::-1]
-    parts = [origin, axes, chart_points, normals, forces, slopes, triangles]
+    edges = border_edges(triangles)
+    parts = [points, normals, forces, slopes, triangles, edges]
     if records is not None:
-        parts[6:6] = [records]
-        parts.append(offsets)
+        parts += [records, offsets]
     body = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in parts])
-    header = [P, K, len(triangles), stride, Z, T_HEADER + len(body), 0, 0]
+    header = [P, K, len(triangles), stride, Z, T_HEADER + len(body), 0, len(edges)]
     return _frozen(np.concatenate([header, body]))
 
 
@@ -159,20 +172,21 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 @njit(inline="always")
 def contact_views(table):
     """The contact's parts of the table as flat views (row-major; a reshape costs more
-    than the index arithmetic): origin, axes, chart points, normals, forces, slopes,
-    section records, sample triangles, section offsets."""
+    than the index arithmetic): sample points, normals, forces, slopes, sample
+    triangles, border edges, section records, section offsets."""
     P, K, S = int(table[T_SAMPLES]), int(table[T_KNOTS]), int(table[T_TRIANGLES])
-    Z, stride = int(table[T_SECTIONS]), int(table[T_STRIDE])
+    Z, stride, E = int(table[T_SECTIONS]), int(table[T_STRIDE]), int(table[T_EDGES])
     o = T_HEADER
-    a = o + 9 + 2 * P
+    a = o + 3 * P
     b = a + 3 * P
     c = b + P * K
     e = c + P * K
-    r = e + Z * stride
-    t = r + 3 * S
-    u = t + (P + 1 if stride > 0 else 0)
-    return (table[o : o + 3], table[o + 3 : o + 9], table[o + 9 : a], table[a:b], table[b:c],
-            table[c:e], table[e:r], table[r:t], table[t:u])  # fmt: skip
+    r = e + 3 * S
+    t = r + 3 * E
+    u = t + Z * stride
+    v = u + (P + 1 if stride > 0 else 0)
+    return (table[o:a], table[a:b], table[b:c], table[c:e], table[e:r], table[r:t],
+            table[t:u], table[u:v])  # fmt: skip
 
 
 @njit(inline="always")
@@ -550,75 +564,164 @@ def contact_stiffness(buf):
 
 
 # -- the contact -----------------------------------------------------------------------------
-@njit(cache=True, nogil=True)
-def locate(chart_x, chart_points, triangles, out_weights, out_samples):
-    """Barycentric weights of the chart point in the sample triangulation (chart points
-    (2 P) and triangles (3 S), row-major): the first triangle holding it (within 1e-12),
-    its samples into ``out_samples`` (as floats).
+@njit(inline="always")
+def vertex(points, i):
+    """Row i of a flat (N, 3) row-major array, as a tuple."""
+    return points[3 * i], points[3 * i + 1], points[3 * i + 2]
 
-    A point outside the triangulation is clamped to the nearest point of it
-    (returns FLAG_OUTSIDE_REGION), so weights stay continuous as it moves.
+
+@njit(inline="always")
+def dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(inline="always")
+def cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@njit(inline="always")
+def combine(a, s, b, t, c):
+    """a + s b + t c (tuples)."""
+    return (a[0] + s * b[0] + t * c[0], a[1] + s * b[1] + t * c[1], a[2] + s * b[2] + t * c[2])
+
+
+@njit(inline="always")
+def minus(a, b):
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+@njit(cache=True, nogil=True)
+def project_on_triangle(p, points, normals, a, b, c, best, out):
+    """The point p's coordinates over the sample triangle (a, b, c) along its blended
+    normals: (u, v, h) into out[0:3] with
+
+        p = X(u, v) + h N(u, v),  X = x_a + u (x_b - x_a) + v (x_c - x_a),
+
+    N the same blend of the samples' normals. On an edge the answer depends on the edge's
+    two samples only, so the weights (1 - u - v, u, v) are continuous from one triangle
+    into the next on a curved or closed surface (a plane projection is not). Newton from
+    the flat projection. False if Newton failed or p cannot lie in the triangle with
+    |h| < ``best``: |h| is at least p's distance from the plane (|N| <= 1), and the flat
+    coordinates differ from (u, v) by at most |h| / the smallest altitude (the shift
+    h N in the plane), so a triangle farther from p, or with a flat coordinate below
+    minus that margin (at most 1/2; the plane farther than the longest edge), is skipped
+    without Newton."""
+    xa, xb, xc = vertex(points, a), vertex(points, b), vertex(points, c)
+    na, nb, nc = vertex(normals, a), vertex(normals, b), vertex(normals, c)
+    e1, e2, d = minus(xb, xa), minus(xc, xa), minus((p[0], p[1], p[2]), xa)
+    n = cross(e1, e2)
+    area2 = dot(n, n)
+    reach2 = max(dot(e1, e1), dot(e2, e2), dot(minus(e2, e1), minus(e2, e1)))
+    height2 = dot(d, n) ** 2 / area2  # p's distance from the plane, squared
+    if height2 >= best * best or height2 > reach2:
+        return False
+    margin = min(0.5, best * math.sqrt(reach2 / area2))  # best / the smallest altitude
+    u, v = dot(cross(d, e2), n) / area2, dot(cross(e1, d), n) / area2
+    if u < -margin or v < -margin or u + v > 1.0 + margin:
+        return False
+    dn1, dn2 = minus(nb, na), minus(nc, na)
+    h = 0.0
+    for _ in range(12):
+        normal = combine(na, u, dn1, v, dn2)
+        x = combine(d, -u, e1, -v, e2)  # p - X(u, v)
+        g = combine(x, -h, normal, 0.0, normal)  # the residual p - X - h N
+        c1, c2 = combine(e1, h, dn1, 0.0, dn1), combine(e2, h, dn2, 0.0, dn2)
+        det = dot(c1, cross(c2, normal))
+        if abs(det) <= 1e-300:
+            return False
+        du = dot(g, cross(c2, normal)) / det
+        dv = dot(g, cross(normal, c1)) / det
+        dh = dot(g, cross(c1, c2)) / det
+        u, v, h = u + du, v + dv, h + dh
+        # Quadratic convergence: a step this small leaves an error near round-off.
+        if abs(du) + abs(dv) <= 1e-9 and dh * dh <= 1e-18 * reach2:
+            out[0], out[1], out[2] = u, v, h
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def locate(p, points, normals, triangles, edges, out_weights, out_samples, out_where, uvh):
+    """Barycentric weights of the point p (mm, on or near the surface) in the samples'
+    triangulation (flat row-major points and normals (3 P), triangles (3 S), border edges
+    (3 E): two samples and the triangle's third): of the triangle that holds p along its
+    blended normals (:func:`project_on_triangle`) with the smallest height (the near side
+    of a closed organ). The samples go into ``out_samples`` (as floats), the triangle and
+    the height into ``out_where`` (2; its triangle, the last contact's, is tried first: a
+    sliding contact is usually still in it, and its |h| then rules most others out
+    cheaply); ``uvh`` (3) is scratch.
+
+    A point beyond the triangulation's border is clamped to the nearest point of the
+    border (returns FLAG_OUTSIDE_REGION), so weights stay continuous as it moves.
     """
-    px, py = chart_x[0], chart_x[1]
-    for t in range(triangles.shape[0] // 3):
+    best, found, bu, bv = np.inf, -1, 0.0, 0.0
+    count = triangles.shape[0] // 3
+    seed = int(out_where[0]) if 0 <= out_where[0] < count else 0  # the last contact's first
+    for k in range(count):
+        t = (seed + k) % count
         a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
-        ax, ay = chart_points[2 * a], chart_points[2 * a + 1]
-        bx, by = chart_points[2 * b], chart_points[2 * b + 1]
-        cx, cy = chart_points[2 * c], chart_points[2 * c + 1]
-        det = (bx - ax) * (cy - ay) - (cx - ax) * (by - ay)
-        n1 = (px - ax) * (cy - ay) - (cx - ax) * (py - ay)
-        n2 = (bx - ax) * (py - ay) - (px - ax) * (by - ay)
-        # Certainly outside (a coordinate below -1e-6): skipped without a division.
-        margin = -1e-6 * det * det
-        if n1 * det < margin or n2 * det < margin or (det - n1 - n2) * det < margin:
+        if not project_on_triangle(p, points, normals, a, b, c, best, uvh):
             continue
-        l1 = n1 / det
-        l2 = n2 / det
-        l0 = 1.0 - l1 - l2
-        if l0 >= -1e-12 and l1 >= -1e-12 and l2 >= -1e-12:
-            out_samples[0], out_samples[1], out_samples[2] = a, b, c
-            out_weights[0], out_weights[1], out_weights[2] = l0, l1, l2
-            return 0
-    return clamp_to_triangulation(px, py, chart_points, triangles, out_weights, out_samples)
+        u, v, h = uvh[0], uvh[1], uvh[2]
+        if u >= -1e-12 and v >= -1e-12 and u + v <= 1.0 + 1e-12 and abs(h) < best:
+            best, found, bu, bv = abs(h), t, u, v
+            out_where[1] = h
+    if found < 0:
+        out_where[0] = -1.0
+        return clamp_to_border(p, points, normals, edges, out_weights, out_samples, out_where)
+    for k in range(3):
+        out_samples[k] = triangles[3 * found + k]
+    out_weights[0], out_weights[1], out_weights[2] = 1.0 - bu - bv, bu, bv
+    out_where[0] = found
+    return 0
+
+
+@njit(inline="always")
+def edge_equation(d, e, na, dn, s):
+    """g(s) = (r.e)(N.N) - (e.N)(r.N) with r = d - s e, N = na + s dn, and dg/ds: zero where
+    r is normal to the edge within the plane of e and N (the blended normal's projection
+    of p on the edge)."""
+    r = combine(d, -s, e, 0.0, e)
+    normal = combine(na, s, dn, 0.0, dn)
+    re, nn, en, rn = dot(r, e), dot(normal, normal), dot(e, normal), dot(r, normal)
+    g = re * nn - en * rn
+    dg = -dot(e, e) * nn + 2.0 * re * dot(normal, dn) - dot(e, dn) * rn
+    dg -= en * (-en + dot(r, dn))
+    return g, dg
 
 
 @njit(cache=True, nogil=True)
-def clamp_to_triangulation(px, py, chart_points, triangles, out_weights, out_samples):
-    """The nearest point of the triangulation's edges to (px, py), as weights of the first
-    triangle that has it: FLAG_OUTSIDE_REGION."""
-    best = np.inf
-    best_t = 0
-    best_l0 = best_l1 = 0.0
-    for t in range(triangles.shape[0] // 3):
-        a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
-        ax, ay = chart_points[2 * a], chart_points[2 * a + 1]
-        bx, by = chart_points[2 * b], chart_points[2 * b + 1]
-        cx, cy = chart_points[2 * c], chart_points[2 * c + 1]
-        for e in range(3):
-            if e == 0:
-                x0, y0, x1, y1 = ax, ay, bx, by
-            elif e == 1:
-                x0, y0, x1, y1 = bx, by, cx, cy
-            else:
-                x0, y0, x1, y1 = cx, cy, ax, ay
-            ex, ey = x1 - x0, y1 - y0
-            s = ((px - x0) * ex + (py - y0) * ey) / (ex * ex + ey * ey)
-            s = min(1.0, max(0.0, s))
-            dx, dy = x0 + s * ex - px, y0 + s * ey - py
-            dist = dx * dx + dy * dy
-            if dist < best:
-                best, best_t = dist, t
-                if e == 0:
-                    best_l0, best_l1 = 1.0 - s, s
-                elif e == 1:
-                    best_l0, best_l1 = 0.0, 1.0 - s
-                else:
-                    best_l0, best_l1 = s, 0.0
-    out_samples[0] = triangles[3 * best_t]
-    out_samples[1] = triangles[3 * best_t + 1]
-    out_samples[2] = triangles[3 * best_t + 2]
-    out_weights[0], out_weights[1] = best_l0, best_l1
-    out_weights[2] = 1.0 - best_l0 - best_l1
+def clamp_to_border(p, points, normals, edges, out_weights, out_samples, out_where):
+    """The nearest point of the border edges to p (each edge's point where p projects
+    along the blended normal, as in :func:`project_on_triangle`), as weights of the edge's
+    two samples (the third sample of its triangle with weight 0): FLAG_OUTSIDE_REGION."""
+    best, best_e, best_s = np.inf, 0, 0.0
+    q = (p[0], p[1], p[2])
+    for k in range(edges.shape[0] // 3):
+        a, b = int(edges[3 * k]), int(edges[3 * k + 1])
+        xa, xb = vertex(points, a), vertex(points, b)
+        na = vertex(normals, a)
+        e, d, dn = minus(xb, xa), minus(q, xa), minus(vertex(normals, b), na)
+        s = min(1.0, max(0.0, dot(d, e) / dot(e, e)))
+        for _ in range(8):
+            g, dg = edge_equation(d, e, na, dn, s)
+            if dg == 0.0:
+                break
+            s_new = min(1.0, max(0.0, s - g / dg))
+            if abs(s_new - s) <= 1e-14:
+                s = s_new
+                break
+            s = s_new
+        r = combine(d, -s, e, 0.0, e)
+        dist = dot(r, r)
+        if dist < best:
+            best, best_e, best_s = dist, k, s
+    out_samples[0] = edges[3 * best_e]
+    out_samples[1] = edges[3 * best_e + 1]
+    out_samples[2] = edges[3 * best_e + 2]
+    out_weights[0], out_weights[1], out_weights[2] = 1.0 - best_s, best_s, 0.0
+    out_where[1] = math.sqrt(best)
     return FLAG_OUTSIDE_REGION
 
 
@@ -663,22 +766,14 @@ def load_sections(weights, samples, offsets, records, buf):
 
 @njit(cache=True, nogil=True)
 def contact_at(point, table, buf):
-    """Everything that depends on the contact point only (3 finite numbers, mm): chart
-    coordinates, the sample triangle and weights (buf[SAMPLES], buf[WEIGHTS]), the
-    normal, the curves, buf[FLAGS] and, for the POD-ANM response, the neighbours'
+    """Everything that depends on the contact point only (3 finite numbers, mm): the
+    sample triangle, its weights (buf[SAMPLES], buf[WEIGHTS]) and the height above it,
+    the normal, the curves, buf[FLAGS] and, for the POD-ANM response, the neighbours'
     sections at the current depth."""
-    origin, axes, chart_points, normals, forces, slopes, records, triangles, offsets = (
-        contact_views(table)
-    )
-    chart, weights = buf[CHART : CHART + 2], buf[WEIGHTS : WEIGHTS + 3]
-    samples = buf[SAMPLES : SAMPLES + 3]
-    for r in range(2):
-        chart[r] = (
-            axes[3 * r] * (point[0] - origin[0])
-            + axes[3 * r + 1] * (point[1] - origin[1])
-            + axes[3 * r + 2] * (point[2] - origin[2])
-        )
-    flag = locate(chart, chart_points, triangles, weights, samples)
+    points, normals, forces, slopes, triangles, edges, records, offsets = contact_views(table)
+    weights, samples = buf[WEIGHTS : WEIGHTS + 3], buf[SAMPLES : SAMPLES + 3]
+    where, scratch = buf[TRIANGLE : TRIANGLE + 2], buf[LOCATE_SCRATCH : LOCATE_SCRATCH + 3]
+    flag = locate(point, points, normals, triangles, edges, weights, samples, where, scratch)
     knots = int(buf[KNOTS])
     prepare_curves(weights, samples, normals, forces, slopes, buf[NORMAL : NORMAL + 3],
                    buf[CURVE : CURVE + knots], buf[CURVE + knots : CURVE + 2 * knots])  # fmt: skip

@@ -78,7 +78,7 @@ def measure(
 
 def _time_runtime(model: ReducedModel, sim, steps: int, baseline_steps: int) -> dict:
     """Latencies (ns) of each call the benchmark times, by name."""
-    centre = model.sample_points[int(np.argmin(np.linalg.norm(model.chart_points, axis=1)))]
+    centre = model.sample_points[int(np.argmin(np.linalg.norm(model.plan_points, axis=1)))]
     sim.set_contact(centre)
     n = sim.contact_normal.copy()
     phase = np.linspace(0, 40 * np.pi, steps)
@@ -90,9 +90,9 @@ def _time_runtime(model: ReducedModel, sim, steps: int, baseline_steps: int) -> 
     out = np.zeros_like(model.vertices)
     sim.step_displacement(-0.5 * model.trained_depth * n)
     calls["surface_displacement"] = time_calls(lambda _: sim.surface_displacement(out), range(2000))
-    lo, hi = model.chart_points.min(axis=0), model.chart_points.max(axis=0)
+    lo, hi = model.plan_points.min(axis=0), model.plan_points.max(axis=0)
     slide = [
-        model.chart_origin + (lo + (hi - lo) * t) @ model.chart_axes
+        model.plan_origin + (lo + (hi - lo) * t) @ model.plan_axes
         for t in np.linspace(0.1, 0.9, 5000)[:, None]
     ]
     calls["set_contact"] = time_calls(sim.set_contact, slide)

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
+from hapticrom.shared.geometry import plan_view
 
 INTERPOLATIONS = ("podi", "grassmann")
 RESPONSES = ("anm", "curves")
@@ -31,8 +32,11 @@ class ReducedModel:
 
     Attributes (P samples, K depths, n modes, V surface vertices):
         vertices (V, 3), triangles (T, 3): the surface to render, mm.
-        sample_points, sample_normals (P, 3); chart_origin (3,), chart_axes (2, 3),
-        chart_points (P, 2), sample_triangles (S, 3): where the samples are.
+        sample_points, sample_normals (P, 3), sample_triangles (S, 3): where the samples
+        are, and their triangulation on the surface (the neighbourhoods).
+        indicator (P,): each sample's leave-one-out relative force error.
+        plan_origin (3,), plan_axes (2, 3), plan_points (P, 2): a plan view of the
+        samples (:func:`~hapticrom.shared.geometry.plan_view`), for plots and paths only.
         depth_step: the uniform indentation grid spacing (mm); trained_depth, trained_force.
         force, stiffness (P, K): normal reaction force curves (N) and slopes (N/mm).
         surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field;
@@ -46,10 +50,8 @@ class ReducedModel:
     triangles: np.ndarray
     sample_points: np.ndarray
     sample_normals: np.ndarray
-    chart_origin: np.ndarray
-    chart_axes: np.ndarray
-    chart_points: np.ndarray
     sample_triangles: np.ndarray
+    indicator: np.ndarray
     depth_step: float
     force: np.ndarray
     stiffness: np.ndarray
@@ -61,6 +63,9 @@ class ReducedModel:
 
     def __post_init__(self):
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
+        self.plan_origin, self.plan_axes, self.plan_points = plan_view(
+            self.sample_points, self.sample_normals
+        )
         if self.grassmann is not None:
             tangents = self.grassmann["tangents"]
             self.grassmann["tangents_t"] = np.ascontiguousarray(tangents.transpose(0, 2, 1))
@@ -98,10 +103,8 @@ class ReducedModel:
             triangles=_i8(surface["triangles"]),
             sample_points=_f8(samples["points"]),
             sample_normals=_f8(samples["normals"]),
-            chart_origin=_f8(samples["chart_origin"]),
-            chart_axes=_f8(samples["chart_axes"]),
-            chart_points=_f8(samples["chart_points"]),
             sample_triangles=_i8(samples["triangles"]),
+            indicator=_f8(samples["indicator"]),
             depth_step=step,
             force=_f8(samples["force"]),
             stiffness=_f8(samples["stiffness"]),
@@ -280,3 +283,30 @@ def _within(model: ReducedModel, response: str, what: str, value: np.ndarray, li
             f"{model.path}: the model's {response} {what} is not finite or beyond the "
             f"simulator's limit ({limit:.3g}) inside the trained region"
         )
+
+
+def locate_points(sample_points, sample_normals, sample_triangles, queries):
+    """Where the runtime puts contacts at points (N, 3) mm in the samples' triangulation on
+    the surface (:func:`~hapticrom.online.kernels.locate`): their three samples (N, 3),
+    weights (N, 3) and whether each lies inside (not clamped to the border) (N,)."""
+    from hapticrom.online import kernels
+
+    points, normals = _f8(np.ravel(sample_points)), _f8(np.ravel(sample_normals))
+    triangles = _f8(np.ravel(sample_triangles))
+    edges = _f8(np.ravel(kernels.border_edges(sample_triangles)))
+    where, scratch = np.zeros(2), np.zeros(3)
+    queries = _f8(np.reshape(queries, (-1, 3)))
+    samples, weights = np.zeros((len(queries), 3)), np.zeros((len(queries), 3))
+    inside = np.zeros(len(queries), dtype=bool)
+    for i, q in enumerate(queries):
+        flag = kernels.locate(
+            q, points, normals, triangles, edges, weights[i], samples[i], where, scratch
+        )
+        inside[i] = flag == 0
+    return samples.astype(np.int64), weights, inside
+
+
+def inside_trained_region(sample_points, sample_normals, sample_triangles, queries) -> np.ndarray:
+    """(N,) True where a point (N, 3) mm lies in the samples' triangulation on the surface, as
+    the runtime locates a contact: where ``set_contact`` would not clamp it."""
+    return locate_points(sample_points, sample_normals, sample_triangles, queries)[2]

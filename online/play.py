@@ -19,15 +19,15 @@ from hapticrom.online.model import load
 
 def tool_path(model, ticks: int, depth_fraction: float = 0.8):
     """Contact points (mm) and depths (mm) of press (25 %), slide (50 %), release (25 %)."""
-    chart = model.chart_points
+    chart = model.plan_points
     centre = chart.mean(axis=0)
     half = 0.35 * (chart[:, 0].max() - chart[:, 0].min())
     t = np.linspace(0.0, 1.0, ticks)
     x = np.where(t < 0.25, -half, np.where(t > 0.75, half, -half + 2 * half * (t - 0.25) / 0.5))
     depth_max = depth_fraction * model.trained_depth
     depth = np.where(t < 0.25, t / 0.25, np.where(t > 0.75, (1 - t) / 0.25, 1.0)) * depth_max
-    points = model.chart_origin + np.column_stack([centre[0] + x, np.full(ticks, centre[1])]) @ (
-        model.chart_axes
+    points = model.plan_origin + np.column_stack([centre[0] + x, np.full(ticks, centre[1])]) @ (
+        model.plan_axes
     )
     return points, depth
 

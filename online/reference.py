@@ -11,24 +11,82 @@ from hapticrom.shared.errors import StepInputError
 
 
 def barycentric(model: ReducedModel, point) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(sample indices, weights, outside) of a contact point, by brute force over triangles."""
-    x = model.chart_axes @ (np.asarray(point, dtype=float) - model.chart_origin)
+    """(sample indices, weights, outside) of a contact point, by brute force over the
+    sample triangles, by another algorithm than the kernel's Newton: a fixed-point
+    iteration (the blended normal at the last (u, v), then the point moved along it onto
+    the triangle's plane, a linear solve) and, outside every triangle, bisection along
+    each border edge."""
+    p = np.asarray(point, dtype=float)
+    x, n = model.sample_points, model.sample_normals
     best = (np.inf, None, None)
     for tri in model.sample_triangles:
-        a, b, c = model.chart_points[tri]
-        T = np.column_stack([b - a, c - a])
-        l12 = np.linalg.solve(T, x - a)
-        lam = np.array([1 - l12.sum(), l12[0], l12[1]])
-        if np.all(lam >= -1e-12):
-            return tri.copy(), lam, False
-        for e0, e1, i0, i1 in ((a, b, 0, 1), (b, c, 1, 2), (c, a, 2, 0)):
-            s = np.clip((x - e0) @ (e1 - e0) / ((e1 - e0) @ (e1 - e0)), 0.0, 1.0)
-            dist = np.sum((e0 + s * (e1 - e0) - x) ** 2)
-            if dist < best[0]:
-                w = np.zeros(3)
-                w[i0], w[i1] = 1 - s, s
-                best = (dist, tri.copy(), w)
+        uvh = _fixed_point(p, x[tri], n[tri])
+        if uvh is None:
+            continue
+        u, v, h = uvh
+        if min(u, v, 1 - u - v) >= -1e-9 and abs(h) < best[0]:
+            best = (abs(h), tri.copy(), np.array([1 - u - v, u, v]))
+    if best[1] is not None:
+        return best[1], best[2], False
+    for a, b, c in _border(model.sample_triangles):
+        s = _edge_bisection(p, x[a], x[b], n[a], n[b])
+        dist = np.linalg.norm(p - x[a] - s * (x[b] - x[a]))
+        if dist < best[0]:
+            best = (dist, np.array([a, b, c]), np.array([1 - s, s, 0.0]))
     return best[1], best[2], True
+
+
+def _fixed_point(p, x, n, iterations: int = 200):
+    """(u, v, h) with p = X(u, v) + h N(u, v) over one triangle (corners x, normals n),
+    or None if p is far outside it."""
+    e = np.column_stack([x[1] - x[0], x[2] - x[0]])
+    flat = np.linalg.lstsq(e, p - x[0], rcond=None)[0]
+    if flat.min() < -0.5 or flat.sum() > 1.5:
+        return None
+    u, v = flat
+    for _ in range(iterations):
+        normal = n[0] + u * (n[1] - n[0]) + v * (n[2] - n[0])
+        u_new, v_new, h = np.linalg.solve(np.column_stack([e, normal]), p - x[0])
+        done = abs(u_new - u) + abs(v_new - v) < 1e-15
+        u, v = u_new, v_new
+        if done:
+            break
+    return u, v, h
+
+
+def _border(triangles: np.ndarray) -> list[tuple[int, int, int]]:
+    """The edges of one triangle only, with that triangle's third sample."""
+    count: dict[tuple[int, int], int] = {}
+    for t in triangles:
+        for k in range(3):
+            key = tuple(sorted((int(t[k]), int(t[(k + 1) % 3]))))
+            count[key] = count.get(key, 0) + 1
+    return [
+        (int(t[k]), int(t[(k + 1) % 3]), int(t[(k + 2) % 3]))
+        for t in triangles
+        for k in range(3)
+        if count[tuple(sorted((int(t[k]), int(t[(k + 1) % 3]))))] == 1
+    ]
+
+
+def _edge_bisection(p, xa, xb, na, nb) -> float:
+    """The edge parameter s in [0, 1] where p - X(s) is normal to the edge within the plane of
+    the edge and the blended normal N(s) (by bisection on a sign change, else an end)."""
+    e = xb - xa
+
+    def g(s):
+        r, normal = p - xa - s * e, na + s * (nb - na)
+        return (r @ e) * (normal @ normal) - (e @ normal) * (r @ normal)
+
+    lo, hi = 0.0, 1.0
+    if g(lo) <= 0.0:
+        return 0.0
+    if g(hi) >= 0.0:
+        return 1.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if g(mid) > 0.0 else (lo, mid)
+    return 0.5 * (lo + hi)
 
 
 def hermite(force: np.ndarray, slope: np.ndarray, step: float, depth: float) -> float:

@@ -10,7 +10,7 @@ times a second with a position and expects a force back::
 
 The model is the PODI contact model of the artifact: the samples' force-depth
 curves and reduced fields, interpolated over the tool position (barycentric in
-the samples' Delaunay chart) and over the depth (monotone cubic for forces). The
+the samples' triangulation on the surface) and over the depth (monotone cubic for forces). The
 contact is frictionless: the normal component of ``d`` indents the tissue and
 the force is along the surface normal; to follow the tool sideways, move the
 contact point (``set_contact`` every step is fine: it is microseconds).
@@ -185,8 +185,8 @@ class Simulator:
         self._point, self._blade_input = np.zeros(3), np.zeros(3)  # ... of a point, a blade
         # The model's arrays set_contact reads, packed into one read-only array.
         self._table = k.contact_table(
-            model.chart_origin, model.chart_axes, model.chart_points, model.sample_normals,
-            model.force, model.stiffness, model.sample_triangles,
+            model.sample_points, model.sample_normals, model.force, model.stiffness,
+            model.sample_triangles,
             *((anm["records"], anm["offsets"]) if anm else ()),
         )  # fmt: skip
         # bound once: no lookups per step
@@ -494,6 +494,16 @@ class Simulator:
     def beyond_trained_depth(self) -> bool:
         """Whether the last step went deeper than the trained range (extrapolated)."""
         return bool(int(self._buf[kernels.FLAGS]) & kernels.FLAG_BEYOND_DEPTH)
+
+    @property
+    def error_estimate(self) -> float:
+        """The error indicator at the contact (relative force error, 1): the samples'
+        leave-one-out errors blended with the contact's weights (artifact
+        ``samples/indicator``). It overestimates the error between well-spaced samples
+        (see README, "Any organ"); outside the trained region it is the border's."""
+        w, i = self._weights, self._samples
+        e = self.model.indicator
+        return float(w[0] * e[int(i[0])] + w[1] * e[int(i[1])] + w[2] * e[int(i[2])])
 
     @property
     def in_contact(self) -> bool:

@@ -43,8 +43,14 @@ __all__ = ["SCHEMA", "ROOT_ATTRS", "Artifact", "ArtifactError", "read_artifact",
 
 FORMAT = "hapticrom"
 # 1.1: the anm group; 1.2: the cutting group; 1.3: its pressure coupling;
-# 1.4: the integrity envelope (whole-file digest in the user block), required by this reader.
-FORMAT_VERSION = (1, 4)
+# 1.4: the integrity envelope (whole-file digest in the user block), required by this reader;
+# 2.0: the samples' triangulation on the surface replaces the plane chart (samples 2.0).
+FORMAT_VERSION = (2, 0)
+# What a reader says about a file of another major version.
+REREDUCE = (
+    "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
+    "(the stored solves are reused; nothing is solved again)"
+)
 
 
 @dataclass(frozen=True)
@@ -147,15 +153,15 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "samples",
         "contact-samples",
-        (1, 0),
+        (2, 0),
         _fields(
             ("points", "f", ("P", 3), "mm", "tool positions of the training samples"),
             ("normals", "f", ("P", 3), "1", "outward unit surface normals there", "unit"),
-            ("chart_origin", "f", (3,), "mm", "origin of the 2-D interpolation chart"),
-            ("chart_axes", "f", (2, 3), "1", "orthonormal chart axes (chart = axes (x - o))",
-             "orthonormal"),
-            ("chart_points", "f", ("P", 2), "mm", "samples in chart coordinates"),
-            ("triangles", "i", ("S", 3), "1", "Delaunay triangles of the chart points", "index:P"),
+            ("triangles", "i", ("S", 3), "1",
+             "the samples' triangles on the surface, outward (counter-clockwise)", "index:P"),
+            ("indicator", "f", ("P",), "1",
+             "leave-one-out relative force error of each sample from its neighbours",
+             "nonnegative"),
             ("depth", "f", ("K",), "mm", "indentation grid, uniform, depth[0] = 0"),
             ("force", "f", ("P", "K"), "N", "normal contact force F_n at each depth (>= 0)",
              "nonnegative"),
@@ -481,7 +487,7 @@ class _Reading:
         if version[0] != FORMAT_VERSION[0]:
             raise self.fail(
                 f"artifact format version {version[0]}.{version[1]} is not supported "
-                f"(this runtime reads major version {FORMAT_VERSION[0]})"
+                f"(this runtime reads major version {FORMAT_VERSION[0]}); {REREDUCE}"
             )
         handles, group_attrs, symbols = {}, {}, {}
         for group in SCHEMA:  # every shape and storage checked before any data is read

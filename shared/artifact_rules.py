@@ -11,7 +11,7 @@ value the runtime uses is checked here, once, at load:
 - attribute kinds and rules (a number is a finite number, a JSON attribute
   parses, not too deep);
 - rules across fields (:data:`CROSS_RULES`): the depth grid is uniform from 0,
-  force curves start at 0 and increase, the chart agrees with the sample
+  force curves start at 0 and increase, the sample triangles face outward with the sample
   points, no degenerate triangle, every POD-ANM section increases in depth and
   force and follows its predecessor, and the series agree with the stored
   full-order curves (two independent records of the same response).
@@ -272,24 +272,34 @@ def _monotone_slopes(artifact, force, slope, step) -> None:
         raise _fail(artifact, "samples/stiffness must end positive and stay below 1e9 N/mm")
 
 
-def _chart(artifact) -> None:
+def _sample_triangulation(artifact) -> None:
+    """The samples' triangles: not degenerate, facing the way their samples' normals do
+    (the runtime's projection along blended normals needs both), neighbours' normals
+    within 60 degrees, no sample edge in more than two triangles."""
     s = artifact["samples"]
-    chart = (s["points"] - s["chart_origin"]) @ s["chart_axes"].T
-    extent = max(np.ptp(s["chart_points"], axis=0).max(initial=0.0), 1e-300)
-    if np.max(abs(chart - s["chart_points"])) > 1e-6 * extent:
-        raise _fail(artifact, "samples/chart_points do not match the sample points in the chart")
-    a, b, c = (s["chart_points"][s["triangles"][:, k]] for k in range(3))
-    det = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (c[:, 0] - a[:, 0]) * (b[:, 1] - a[:, 1])
-    if len(det) == 0 or np.any(abs(det) <= 1e-9 * extent**2):
+    p, t = s["points"], s["triangles"]
+    if np.max(abs(p)) > MAX_LENGTH:
+        raise _fail(artifact, f"samples/points lie beyond {MAX_LENGTH:g} mm")
+    extent = max(np.ptp(p, axis=0).max(initial=0.0), 1e-300)
+    n = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    area2 = np.linalg.norm(n, axis=1)
+    if len(t) == 0 or np.any(area2 <= 1e-9 * extent**2):
         raise _fail(artifact, "samples/triangles has a degenerate (zero-area) triangle")
-    n = s["normals"][s["triangles"]]  # (S, 3 corners, 3)
-    dots = np.einsum("sij,skj->sik", n, n)
-    if np.any(dots < MIN_NORMAL_DOT):
+    normals = s["normals"][t]  # (S, 3 corners, 3)
+    if np.any(np.einsum("sij,skj->sik", normals, normals) < MIN_NORMAL_DOT):
         raise _fail(
             artifact, "samples/normals of neighbouring samples differ by more than 60 degrees"
         )
-    if np.max(abs(s["points"])) > MAX_LENGTH:
-        raise _fail(artifact, f"samples/points lie beyond {MAX_LENGTH:g} mm")
+    facing = np.einsum("sx,skx->sk", n / area2[:, None], s["normals"][t])
+    if np.any(facing < MIN_NORMAL_DOT):
+        raise _fail(
+            artifact,
+            "samples/triangles has a triangle not facing along its samples' normals "
+            "(within 60 degrees, counter-clockwise seen from outside)",
+        )
+    edges = np.sort(np.vstack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    if np.unique(edges, axis=0, return_counts=True)[1].max() > 2:
+        raise _fail(artifact, "samples/triangles has a sample edge in more than two triangles")
 
 
 def _surface(artifact) -> None:
@@ -409,7 +419,14 @@ def _anm_against_curves(artifact) -> None:
             )
 
 
-CROSS_RULES = (_depth_grid, _force_curves, _chart, _surface, _anm_sections, _anm_against_curves)
+CROSS_RULES = (
+    _depth_grid,
+    _force_curves,
+    _sample_triangulation,
+    _surface,
+    _anm_sections,
+    _anm_against_curves,
+)
 
 
 def check_values(artifact) -> None:

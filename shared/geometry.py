@@ -38,3 +38,21 @@ def vertex_normals(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
         np.add.at(sums, faces[:, corner], area)
     lengths = np.sqrt(np.einsum("ij,ij->i", sums, sums))
     return sums / np.maximum(lengths, np.finfo(np.float64).tiny)[:, None]
+
+
+def plan_view(points: np.ndarray, normals: np.ndarray):
+    """A plane through points (P, 3) seen along their mean outward normal: its origin (3,)
+    (their mean), orthonormal axes (2, 3) and the points' coordinates in it (P, 2), mm.
+
+    For ordering and drawing only (plan-view plots, spreading held-out positions, a
+    straight tool path): the runtime interpolates on the surface, not in this plane.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    origin = points.mean(axis=0)
+    n = np.asarray(normals, dtype=np.float64).mean(axis=0)
+    n /= np.linalg.norm(n)
+    t1 = np.eye(3)[np.argmin(np.abs(n))]
+    t1 -= (t1 @ n) * n
+    t1 /= np.linalg.norm(t1)
+    axes = np.vstack([t1, np.cross(n, t1)])
+    return origin, axes, (points - origin) @ axes.T

@@ -78,9 +78,10 @@ def test_centroids_snap_to_region_nodes_and_say_how_far(small_artifact):
     assert len(set(nodes)) == len(nodes) and set(nodes) <= region - trained
     for p, node in zip(positions, nodes, strict=True):
         t = int(p.source.removeprefix("centroid of sample triangle "))
-        centroid = samples["chart_points"][samples["triangles"][t]].mean(axis=0)
-        chart = accuracy.chart_coordinates(samples, surface.nodes[node])
-        assert p.moved == pytest.approx(np.linalg.norm(chart - centroid), abs=1e-12)
+        plan = accuracy.plan_coordinates(samples, samples["points"])
+        centroid = plan[samples["triangles"][t]].mean(axis=0)
+        at = accuracy.plan_coordinates(samples, surface.nodes[node])
+        assert p.moved == pytest.approx(np.linalg.norm(at - centroid), abs=1e-12)
     assert accuracy.centroid_positions(samples, surface, 8) == positions  # deterministic
 
 

@@ -87,6 +87,22 @@ def test_unknown_major_version_is_refused(small_artifact, tmp_path):
         read_artifact(path)
 
 
+def test_a_format_1_file_with_a_plane_chart_is_refused_with_how_to_re_reduce(
+    small_artifact, tmp_path
+):
+    """Format 2 replaced the samples' plane chart by their triangulation on the surface: a
+    1.4 file (its root and samples group say 1.x) is refused, naming the fix."""
+    path = copy(small_artifact, tmp_path)
+
+    def older(f):
+        f.attrs["format_version"] = np.array([1, 4])
+        f["samples"].attrs["version"] = np.array([1, 0])
+
+    mutate(path, older)
+    with pytest.raises(ArtifactError, match="1.4 is not supported.*hapticrom reduce CAMPAIGN_DIR"):
+        read_artifact(path)
+
+
 def test_newer_minor_version_loads(small_artifact, tmp_path):
     path = copy(small_artifact, tmp_path)
 

@@ -102,8 +102,8 @@ def test_every_rule_of_every_integer_dataset_is_enforced(small_artifact, tmp_pat
         ("samples/force", lambda a: 1000 * a, "anm.* sample 0"),
         ("samples/stiffness", lambda a: -a, "samples/stiffness has negative values"),
         ("samples/normals", lambda a: 0 * a, "samples/normals has rows that are not unit"),
-        ("samples/chart_axes", lambda a: 2 * a, "samples/chart_axes is not orthonormal"),
-        ("samples/chart_points", lambda a: a[::-1].copy(), "chart_points do not match"),
+        ("samples/triangles", lambda t: t[:, ::-1].copy(), "not facing along its samples"),
+        ("samples/triangles", lambda t: np.vstack([t, t[:1]]), "edge in more than two"),
         ("samples/depth", lambda a: 0 * a, "samples/depth must start at 0 and increase"),
         ("samples/depth", lambda a: a**2, "samples/depth must be uniform"),
         ("samples/reduced_stiffness", lambda a: a + np.triu(a, 1), "is not symmetric"),
@@ -127,8 +127,8 @@ def test_semantic_attacks_with_valid_checksums_are_refused(
 def test_degenerate_geometry_is_refused(small_artifact, tmp_path):
     path = copy(small_artifact, tmp_path)
 
-    def collapse_sample(f):  # sample 1 moved onto sample 0: a zero-area chart triangle
-        for key in ("points", "chart_points"):
+    def collapse_sample(f):  # sample 1 moved onto sample 0: a zero-area sample triangle
+        for key in ("points",):
             a = f[f"samples/{key}"][()]
             a[1] = a[0]
             del f[f"samples/{key}"]

@@ -534,7 +534,7 @@ def test_every_option_has_help_and_choices_are_declared():
     assert choices["bench", "interpolation"] == ("podi", "grassmann")
     assert choices["bench", "response"] == ("anm", "curves")
     assert choices["mesh", "refinement"] == ("coarse", "default", "fine")
-    assert list(choices["mesh", "name"]) == ["cornea", "beam", "hemisphere", "liver"]
+    assert list(choices["mesh", "name"]) == ["cornea", "beam", "hemisphere", "liver", "import"]
 
 
 def play_output(capsys, *options) -> tuple[str, str]:

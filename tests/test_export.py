@@ -246,7 +246,7 @@ def test_without_a_global_basis_the_central_samples_modes(model, tmp_path):
     groups = {k: v for k, v in model.artifact.groups.items() if k != "global"}
     bare = replace(model, artifact=replace(model.artifact, groups=groups))
     _, s = read(write_modes(bare, tmp_path / "modes.vtp"))
-    chart = model.chart_points
+    chart = model.plan_points
     central = int(np.argmin(np.linalg.norm(chart - chart.mean(axis=0), axis=1)))
     assert f"/samples/surface_basis[{central}]" in note(s)
     assert len(s["PointData"]) == model.num_modes

@@ -23,13 +23,13 @@ def model(small_artifact):
 
 def points_in_region(model, count):
     """Random points inside the samples' chart hull, lifted to the nearest sample's height."""
-    chart = model.chart_points
+    chart = model.plan_points
     out = []
     for _ in range(count):
         tri = model.sample_triangles[RNG.integers(len(model.sample_triangles))]
         w = RNG.dirichlet(np.ones(3))
         x2 = w @ chart[tri]
-        out.append(model.chart_origin + x2 @ model.chart_axes)
+        out.append(model.plan_origin + x2 @ model.plan_axes)
     return out
 
 
@@ -117,7 +117,7 @@ def test_outside_the_trained_region_is_clamped_and_flagged(model):
     sim = model.simulator()
     sim.set_contact(model.sample_points[0])
     assert not sim.outside_trained_region
-    far = model.chart_origin + 50.0 * model.chart_axes[0]
+    far = model.plan_origin + 50.0 * model.plan_axes[0]
     sim.set_contact(far)
     assert sim.outside_trained_region
     nodes, weights = sim.weights

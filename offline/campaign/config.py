@@ -116,6 +116,7 @@ class ANMConfig:
     enabled: bool = True
     order: int = 6
     tolerance: float = 1e-4
+    ranks_per_series: int = 1  # the ranks form groups of this size, each computes some samples
 
 
 @dataclass(frozen=True)
@@ -162,9 +163,15 @@ class CampaignConfig:
         """Identity of the campaign: its configuration and the bytes of its mesh.
 
         The ``[anm]`` and ``[cutting]`` tables are left out: they only change the
-        reduction, not the solves.
+        reduction, not the solves. So is ``[positions.greedy]``: it says how many
+        positions the greedy trainer may add (they are listed in the manifest), not how
+        a position is solved, so a greedy run extends the same directory when its target
+        or budget changes.
         """
         solves = {k: v for k, v in self.raw.items() if k not in ("anm", "cutting")}
+        positions = solves.get("positions")
+        if isinstance(positions, dict) and "greedy" in positions:
+            solves["positions"] = {k: v for k, v in positions.items() if k != "greedy"}
         h = hashlib.sha256(json.dumps(solves, sort_keys=True, default=str).encode())
         h.update(file_digest(self.problem.mesh.file).encode())
         return h.hexdigest()
@@ -242,10 +249,18 @@ class ANMTable(Table):
     enabled: Boolean = Field(True, description="compute the series (needs an analytic energy)")
     order: ANMOrder = Field(6, description="series order")
     tolerance: ANMTolerance = Field(1e-4, description="validity radius tolerance")
+    ranks_per_series: PositiveInteger = Field(
+        1, description="ranks computing each sample's series together (at most all of them)"
+    )
 
     def config(self) -> ANMConfig:
         """The ANM settings."""
-        return ANMConfig(enabled=self.enabled, order=self.order, tolerance=self.tolerance)
+        return ANMConfig(
+            enabled=self.enabled,
+            order=self.order,
+            tolerance=self.tolerance,
+            ranks_per_series=self.ranks_per_series,
+        )
 
 
 class CuttingTable(Table):

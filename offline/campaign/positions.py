@@ -17,10 +17,17 @@ direction the tool pushes against. The campaign TOML table::
     n = 10
     centre = [0.0, 0.0, 0.0]             # optional, with radius: only nodes in that ball
     radius = 3.0
+    [positions.greedy]                   # optional: greedy training (offline/campaign/greedy.py)
+    target = 0.02                        # stop when every sample's error indicator is at most this
+    max_solves = 60                      # or when this many positions are solved (initial included)
+    per_round = 4                        # positions added per round
 
 Explicit points come first, then the samplers in the order their kind first
 appears in the table (all ``polar`` tables, then all ``farthest`` ones in the
 example); a node already taken is skipped. The plan depends on the inputs only.
+With ``[positions.greedy]`` these are the initial positions; the greedy trainer
+appends the nodes it picks (:attr:`PositionsSpec.added`, source ``"greedy"``)
+after them, so the first positions keep their indices as the campaign grows.
 
 The tables are typed models (:class:`PositionsTable`, :class:`PolarTable`,
 :class:`FarthestTable`, :mod:`hapticrom.offline.tables`); the samplers and
@@ -87,8 +94,9 @@ class ToolPosition:
     """One tool position: surface node ``node_tag`` at ``point`` (mm), outward unit ``normal``.
 
     ``index`` is its place in the plan (0-based); ``source`` the rule that
-    chose it: ``"point"``, ``"polar"`` or ``"farthest"``; ``asked`` the point
-    asked for (None for farthest-point samples, which pick nodes) and
+    chose it: ``"point"``, ``"polar"``, ``"farthest"`` or ``"greedy"``; ``asked``
+    the point asked for (None for farthest-point and greedy samples, which pick
+    nodes) and
     ``snap_distance`` how far the node is from it (mm; see the module doc).
     """
 
@@ -147,19 +155,43 @@ class FarthestSampler:
 
 
 @dataclass(frozen=True)
-class PositionsSpec:
-    """Explicit ``points`` (mm; snapped to nodes within ``snap_tolerance`` mm), then ``samplers``.
+class GreedyMode:
+    """Greedy training: add ``per_round`` positions where the error indicator is worst,
+    solve them, repeat until every sample's indicator is at most ``target`` (a relative
+    force error) or ``max_solves`` positions (the initial ones included) are solved.
+    ``cover``: the whole surface group is the region to train, so up to half of each
+    round goes where the samples' triangulation does not reach yet (holes, the rim)."""
 
-    Lists are accepted and stored as tuples; InputError when there are no positions at all.
+    target: float
+    max_solves: int
+    per_round: int = 4
+    cover: bool = False
+
+    def __post_init__(self) -> None:
+        _checked(self, GreedyTable)
+
+
+@dataclass(frozen=True)
+class PositionsSpec:
+    """Explicit ``points`` (mm; snapped to nodes within ``snap_tolerance`` mm), then ``samplers``,
+    then the ``added`` surface nodes (mm; the greedy trainer's, in the order it added them).
+
+    ``greedy``: the greedy mode, or None. Lists are accepted and stored as tuples;
+    InputError when there are no positions at all.
     """
 
     points: tuple[Vector, ...] = ()
     samplers: tuple[PolarSampler | FarthestSampler, ...] = ()
     snap_tolerance: float = 1.0
+    greedy: GreedyMode | None = None
+    added: tuple[Vector, ...] = ()
 
     def __post_init__(self) -> None:
         points = tuple(check_value(Points, self.points, "points"))
         object.__setattr__(self, "points", points)
+        object.__setattr__(self, "added", tuple(check_value(Points, self.added, "added")))
+        if self.greedy is not None and not isinstance(self.greedy, GreedyMode):
+            raise InputError(f"not a greedy mode: {self.greedy!r}")
         samplers = tuple(self.samplers)
         for sampler in samplers:
             if not isinstance(sampler, PolarSampler | FarthestSampler):
@@ -266,6 +298,42 @@ class FarthestTable(Table):
         return self
 
 
+Target = number(gt=0, lt=1, as_float=True)
+
+
+class GreedyTable(Table):
+    """``[positions.greedy]``: greedy training (see :class:`GreedyMode`)."""
+
+    missing = {
+        "target": "target = 0.02 (the indicator's relative force error to reach)",
+        "max_solves": "max_solves (the most positions to solve, the initial ones included)",
+    }
+    target: Target = Field(description="stop when every sample's indicator is at most this (1)")
+    max_solves: Count = Field(description="the most positions solved, the initial ones included")
+    per_round: Count = Field(4, description="positions added per round")
+    cover: Boolean = Field(
+        False,
+        description="the whole surface group is the region: add positions where the samples' "
+        "triangulation does not reach yet (up to half of a round)",
+    )
+
+
+def asked_count(spec: PositionsSpec) -> tuple[int, bool]:
+    """How many initial positions ``spec`` asks for, and whether exactly.
+
+    Points and ring points count one each; a farthest-point sampler up to ``n`` (it
+    stops at the candidate nodes). Points that snap to a node already taken are
+    dropped when the positions are planned on the mesh.
+    """
+    count, exact = len(spec.points), True
+    for sampler in spec.samplers:
+        if isinstance(sampler, PolarSampler):
+            count += int(sampler.include_centre) + sum(sampler.ring_counts())
+        else:
+            count, exact = count + sampler.n, False
+    return count, exact
+
+
 def _one_or_many_schema(schema: dict[str, Any]) -> None:
     """The JSON Schema of ``polar`` and ``farthest``: an array of tables, or one table."""
     for key in ("polar", "farthest"):
@@ -293,6 +361,9 @@ class PositionsTable(Table, json_schema_extra=_one_or_many_schema):
     farthest: Annotated[list[FarthestTable], BeforeValidator(_one_or_many)] = Field(
         default_factory=list, description="greedy farthest-point sampling"
     )
+    greedy: GreedyTable | None = Field(
+        None, description="greedy training: the positions above are the initial ones"
+    )
     _spec: PositionsSpec | None = PrivateAttr(None)
 
     @model_validator(mode="wrap")
@@ -307,15 +378,34 @@ class PositionsTable(Table, json_schema_extra=_one_or_many_schema):
                 samplers.append(
                     sampler(**{name: getattr(t, name) for name in type(t).model_fields})
                 )
+        greedy = None
+        if (g := table.greedy) is not None:
+            greedy = GreedyMode(g.target, g.max_solves, g.per_round, g.cover)
         table._spec = rule(
-            lambda: PositionsSpec(tuple(table.points), tuple(samplers), table.snap_tolerance)
+            lambda: PositionsSpec(
+                tuple(table.points), tuple(samplers), table.snap_tolerance, greedy
+            )
         )
+        if greedy is not None:
+            _check_greedy_budget(table._spec)
         return table
 
     @property
     def spec(self) -> PositionsSpec:
         """The positions to plan."""
         return self._spec
+
+
+def _check_greedy_budget(spec: PositionsSpec) -> None:
+    """The greedy ``max_solves`` leaves room for the initial positions the table asks for."""
+    asked, exact = asked_count(spec)
+    if spec.greedy.max_solves < asked:
+        how = "" if exact else "up to "
+        raise invalid(
+            f"greedy max_solves = {spec.greedy.max_solves} is fewer than the initial positions "
+            f"(points, polar, farthest) the table asks for ({how}{asked}): raise max_solves "
+            "or ask for fewer initial positions"
+        )
 
 
 def positions_from_dict(data: dict, where: str = "positions") -> PositionsSpec:
@@ -371,6 +461,14 @@ def _plan(surface: Surface, spec: PositionsSpec) -> tuple[list[ToolPosition], li
             take(_polar_nodes(surface, sampler, spec.snap_tolerance), "polar")
         else:
             take([(n, None, 0.0) for n in _farthest_nodes(surface, sampler)], "farthest")
+    for i, point in enumerate(spec.added):
+        node = _snap(surface, point, spec.snap_tolerance, f"added[{i}]")
+        if node in taken:  # dropping it would renumber the positions after it
+            raise InputError(
+                f"greedy position added[{i}] {list(point)} is a node already taken by an "
+                "earlier position: the campaign's added positions do not fit its table"
+            )
+        take([(node, None, 0.0)], "greedy")
     positions = [
         _position(surface, index, choice, source) for index, (choice, source) in enumerate(chosen)
     ]

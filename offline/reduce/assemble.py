@@ -22,8 +22,9 @@ from hapticrom.offline.fe.materials import make_law
 from hapticrom.offline.fe.sanity import dumps
 from hapticrom.offline.reduce.anm_reduction import SampleSeries
 from hapticrom.offline.reduce.inputs import RenderSurface, Sample
-from hapticrom.offline.reduce.interpolation import Chart, DepthGrid, GrassmannTangents
+from hapticrom.offline.reduce.interpolation import DepthGrid, GrassmannTangents
 from hapticrom.offline.reduce.operators import GlobalReduction, ReducedSample
+from hapticrom.offline.reduce.sample_triangulation import SampleTriangulation
 
 
 @dataclass
@@ -42,7 +43,8 @@ class ReducedModel:
     reduced: list[ReducedSample]
     modes: int
     global_reduction: GlobalReduction
-    chart: Chart
+    neighbourhoods: SampleTriangulation
+    indicator: np.ndarray  # (P,) leave-one-out relative force error
     grassmann: GrassmannTangents
     grid: DepthGrid
     surface: RenderSurface
@@ -103,14 +105,12 @@ def surface_group(surface: RenderSurface) -> dict:
 
 def samples_group(model: ReducedModel, dofs: np.ndarray) -> dict:
     """The ``samples`` group: per sample, its position, force curve and reduced model."""
-    chart, reduced, grid = model.chart, model.reduced, model.grid
+    where, reduced, grid = model.neighbourhoods, model.reduced, model.grid
     return {
-        "points": chart.points,
-        "normals": chart.normals,
-        "chart_origin": chart.origin,
-        "chart_axes": chart.axes,
-        "chart_points": chart.chart_points,
-        "triangles": chart.triangles,
+        "points": where.points,
+        "normals": where.normals,
+        "triangles": where.triangles,
+        "indicator": model.indicator,
         "depth": grid.depth,
         "force": grid.force,
         "stiffness": grid.stiffness,
@@ -127,7 +127,7 @@ def grassmann_group(model: ReducedModel, dofs: np.ndarray) -> dict:
     """The ``grassmann`` group: the tangents' surface rows and the Gram matrices."""
     g = model.grassmann
     return {
-        "reference": np.int64(model.chart.reference),
+        "reference": np.int64(model.neighbourhoods.reference),
         "tangent_surface": np.array([T[dofs] for T in model.tangents], dtype=np.float32),
         "gram_tangent_tangent": g.tangent_tangent,
         "gram_tangent_basis": g.tangent_basis,

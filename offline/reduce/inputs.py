@@ -80,7 +80,7 @@ def _verify_all(store: SnapshotStore, indices: list[int]) -> list[int]:
     return solved
 
 
-def _nominal_steps(load_factor: np.ndarray, steps: int, index: int) -> np.ndarray:
+def nominal_steps(load_factor: np.ndarray, steps: int, index: int) -> np.ndarray:
     """Rows of the records at load factors k/steps (extra sub-steps from cuts are skipped)."""
     rows = []
     for k in range(1, steps + 1):
@@ -120,7 +120,7 @@ def read_sample(store: SnapshotStore, index: int, steps: int, layout: Layout) ->
     """This rank's rows of position ``index``'s snapshots at the nominal load steps."""
     (r0, r1), (c0, c1) = layout.rows, layout.cell_rows
     with h5py.File(store.position_path(index), "r") as f:
-        take = _nominal_steps(f["load_factor"][()], steps, index)
+        take = nominal_steps(f["load_factor"][()], steps, index)
         u = np.ascontiguousarray(f["displacement"][:, r0:r1][take].T)
         p = None
         if layout.num_cells and "pressure" in f:

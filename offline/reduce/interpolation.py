@@ -1,9 +1,9 @@
-"""What the runtime interpolates between samples with: the chart, Grassmann tangents, the
-force curves on one depth grid (thesis §2.3).
+"""What the runtime interpolates between samples with: Grassmann tangents and the force
+curves on one depth grid (thesis §2.3).
 
-A 2-D chart of the sample positions with its Delaunay triangulation gives the
-neighbourhood structure; the tangent vectors at a reference basis give the
-interpolation of the bases on the Grassmann manifold.
+The neighbourhoods (the samples' triangulation on the surface) are
+:mod:`.sample_triangulation`'s; the tangent vectors at a reference basis give
+the interpolation of the bases on the Grassmann manifold.
 """
 
 from __future__ import annotations
@@ -12,53 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import PchipInterpolator
-from scipy.spatial import Delaunay
 
 from hapticrom.offline.mpi import allreduce_sum
 from hapticrom.offline.reduce.inputs import Sample
 from hapticrom.offline.reduce.operators import ReducedSample
-from hapticrom.shared.errors import InputError
-
-
-# -- the chart ------------------------------------------------------------------------
-@dataclass
-class Chart:
-    """The samples on a plane: positions (P, 3) mm and outward normals (P, 3); the
-    chart's origin (3,), axes (2, 3), the samples' chart coordinates (P, 2) and their
-    Delaunay triangles (S, 3); the most central sample (the Grassmann reference)."""
-
-    points: np.ndarray
-    normals: np.ndarray
-    origin: np.ndarray
-    axes: np.ndarray
-    chart_points: np.ndarray
-    triangles: np.ndarray
-    reference: int
-
-
-def chart_and_triangulation(points: np.ndarray, normals: np.ndarray):
-    """A plane through the samples (normal = their mean normal) and its Delaunay triangles."""
-    origin = points.mean(axis=0)
-    n = normals.mean(axis=0)
-    n /= np.linalg.norm(n)
-    t1 = np.eye(3)[np.argmin(np.abs(n))]
-    t1 -= (t1 @ n) * n
-    t1 /= np.linalg.norm(t1)
-    axes = np.vstack([t1, np.cross(n, t1)])
-    chart = (points - origin) @ axes.T
-    if len(points) < 3:
-        raise InputError("the artifact needs at least 3 tool positions (a triangle) to interpolate")
-    triangles = Delaunay(chart).simplices.astype(np.int32)
-    return origin, axes, chart, triangles
-
-
-def sample_chart(samples: list[Sample]) -> Chart:
-    """The chart of the samples' tool positions."""
-    points = np.array([s.point for s in samples])
-    normals = -np.array([s.direction for s in samples])  # outward: against the push
-    origin, axes, chart, triangles = chart_and_triangulation(points, normals)
-    reference = int(np.argmin(np.linalg.norm(chart, axis=1)))  # the most central sample
-    return Chart(points, normals, origin, axes, chart, triangles, reference)
 
 
 # -- Grassmann tangents -----------------------------------------------------------------

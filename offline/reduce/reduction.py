@@ -21,9 +21,9 @@ For every solved tool position (a *sample*):
   depth) with monotone-cubic slopes, and the mean basis rows at its contact nodes.
 
 Plus a global POD over all samples (spectra reported; its reduced stiffness
-stored), the surface mesh for rendering, a 2-D chart of the sample positions
-with its Delaunay triangulation (the neighbourhood structure for
-interpolation), and the tangent vectors for Grassmann interpolation. The
+stored), the surface mesh for rendering, the samples' triangulation on the
+loadable surface (the neighbourhood structure for interpolation), and the
+tangent vectors for Grassmann interpolation. The
 snapshot matrix is distributed by canonical rows; each rank reads only its rows.
 
 The reductor :func:`reduce_campaign` runs these steps in order, each in its module:
@@ -32,7 +32,8 @@ The reductor :func:`reduce_campaign` runs these steps in order, each in its modu
 2. project the operators, per sample and global (:mod:`.operators`);
 3. the POD-ANM series (:mod:`.anm_reduction`) and the cuttable region's
    operators (:mod:`hapticrom.offline.cutting.export`), when the campaign asks;
-4. the chart, the Grassmann tangents, the common depth grid (:mod:`.interpolation`);
+4. the samples' triangulation on the surface (:mod:`.sample_triangulation`), the
+   Grassmann tangents, the common depth grid (:mod:`.interpolation`);
 5. assemble the artifact (:mod:`.assemble`, the one place) and write it (rank 0).
 """
 
@@ -41,6 +42,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numpy as np
 from mpi4py import MPI
 
 from hapticrom.offline.campaign.config import CampaignConfig
@@ -50,18 +52,16 @@ from hapticrom.offline.cutting.export import cut_operators, cut_region
 from hapticrom.offline.mpi import allgather_rows, on_rank_zero, print0
 from hapticrom.offline.reduce.anm_reduction import sample_series
 from hapticrom.offline.reduce.assemble import ReducedModel, artifact_content, root_attributes
+from hapticrom.offline.reduce.indicator import leave_one_out
 from hapticrom.offline.reduce.inputs import (
     OperatorRows,
     campaign_config,
     read_samples,
     surface_mesh,
 )
-from hapticrom.offline.reduce.interpolation import (
-    common_depth_grid,
-    grassmann_tangents,
-    sample_chart,
-)
+from hapticrom.offline.reduce.interpolation import common_depth_grid, grassmann_tangents
 from hapticrom.offline.reduce.operators import PODSettings, reduce_globally, reduce_samples
+from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
 from hapticrom.shared.artifact import write_artifact
 
 
@@ -112,12 +112,16 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
     if config.anm.enabled:
         anm = config.anm
         say(f"POD-ANM series per sample (order {anm.order}, tolerance {anm.tolerance:g})")
-        series = sample_series(config, samples, reduced, comm, say)
+        series = sample_series(config, samples, reduced, comm, say, store_in=store.root)
     if config.cutting is not None:
         g = global_reduction
         cut = cut_operators(comm, ops, g.pod.basis_local, g.pressure_local, g.blocks)
-    chart = sample_chart(samples)
-    grassmann = grassmann_tangents(comm, reduced, chart.reference)
+    surface = on_rank_zero(comm, surface_mesh, config.problem.mesh.file, ops.node_coordinates)
+    neighbourhoods = on_rank_zero(comm, sample_neighbourhoods, samples, surface)
+    grassmann = grassmann_tangents(comm, reduced, neighbourhoods.reference)
+    grid = common_depth_grid(samples, reduced)
+    where = neighbourhoods
+    indicator = on_rank_zero(comm, leave_one_out, where.points, where.normals, surface, grid.force)
     return ReducedModel(
         config=config,
         manifest=manifest,
@@ -125,16 +129,24 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
         reduced=reduced,
         modes=n,
         global_reduction=global_reduction,
-        chart=chart,
+        neighbourhoods=neighbourhoods,
         grassmann=grassmann,
-        grid=common_depth_grid(samples, reduced),
-        surface=on_rank_zero(comm, surface_mesh, config.problem.mesh.file, ops.node_coordinates),
+        grid=grid,
+        indicator=indicator,
+        surface=surface,
         sample_bases=[allgather_rows(comm, r.basis_local) for r in reduced],
         tangents=[allgather_rows(comm, t) for t in grassmann.tangents_local],
         global_basis=allgather_rows(comm, global_reduction.pod.basis_local),
         series=series,
         cut=cut,
     )
+
+
+def sample_neighbourhoods(samples, surface):
+    """The samples' triangulation on the loadable surface (the runtime's neighbourhoods)."""
+    points = np.array([s.point for s in samples])
+    normals = -np.array([s.direction for s in samples])  # outward: against the push
+    return triangulate_samples(points, normals, surface.vertices, surface.triangles, surface.groups)
 
 
 def write_model(out: str | Path, model: ReducedModel, store: SnapshotStore) -> None:

@@ -142,8 +142,8 @@ def write_samples(model: ReducedModel, path: Path) -> Path:
         field_data={
             "note": "training samples of the reduced model (artifact /samples): tool positions "
             "(mm) with the outward normal (the tool pushes along minus it); force_N: normal "
-            "contact force at each depth of depth_mm; polygons: the Delaunay triangles of the "
-            "chart whose three samples the runtime blends",
+            "contact force at each depth of depth_mm; polygons: the samples' triangles on the "
+            "surface whose three samples the runtime blends",
             "depth_mm": depth,
             "units": UNITS,
         },
@@ -172,12 +172,13 @@ def mode_arrays(model: ReducedModel) -> tuple[dict[str, np.ndarray], str, np.nda
         )
         eigenvalues = np.asarray(model.artifact["global"]["eigenvalues"])
     else:
-        chart = model.chart_points
+        chart = model.plan_points
         sample = int(np.argmin(np.linalg.norm(chart - chart.mean(axis=0), axis=1)))
         basis = model.surface_basis[sample]
         note = (
             f"mode_NN: column NN of /samples/surface_basis[{sample}], the POD basis of the "
-            f"sample nearest the chart's centre (this artifact has no /global basis); the "
+            f"sample nearest the centre of the samples' plan view (this artifact has no "
+            f"/global basis); the "
             f"other {len(model.sample_points) - 1} samples' bases are not written here."
         )
         eigenvalues = np.asarray(model.artifact["samples"]["eigenvalues"])[sample]
@@ -255,10 +256,10 @@ def write_sequence(model: ReducedModel, out: Path, frames: int) -> list[Path]:
 # -- cutting -------------------------------------------------------------------------
 def blade_direction(model: ReducedModel, at: np.ndarray) -> np.ndarray:
     """The blade along the circle about the organ's z axis through ``at`` (the cutting
-    bench's choice: along the cornea's limbus); the chart's first axis on the axis."""
+    bench's choice: along the cornea's limbus); the plan view's first axis on the axis."""
     radial = at - np.array([0.0, 0.0, at[2]])
     if np.linalg.norm(radial) < 1e-9 * max(1.0, float(np.abs(model.vertices).max())):
-        return np.array(model.chart_axes[0], dtype=float)
+        return np.array(model.plan_axes[0], dtype=float)
     return np.cross([0.0, 0.0, 1.0], radial / np.linalg.norm(radial))
 
 

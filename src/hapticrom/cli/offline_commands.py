@@ -21,7 +21,7 @@ MAX_ANM_ORDER = 15  # as hapticrom.offline.reduce.anm.ANMOptions checks
 
 # What each command does, in one line (hapticrom --help).
 HELP = {
-    "mesh": "generate an organ mesh (gmsh .msh + .json) [offline]",
+    "mesh": "generate a built-in organ mesh, or import your own (gmsh .msh + .json) [offline]",
     "solve": "full-order nonlinear solve of a TOML configuration [offline]",
     "campaign": "solve a training campaign into a snapshot directory [offline]",
     "reduce": "POD and reduced operators of a campaign [offline]",
@@ -50,9 +50,14 @@ def mesh_parameters(items: list[str] | None) -> dict[str, int | float | str]:
 
 @offline_command(petsc=False)
 def cmd_mesh(args, petsc) -> int:
-    """Generate an organ mesh and its JSON sidecar (rank 0 only)."""
+    """Generate an organ mesh and its JSON sidecar, or import one (rank 0 only)."""
+    if args.name == "import":
+        return import_organ_mesh(args)
     from hapticrom.meshes import generate
 
+    refuse_options(args, "--rules", "--scale", what=f"mesh {args.name}", reason="of mesh import")
+    if args.input is not None:
+        raise HapticromError(f"mesh {args.name} takes no INPUT {args.input!r} (mesh import does)")
     params = mesh_parameters(args.set)
     incision = None
     if args.limbal_incision:
@@ -62,7 +67,8 @@ def cmd_mesh(args, petsc) -> int:
     out = Path(args.out) if args.out else Path("meshes") / f"{args.name}.msh"
     check_out_file(out, f"mesh --out {out}", make_parents=True)
     if rank() == 0:
-        info = generate(args.name, out, refinement=args.refinement, incision=incision, **params)
+        refinement = args.refinement or "default"
+        info = generate(args.name, out, refinement=refinement, incision=incision, **params)
         counts = info["counts"]
         log.info(
             f"wrote {out} ({info['cell_type']}, {counts['nodes']} nodes, {counts['cells']} "
@@ -71,28 +77,100 @@ def cmd_mesh(args, petsc) -> int:
     return 0
 
 
+def refuse_options(args, *options: str, what: str, reason: str) -> None:
+    """HapticromError if any of ``options`` (``--name``) was given: they are ``reason``."""
+    given = [o for o in options if getattr(args, o[2:].replace("-", "_")) is not None]
+    if given:
+        raise HapticromError(f"{what} takes no {', '.join(given)} (options {reason})")
+
+
+def import_organ_mesh(args) -> int:
+    """``hapticrom mesh import INPUT --out NAME.msh --rules RULES.toml [--scale S]``."""
+    from hapticrom.meshes.importer import import_mesh
+
+    refuse_options(
+        args,
+        "--refinement",
+        "--set",
+        "--limbal-incision",
+        what="mesh import",
+        reason="of the built-in organs",
+    )
+    usage = "hapticrom mesh import INPUT --out NAME.msh --rules RULES.toml [--scale S]"
+    if args.input is None:
+        raise HapticromError(f"mesh import needs the mesh file INPUT: {usage}")
+    if not args.out:
+        raise HapticromError(f"mesh import needs --out NAME.msh: {usage}")
+    out = check_out_file(args.out, f"mesh --out {args.out}", make_parents=True)
+    if rank() == 0:
+        report = import_mesh(args.input, out, args.rules, 1.0 if args.scale is None else args.scale)
+        for note in report.source.notes:
+            log.debug(f"meshio: {note}")
+        for line in report.lines():
+            log.info(line)
+    return 0
+
+
 def add_mesh(sub) -> None:
-    """``hapticrom mesh NAME``."""
+    """``hapticrom mesh NAME`` and ``hapticrom mesh import INPUT``."""
     from hapticrom.meshes import MESHES, REFINEMENTS  # pure numpy: gmsh only when meshing
 
-    p = new_command(sub, "mesh", cmd_mesh, HELP["mesh"])
-    p.add_argument("name", choices=list(MESHES), help="the organ: %(choices)s")
-    p.add_argument("--out", metavar="FILE", help="output .msh path (default meshes/NAME.msh)")
-    p.add_argument(
-        "--refinement",
-        default="default",
-        choices=REFINEMENTS,
-        help="element size: %(choices)s (default %(default)s)",
+    p = new_command(
+        sub,
+        "mesh",
+        cmd_mesh,
+        HELP["mesh"],
+        description=(
+            "Generate a built-in organ mesh (hapticrom mesh NAME), or import your own "
+            "(hapticrom mesh import INPUT --out NAME.msh --rules RULES.toml [--scale S]). "
+            "Both write NAME.msh (gmsh MSH 4.1, physical groups tissue, clamped, loadable, "
+            "free) and NAME.json (the sidecar), in mm."
+        ),
     )
     p.add_argument(
+        "name",
+        choices=[*MESHES, "import"],
+        help="the organ: %(choices)s (import: read INPUT, see below)",
+    )
+    p.add_argument(
+        "input",
+        nargs="?",
+        metavar="INPUT",
+        help="mesh import only: the mesh file (.vtk, .vtu, .msh, .mesh, .inp)",
+    )
+    p.add_argument(
+        "--out",
+        metavar="FILE",
+        help="output .msh path (default meshes/NAME.msh; required by import)",
+    )
+    built_in = p.add_argument_group("built-in organs (hapticrom mesh NAME)")
+    built_in.add_argument(
+        "--refinement",
+        choices=REFINEMENTS,
+        help="element size: %(choices)s (default: default)",
+    )
+    built_in.add_argument(
         "--set", action="append", metavar="KEY=VALUE", help="override a generator parameter"
     )
-    p.add_argument(
+    built_in.add_argument(
         "--limbal-incision",
         nargs=4,
         type=float,
         metavar=("RADIUS", "START", "END", "DEPTH"),
         help="cornea: mesh a limbal relaxing incision explicitly (mm, degrees, thickness fraction)",
+    )
+    imported = p.add_argument_group("import (hapticrom mesh import INPUT --out NAME.msh)")
+    imported.add_argument(
+        "--rules",
+        metavar="RULES.toml",
+        help="the surface groups: clamped, loadable, the rest free (required; see "
+        "examples/mesh-import-rules.toml)",
+    )
+    imported.add_argument(
+        "--scale",
+        type=float_in(0.0, 1e9),
+        metavar="S",
+        help="multiply the coordinates by S to get mm (a mesh in cm: 10; default 1)",
     )
 
 
@@ -184,7 +262,8 @@ def cmd_reduce(args, petsc) -> int:
 
 @offline_command()
 def cmd_train(args, petsc) -> int:
-    """Campaign and reduction in one go; exit status 1 if a solve failed."""
+    """Campaign (greedy with ``[positions.greedy]``) and reduction in one go; exit status 1
+    if a solve failed."""
     from hapticrom.offline.campaign.config import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
@@ -194,7 +273,19 @@ def cmd_train(args, petsc) -> int:
     petsc.start()
     from hapticrom.offline.reduce.reduction import reduce_campaign
 
-    failed = run_campaign_of(args, config, work)
+    if config.positions.greedy is not None:
+        from hapticrom.offline.campaign.greedy import run_greedy
+
+        report = run_greedy(
+            config,
+            work,
+            ranks_per_solve=args.ranks_per_solve,
+            restart=args.restart,
+            refinement_check=args.refinement_check,
+        )
+        failed = bool(report.campaign.failed)
+    else:
+        failed = run_campaign_of(args, config, work)
     reduce_campaign(work, out, reduction=config)
     return 1 if failed else 0
 

@@ -21,13 +21,13 @@ RESPONSE_LABELS = {"anm": "POD-ANM series", "curves": "interpolated full-order c
 
 # -- which samples to show -------------------------------------------------------------------
 def central_sample(model: ReducedModel) -> int:
-    """The sample nearest the chart origin (as ``hapticrom bench`` uses)."""
-    return int(np.argmin(np.linalg.norm(model.chart_points, axis=1)))
+    """The sample nearest the centre of the plan view (as ``hapticrom bench`` uses)."""
+    return int(np.argmin(np.linalg.norm(model.plan_points, axis=1)))
 
 
 def curve_samples(model: ReducedModel, count: int = 4) -> list[int]:
     """The central sample and others at radii spread evenly out to the rim of the region."""
-    radii = np.linalg.norm(model.chart_points, axis=1)
+    radii = np.linalg.norm(model.plan_points, axis=1)
     picked: list[int] = []
     for radius in np.linspace(0.0, radii.max(), min(count, len(radii))):
         distance = np.abs(radii - radius)

@@ -117,7 +117,7 @@ def load_displacement_figure(model: ReducedModel, samples: list[int], response: 
 
     knots = model.artifact["samples"]["depth"]
     fine = np.linspace(0.0, model.trained_depth, 201)
-    radii = np.linalg.norm(model.chart_points, axis=1)
+    radii = np.linalg.norm(model.plan_points, axis=1)
     fig = new_figure(7.5, 6.5)
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[2.2, 1])
     for colour, i in enumerate(samples):

@@ -1,0 +1,156 @@
+"""Interpolation on the surface itself: the samples' triangulation follows a closed organ and
+the runtime's weights are continuous on it, checked against an independent algorithm."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
+from hapticrom.online import kernels
+from hapticrom.online.reference import _border, _edge_bisection, _fixed_point
+
+RADIUS = 10.0  # mm
+
+
+def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """A sphere of RADIUS: vertices (V, 3), outward triangles (T, 3)."""
+    t = (1 + 5**0.5) / 2
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t),
+         (0, 1, -t), (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]  # fmt: skip
+    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4),
+         (11, 10, 2), (10, 7, 6), (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8),
+         (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10), (8, 6, 7), (9, 8, 1)]  # fmt: skip
+    vertices = [np.array(p, dtype=float) / np.linalg.norm(p) for p in v]
+    faces = f
+    middle: dict[tuple[int, int], int] = {}  # edge -> its midpoint vertex (any level)
+
+    def mid(a, b):
+        key = (min(a, b), max(a, b))
+        if key not in middle:
+            m = vertices[a] + vertices[b]
+            vertices.append(m / np.linalg.norm(m))
+            middle[key] = len(vertices) - 1
+        return middle[key]
+
+    for _ in range(subdivisions):
+        faces = [
+            tri
+            for a, b, c in faces
+            for tri in ((a, mid(a, b), mid(c, a)), (b, mid(b, c), mid(a, b)),
+                        (c, mid(c, a), mid(b, c)), (mid(a, b), mid(b, c), mid(c, a)))
+        ]  # fmt: skip
+    return RADIUS * np.array(vertices), np.array(faces, dtype=np.int64)
+
+
+@pytest.fixture(scope="module")
+def closed_organ():
+    """A closed organ (a sphere), loadable all over, with 40 samples at surface vertices
+    spread by farthest-point sampling."""
+    vertices, faces = icosphere(3)
+    picked = [0]
+    distance = np.linalg.norm(vertices - vertices[0], axis=1)
+    for _ in range(39):
+        picked.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(vertices - vertices[picked[-1]], axis=1))
+    points = vertices[picked]
+    normals = points / RADIUS
+    tri = triangulate_samples(points, normals, vertices, faces, np.ones(len(faces), dtype=int))
+    return vertices, points, normals, tri.triangles.astype(np.int64)
+
+
+def located(p, points, normals, triangles):
+    """(flag, samples, weights, height) of the runtime's kernel for point p."""
+    weights, samples, where, scratch = np.zeros(3), np.zeros(3), np.zeros(2), np.zeros(3)
+    flag = kernels.locate(
+        np.asarray(p, dtype=float), np.ravel(points), np.ravel(normals),
+        np.ravel(triangles).astype(float), np.ravel(kernels.border_edges(triangles)).astype(float),
+        weights, samples, where, scratch,
+    )  # fmt: skip
+    return flag, samples.astype(int), weights, where[1]
+
+
+def test_the_triangulation_of_a_closed_organ_is_a_closed_outward_surface(closed_organ):
+    _, points, normals, triangles = closed_organ
+    edges = np.sort(np.vstack([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]))
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)  # every sample edge in two triangles: no hole, no fold
+    assert len(points) - len(counts) + len(triangles) == 2  # Euler: a sphere
+    a, b, c = (points[triangles[:, k]] for k in range(3))
+    n = np.cross(b - a, c - a)
+    assert np.all(np.einsum("tx,tx->t", n, a + b + c) > 0)  # counter-clockwise from outside
+    assert len(kernels.border_edges(triangles)) == 0
+
+
+def test_every_point_of_a_closed_organ_is_inside_and_weights_agree_with_another_algorithm(
+    closed_organ,
+):
+    """The kernel's Newton against a fixed-point iteration, at random surface points."""
+    _, points, normals, triangles = closed_organ
+    rng = np.random.default_rng(4)
+    for direction in rng.normal(size=(300, 3)):
+        p = RADIUS * direction / np.linalg.norm(direction)
+        flag, samples, weights, h = located(p, points, normals, triangles)
+        assert flag == 0
+        assert weights.min() >= -1e-12 and weights.sum() == pytest.approx(1.0, abs=1e-12)
+        x, n = points[samples], normals[samples]
+        assert np.allclose(weights @ x + h * (weights @ n), p, atol=1e-9)
+        u, v, h_ref = _fixed_point(p, x, n)
+        assert np.allclose([1 - u - v, u, v], weights, atol=1e-9)
+        assert h == pytest.approx(h_ref, abs=1e-9)
+
+
+def test_weights_are_continuous_around_a_closed_organ(closed_organ):
+    """Along a great circle in 0.01 mm steps the sample weights change by O(step): no
+    jump where the contact crosses from one sample triangle into the next."""
+    _, points, normals, triangles = closed_organ
+    theta = np.linspace(0.0, 2 * np.pi, int(2 * np.pi * RADIUS / 0.01))
+    axis1, axis2 = np.array([1.0, 0.2, 0.1]), np.array([-0.1, 0.3, 1.0])
+    axis1 /= np.linalg.norm(axis1)
+    axis2 -= (axis2 @ axis1) * axis1
+    axis2 /= np.linalg.norm(axis2)
+    previous, crossings, largest = None, 0, 0.0
+    for t in theta:
+        _, samples, weights, _ = located(
+            RADIUS * (np.cos(t) * axis1 + np.sin(t) * axis2), points, normals, triangles
+        )
+        w = np.zeros(len(points))
+        w[samples] = weights
+        if previous is not None:
+            jump = np.abs(w - previous).sum()
+            largest = max(largest, jump)
+            crossings += int(set(np.flatnonzero(w)) != set(np.flatnonzero(previous)))
+        previous = w
+    spacing = np.median(np.linalg.norm(points[triangles[:, 0]] - points[triangles[:, 1]], axis=1))
+    assert crossings >= 10  # the path crosses many sample triangles
+    assert largest < 10 * 0.01 / spacing  # |dw| ~ step / spacing, never a jump
+
+
+def test_a_point_beyond_the_border_is_clamped_continuously(closed_organ):
+    """An open patch (the samples of one hemisphere): outside it the contact is clamped to
+    the border, with the weights of the border edge it meets, continuous across it."""
+    vertices, _, _, _ = closed_organ
+    cap = vertices[vertices[:, 2] > 0.3 * RADIUS]
+    points = cap[np.linspace(0, len(cap) - 1, 25).astype(int)]
+    normals = points / RADIUS
+    faces = icosphere(3)[1]
+    groups = (vertices[faces].mean(axis=1)[:, 2] > 0.2 * RADIUS).astype(int)
+    triangles = triangulate_samples(points, normals, vertices, faces, groups).triangles
+    triangles = triangles.astype(np.int64)
+    border = _border(triangles)
+    assert len(border) > 0
+    a, b, c = border[0]
+    for s in (0.25, 0.5, 0.75):
+        on_edge = points[a] + s * (points[b] - points[a])
+        outward = np.cross(points[b] - points[a], normals[a] + normals[b])
+        outward *= np.sign(outward @ (on_edge - points[c])) / np.linalg.norm(outward)
+        inside = located(on_edge - 1e-7 * outward, points, normals, triangles)
+        outside = located(on_edge + 0.5 * outward, points, normals, triangles)
+        assert inside[0] == 0 and outside[0] == kernels.FLAG_OUTSIDE_REGION
+        w_out = dict(zip(outside[1], outside[2], strict=True))
+        s_ref = _edge_bisection(on_edge + 0.5 * outward, points[a], points[b], normals[a],
+                                normals[b])  # fmt: skip
+        assert w_out[b] == pytest.approx(s_ref, abs=1e-9)
+        w_in = dict(zip(inside[1], inside[2], strict=True))
+        assert w_in.get(b, 0.0) == pytest.approx(s, abs=1e-5)
+        assert w_out[b] == pytest.approx(s, abs=0.05)  # 0.5 mm out: about the same point
