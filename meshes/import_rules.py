@@ -44,7 +44,8 @@ clamped), and both groups must end up non-empty; otherwise one :class:`InputErro
 the selector.
 
 Validated with the project's table models (:mod:`hapticrom.offline.tables`): unknown keys,
-wrong types, NaN, a zero axis are refused with one line naming the file, table and key.
+wrong types, NaN, a zero axis (or one whose length is outside :data:`DIRECTION_LENGTH`), a
+node id beyond :data:`MAX_NODE_ID` are refused with one line naming the file, table and key.
 """
 
 from __future__ import annotations
@@ -60,8 +61,10 @@ from pydantic import BeforeValidator, Field, PlainValidator, WithJsonSchema, mod
 from hapticrom.meshes.fibres import RULES as FIBRE_RULES
 from hapticrom.offline.config import read_toml
 from hapticrom.offline.tables import (
+    VECTOR_SCHEMA,
     Table,
     check_integer,
+    check_vector,
     choice,
     integer,
     invalid,
@@ -75,8 +78,14 @@ from hapticrom.shared.errors import InputError
 GROUPS = ("clamped", "loadable")  # the groups a rules file selects; the rest is "free"
 SELECTOR_KINDS = ("box", "half_space", "normal_cone", "nodes")
 
+# The largest node id: every integer up to it is exact in a JSON number and a float64, and
+# far beyond any mesh's node count (a larger id would only overflow numpy's int64).
+MAX_NODE_ID = 2**53 - 1
+# A direction's length (axis, normal): the selectors normalise it, and beyond these bounds
+# the squares of its components underflow or overflow. Only its direction counts.
+DIRECTION_LENGTH = (1e-100, 1e100)
+
 Point = vector()
-Direction = vector(nonzero=True)
 Angle = number(gt=0, le=180, as_float=True)
 Base = integer(ge=0, le=1)
 FibreRule = choice(FIBRE_RULES)
@@ -88,17 +97,42 @@ Components = text(
 )
 
 
+def _direction(value: Any) -> tuple[float, float, float]:
+    """Three finite numbers whose length lies in :data:`DIRECTION_LENGTH`."""
+    direction = check_vector(value, nonzero=True)
+    length = math.hypot(*direction)  # hypot neither underflows nor overflows here
+    low, high = DIRECTION_LENGTH
+    if not low <= length <= high:
+        raise invalid(
+            f"must have a length in [{low:g}, {high:g}], got {length:.3g} (only its direction "
+            "counts: scale it, e.g. to a unit vector)"
+        )
+    return direction
+
+
+Direction = Annotated[
+    tuple[float, float, float], PlainValidator(_direction), WithJsonSchema(VECTOR_SCHEMA)
+]
+
+
 def _node_ids(value: Any) -> tuple[int, ...]:
-    """A non-empty list of non-negative integers (the base is checked against them later)."""
+    """A non-empty list of integers in [0, MAX_NODE_ID] (the base is checked against them
+    later)."""
     if not isinstance(value, list | tuple) or not value:
         raise invalid(f"must be a non-empty list of node ids, got {value!r}")
-    return tuple(check_integer(v, ge=0) for v in value)
+    return tuple(check_integer(v, ge=0, le=MAX_NODE_ID) for v in value)
 
 
 NodeIds = Annotated[
     tuple[int, ...],
     PlainValidator(_node_ids),
-    WithJsonSchema({"type": "array", "items": {"type": "integer", "minimum": 0}, "minItems": 1}),
+    WithJsonSchema(
+        {
+            "type": "array",
+            "items": {"type": "integer", "minimum": 0, "maximum": MAX_NODE_ID},
+            "minItems": 1,
+        }
+    ),
 ]
 
 

@@ -13,7 +13,9 @@ groups come from the rules. Point and cell data (material ids, ...) are ignored.
 
 What is done to the mesh, in order, and said in the summary:
 
-* coordinates times ``scale`` (a mesh in cm: ``scale = 10``);
+* coordinates times ``scale`` (a mesh in cm: ``scale = 10``); the nodes the cells use must
+  then lie within the artifact's :data:`~hapticrom.shared.artifact_rules.MAX_LENGTH` of the
+  origin in every axis and span at least :data:`MIN_EXTENT`;
 * quadratic cells keep their corner nodes (meshio puts them first in every format): the
   result is the linear mesh of the same corners, and hapticrom chooses its own element on
   it (P2P0 on tetrahedra, Q1P0 on hexahedra); curved quadratic edges become straight;
@@ -24,12 +26,14 @@ What is done to the mesh, in order, and said in the summary:
 Refused, each with one :class:`InputError` naming the culprit (a cell as its 0-based
 position among the file's volume cells, a node as its 0-based position in the file's node
 list, a rule by its table) and nothing written: an unknown extension or unreadable file,
-an empty mesh, non-finite coordinates, no volume cells (a surface mesh), unsupported or
-mixed cell types, repeated or out-of-range node indices, duplicate cells, degenerate cells
-(a corner Jacobian within :data:`DEGENERATE_RELATIVE_VOLUME` of zero relative to the mean),
-mixed orientations or tangled hexahedra, a face shared by more than two cells, several
-disconnected bodies, a boundary edge not shared by exactly two boundary faces, and the
-rules' own mistakes (:func:`~hapticrom.meshes.import_rules.classify_faces`).
+an empty mesh, non-finite coordinates, coordinates (after ``scale``) too far or too close
+together, no volume cells (a surface mesh), unsupported or mixed cell types, repeated or
+out-of-range node indices, duplicate cells, degenerate cells (a corner Jacobian below
+:data:`DEGENERATE_SHAPE` x the cube of the cell's diameter), mixed orientations or tangled
+hexahedra, coincident nodes (unmerged duplicates: a slit inside the body), a face shared
+by more than two cells, several disconnected bodies, a boundary edge not shared by exactly
+two boundary faces, and the rules' own mistakes
+(:func:`~hapticrom.meshes.import_rules.classify_faces`).
 """
 
 from __future__ import annotations
@@ -47,7 +51,8 @@ import numpy as np
 
 from hapticrom.meshes.fibres import fibre_directions
 from hapticrom.meshes.import_rules import BoundaryFaces, RulesFile, classify_faces, read_rules
-from hapticrom.meshes.msh import CELL_FACES, BuiltMesh, require, write_msh
+from hapticrom.meshes.msh import CELL_FACES, BuiltMesh, require, sidecar_path, write_msh
+from hapticrom.shared.artifact_rules import MAX_LENGTH
 from hapticrom.shared.errors import InputError
 from hapticrom.shared.geometry import corner_area_vectors
 
@@ -73,10 +78,23 @@ CORNERS = {"tetrahedron": 4, "hexahedron": 8}
 HEX_CORNER_EDGES = np.array(
     [[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7], [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]]
 )
+# The edges of a cell by its number of corners, each once (pairs of local nodes).
+CELL_EDGES = {
+    4: np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]),
+    8: np.array(sorted({tuple(sorted((c, n))) for c in range(8) for n in HEX_CORNER_EDGES[c]})),
+}
 # Node orders that mirror a cell (turn an inverted cell into a positive one).
 MIRROR = {"tetrahedron": [0, 2, 1, 3], "hexahedron": [0, 3, 2, 1, 4, 7, 6, 5]}
-# A cell whose smallest corner Jacobian is below this fraction of the mean is degenerate.
-DEGENERATE_RELATIVE_VOLUME = 1e-6
+# A cell whose smallest corner Jacobian is below this fraction of the cube of its longest
+# edge is degenerate: a scale-free shape measure (a cube: 1; a regular tetrahedron:
+# 1/sqrt(2); a 1 x 1 x 1e-6 plate: 1e-6), so a graded mesh's small cells are judged as its
+# large ones.
+DEGENERATE_SHAPE = 1e-6
+# The smallest span (mm, after --scale) of an imported mesh: smaller is a wrong --scale.
+MIN_EXTENT = 1e-6
+# Two nodes closer than this fraction of the mesh's diagonal coincide (far above rounding
+# of coordinates within MAX_LENGTH, far below any real edge).
+COINCIDENT_RELATIVE_DISTANCE = 1e-9
 # A given default contact point may lie this far from the nearest loadable node: at least
 # 1 mm, or the longest edge of the loadable faces.
 CONTACT_SNAP_MIN = 1.0
@@ -190,8 +208,11 @@ def read_source(path: str | Path) -> SourceMesh:
             f"{path}: unknown mesh file extension {path.suffix!r}; hapticrom mesh import reads "
             + ", ".join(f"{ext} ({name})" for ext, (_, name) in FORMATS.items())
         )
+    if path.is_dir():
+        raise InputError(f"mesh file {path} is a directory; give the mesh file in it")
     if not path.is_file():
-        raise InputError(f"mesh file {path} not found")
+        missing = "is not a regular file" if path.exists() else "not found"
+        raise InputError(f"mesh file {path} {missing}")
     if path.stat().st_size == 0:
         raise InputError(f"{path} is an empty mesh: the file is empty (0 bytes)")
     file_format, format_name = FORMATS[path.suffix.lower()]
@@ -337,12 +358,13 @@ def orient_cells(nodes: np.ndarray, cells: np.ndarray, kind: str, path: Path):
         twice = np.flatnonzero(inverse == inverse[repeated[0]])
         raise InputError(f"{path}: volume cells #{twice[0]} and #{twice[1]} are the same cell")
     jac = corner_jacobians(nodes, cells)
-    reference = np.mean(np.abs(jac))
-    small = np.flatnonzero(np.min(np.abs(jac), axis=1) <= DEGENERATE_RELATIVE_VOLUME * reference)
+    shape = cell_shapes(nodes, cells, jac)
+    small = np.flatnonzero(~(shape > DEGENERATE_SHAPE))  # NaN (an underflow) included
     if len(small):
         raise InputError(
-            f"{path}: degenerate {_cell(nodes, cells, small[0])}: volume ~ 0 (corner Jacobian "
-            f"below {DEGENERATE_RELATIVE_VOLUME:g} x the mean; {len(small):,} such cell(s))"
+            f"{path}: degenerate {_cell(nodes, cells, small[0])}: volume ~ 0 (smallest corner "
+            f"Jacobian {shape[small[0]]:.2g} x its longest edge cubed, below "
+            f"{DEGENERATE_SHAPE:g}; {len(small):,} such cell(s))"
         )
     positive, negative = np.all(jac > 0, axis=1), np.all(jac < 0, axis=1)
     tangled = np.flatnonzero(~positive & ~negative)
@@ -365,6 +387,17 @@ def orient_cells(nodes: np.ndarray, cells: np.ndarray, kind: str, path: Path):
             f"(negative volume) and the others not; a mesh's cells share one orientation"
         )
     return cells, False
+
+
+def cell_shapes(nodes: np.ndarray, cells: np.ndarray, jacobians: np.ndarray) -> np.ndarray:
+    """(m,) each cell's smallest |corner Jacobian| over the cube of its longest edge: scale-free,
+    0 for a flat cell, NaN where the edge's cube underflows (a cell far below the mesh's size)."""
+    x = nodes[cells]
+    pairs = CELL_EDGES[cells.shape[1]]
+    edges = x[:, pairs[:, 1]] - x[:, pairs[:, 0]]
+    longest = np.sqrt(np.einsum("mek,mek->me", edges, edges).max(axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.min(np.abs(jacobians), axis=1) / longest**3
 
 
 def _cell(nodes: np.ndarray, cells: np.ndarray, i: int) -> str:
@@ -428,16 +461,12 @@ def _check_one_body(nodes, cells, inverse, counts, faces_per_cell: int, path: Pa
         return
     sizes = np.bincount(body)
     other = int(np.flatnonzero(body != body[0])[0])
-    coincident = len(nodes) - len(np.unique(nodes, axis=0))
-    hint = (
-        f"; {coincident:,} node(s) coincide with another: merge duplicate nodes first"
-        if coincident
-        else "; import one body per file"
-    )
+    # Coincident nodes (unmerged duplicates) were refused before: these bodies are apart.
     raise InputError(
         f"{path}: {n_bodies} disconnected bodies (cells per body: "
         f"{', '.join(f'{s:,}' for s in sizes[:8])}{', ...' if n_bodies > 8 else ''}): "
-        f"{_cell(nodes, cells, other)} shares no face with cell #0's body" + hint
+        f"{_cell(nodes, cells, other)} shares no face with cell #0's body; import one body "
+        "per file"
     )
 
 
@@ -514,12 +543,64 @@ def prepare_cells(source: SourceMesh, scale: float):
     """(nodes in mm, positively oriented cells on them, each node's index in the file,
     whether every cell was mirrored): scaled, checked, unused nodes dropped."""
     require(math.isfinite(scale) and scale > 0, f"--scale must be a positive number, got {scale}")
-    points = source.points * scale
-    if not np.all(np.isfinite(points)):
-        raise InputError(f"{source.path}: coordinates times --scale {scale:g} overflow")
+    points = scaled_points(source, scale)
     cells, reoriented = orient_cells(points, source.cells, source.kind, source.path)
     cells, source_ids = compact_nodes(cells)
-    return points[source_ids], cells, source_ids, reoriented
+    nodes = points[source_ids]
+    check_coincident_nodes(nodes, source_ids, source.path)
+    return nodes, cells, source_ids, reoriented
+
+
+def scaled_points(source: SourceMesh, scale: float) -> np.ndarray:
+    """The file's nodes times ``scale`` (mm); InputError if a node a cell uses lies beyond
+    the artifact's MAX_LENGTH in some axis (a trained model would be refused), or if the
+    cells span less than MIN_EXTENT (a wrong --scale)."""
+    with np.errstate(over="ignore"):
+        points = source.points * scale
+    used = np.unique(source.cells)
+    far = used[~(np.max(np.abs(points[used]), axis=1) <= MAX_LENGTH)]
+    if len(far):
+        raise InputError(
+            f"{source.path}: node {far[0]} (0-based) lies at {_xyz(points[far[0]])} mm (file "
+            f"coordinates x --scale {scale:g}), beyond the {MAX_LENGTH:g} mm from the origin a "
+            f"hapticrom model allows in each axis ({len(far):,} such node(s)): move the mesh "
+            "near the origin, or check --scale"
+        )
+    extent = float(np.max(np.ptp(points[used], axis=0)))
+    if extent < MIN_EXTENT:
+        raise InputError(
+            f"{source.path}: the mesh spans {extent:.3g} mm (file coordinates x --scale "
+            f"{scale:g}), less than {MIN_EXTENT:g} mm: check --scale (file units x scale = mm)"
+        )
+    return points
+
+
+def check_coincident_nodes(nodes: np.ndarray, source_ids: np.ndarray, path: Path) -> None:
+    """InputError if two nodes (of those the cells use) coincide: closer than
+    COINCIDENT_RELATIVE_DISTANCE x the mesh's diagonal. Two nodes of one cell cannot (the
+    cell would be degenerate), so cells that should share a node each use their own copy:
+    the body is slit there (its lips would become boundary) or falls apart."""
+    from scipy.spatial import cKDTree
+
+    tolerance = COINCIDENT_RELATIVE_DISTANCE * float(np.linalg.norm(np.ptp(nodes, axis=0)))
+    pairs = cKDTree(nodes).query_pairs(tolerance, output_type="ndarray")
+    if len(pairs) == 0:
+        return
+    pairs = np.sort(pairs, axis=1)
+    first = pairs[np.lexsort(pairs.T[::-1])[0]]  # the pair of lowest file positions
+    a, b = source_ids[first]
+    raise InputError(
+        f"{path}: nodes {a} and {b} (0-based) coincide at {_xyz(nodes[first[0]])} mm (within "
+        f"{tolerance:.2g} mm; {len(np.unique(pairs)):,} such node(s)): the cells meeting there "
+        "each use their own copy, which slits the body (or splits it) there; merge duplicate "
+        "nodes first (e.g. ParaView's Clean filter); a mesh with a crack or cut cannot be "
+        "imported"
+    )
+
+
+def _xyz(point: np.ndarray) -> str:
+    """``(x, y, z)`` with 4 significant digits."""
+    return f"({', '.join(f'{c:.4g}' for c in point)})"
 
 
 def boundary_geometry(
@@ -634,6 +715,12 @@ def import_mesh(
     """
     out = Path(out)
     require(out.suffix == ".msh", f"mesh output must be a .msh file, got {str(out)!r}")
+    require(not out.is_dir(), f"mesh output {out} is a directory; give a file name in it")
+    require(
+        not sidecar_path(out).is_dir(),
+        f"mesh output {out}: its sidecar {sidecar_path(out)} is an existing directory; remove it "
+        "or choose another name",
+    )
     if rules_path is None:
         raise InputError(NO_RULES)
     require(

@@ -260,18 +260,24 @@ def write_msh(
         "Mesh.Binary": int(binary),
         "Mesh.SaveAll": 0,
     }
-    with gmsh_model(f"hapticrom-write-{path.stem}", options):
-        _add_volume(nodes, cells)
-        _add_surface_groups(facet_groups, first_element=len(cells) + 1)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # Write next to the target, then rename: a crash never leaves a half mesh.
-        partial = path.with_name(f".{path.stem}.partial.msh")
-        gmsh.write(str(partial))
-
+    # Write next to the target, then rename: a crash never leaves a half mesh, and a
+    # failure (e.g. the sidecar's name taken by a directory) removes the partial files.
+    partial = path.with_name(f".{path.stem}.partial.msh")
     partial_sidecar = partial.with_suffix(".json")
-    partial_sidecar.write_text(json.dumps(dict(sidecar), indent=2) + "\n")
-    os.replace(partial_sidecar, sidecar_path(path))
-    os.replace(partial, path)
+    try:
+        with gmsh_model(f"hapticrom-write-{path.stem}", options):
+            _add_volume(nodes, cells)
+            _add_surface_groups(facet_groups, first_element=len(cells) + 1)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            gmsh.write(str(partial))
+        partial_sidecar.write_text(json.dumps(dict(sidecar), indent=2) + "\n")
+        os.replace(partial_sidecar, sidecar_path(path))
+        os.replace(partial, path)
+    except BaseException:
+        for leftover in (partial, partial_sidecar):
+            with contextlib.suppress(OSError):  # a directory of that name is left alone
+                leftover.unlink(missing_ok=True)
+        raise
     return path
 
 

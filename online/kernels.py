@@ -121,7 +121,8 @@ GRID_ORIGIN, GRID_CELL, GRID_DIMS, GRID_STARTS = 0, 3, 4, 7  # a point_grid's pa
 # (P samples, K knots, S sample triangles, the section records' stride or 0, Z sections,
 # where the scalpel's part starts, V surface vertices or 0 without it, E border edges),
 # then the contact's part: sample points (P, 3), sample normals (P, 3), forces (P, K),
-# slopes (P, K), sample triangles (S, 3), the triangulation's border edges (E, 3),
+# slopes (P, K), sample triangles (S, 3), their planes (S, PLANE), the triangulation's
+# border edges (E, 3),
 # POD-ANM section records (Z, stride) and section offsets (P + 1, with the records); then
 # the scalpel's part: reach, region reach, the surface vertices' point_grid, the vertices
 # (V, 3), their normals (V, 3), their region nodes (V; -1 outside the region). Row-major.
@@ -138,13 +139,32 @@ def border_edges(triangles) -> np.ndarray:
     return edges[counts[inverse.ravel()] == 1]
 
 
+PLANE = 13  # floats per sample triangle's plane: corner a, unit normal, g1, g2, longest edge^2
+
+
+def triangle_planes(points, triangles) -> np.ndarray:
+    """Per sample triangle (S, PLANE): its first corner x_a (3), unit normal (3), the dual
+    vectors g1, g2 (3 each; the flat coordinates of p are u = g1 (p - x_a), v = g2 (p -
+    x_a)) and its longest edge squared, so that :func:`locate`'s first pass costs a few
+    dot products per triangle."""
+    x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    xa, e1, e2 = x[t[:, 0]], x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]
+    n = np.cross(e1, e2)
+    area2 = np.einsum("sx,sx->s", n, n)[:, None]
+    reach2 = np.max([np.sum(e1 * e1, 1), np.sum(e2 * e2, 1), np.sum((e2 - e1) ** 2, 1)], axis=0)
+    return np.column_stack(
+        [xa, n / np.sqrt(area2), np.cross(e2, n) / area2, np.cross(n, e1) / area2, reach2]
+    )
+
+
 def contact_table(points, normals, forces, slopes, triangles, records=None,
                   offsets=None) -> np.ndarray:  # fmt: skip
     """The model's arrays :func:`prepare_contact` reads, packed into one read-only array."""
     P, K = np.shape(forces)
     stride, Z = (0, 0) if records is None else np.shape(records)[::-1]
     edges = border_edges(triangles)
-    parts = [points, normals, forces, slopes, triangles, edges]
+    parts = [points, normals, forces, slopes, triangles, triangle_planes(points, triangles), edges]
     if records is not None:
         parts += [records, offsets]
     body = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in parts])
@@ -173,7 +193,7 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 def contact_views(table):
     """The contact's parts of the table as flat views (row-major; a reshape costs more
     than the index arithmetic): sample points, normals, forces, slopes, sample
-    triangles, border edges, section records, section offsets."""
+    triangles, their planes, border edges, section records, section offsets."""
     P, K, S = int(table[T_SAMPLES]), int(table[T_KNOTS]), int(table[T_TRIANGLES])
     Z, stride, E = int(table[T_SECTIONS]), int(table[T_STRIDE]), int(table[T_EDGES])
     o = T_HEADER
@@ -182,11 +202,12 @@ def contact_views(table):
     c = b + P * K
     e = c + P * K
     r = e + 3 * S
-    t = r + 3 * E
+    q = r + PLANE * S
+    t = q + 3 * E
     u = t + Z * stride
     v = u + (P + 1 if stride > 0 else 0)
-    return (table[o:a], table[a:b], table[b:c], table[c:e], table[e:r], table[r:t],
-            table[t:u], table[u:v])  # fmt: skip
+    return (table[o:a], table[a:b], table[b:c], table[c:e], table[e:r], table[r:q],
+            table[q:t], table[t:u], table[u:v])  # fmt: skip
 
 
 @njit(inline="always")
@@ -591,9 +612,9 @@ def minus(a, b):
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-@njit(cache=True, nogil=True)
-def project_on_triangle(p, points, normals, a, b, c, best, out):
-    """The point p's coordinates over the sample triangle (a, b, c) along its blended
+@njit(inline="always")  # called per triangle: a call passing arrays costs more
+def project_on_triangle(p, points, normals, triangles, planes, t, best, out):
+    """The point p's coordinates over sample triangle t = (a, b, c) along its blended
     normals: (u, v, h) into out[0:3] with
 
         p = X(u, v) + h N(u, v),  X = x_a + u (x_b - x_a) + v (x_c - x_a),
@@ -607,20 +628,19 @@ def project_on_triangle(p, points, normals, a, b, c, best, out):
     h N in the plane), so a triangle farther from p, or with a flat coordinate below
     minus that margin (at most 1/2; the plane farther than the longest edge), is skipped
     without Newton."""
+    u, v, height = flat_coordinates(p, planes, t)
+    reach2 = planes[PLANE * t + 12]
+    if height * height >= best * best or height * height > reach2:
+        return False
+    a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
     xa, xb, xc = vertex(points, a), vertex(points, b), vertex(points, c)
-    na, nb, nc = vertex(normals, a), vertex(normals, b), vertex(normals, c)
     e1, e2, d = minus(xb, xa), minus(xc, xa), minus((p[0], p[1], p[2]), xa)
     n = cross(e1, e2)
-    area2 = dot(n, n)
-    reach2 = max(dot(e1, e1), dot(e2, e2), dot(minus(e2, e1), minus(e2, e1)))
-    height2 = dot(d, n) ** 2 / area2  # p's distance from the plane, squared
-    if height2 >= best * best or height2 > reach2:
-        return False
-    margin = min(0.5, best * math.sqrt(reach2 / area2))  # best / the smallest altitude
-    u, v = dot(cross(d, e2), n) / area2, dot(cross(e1, d), n) / area2
+    margin = min(0.5, best * math.sqrt(reach2 / dot(n, n)))  # best / the smallest altitude
     if u < -margin or v < -margin or u + v > 1.0 + margin:
         return False
-    dn1, dn2 = minus(nb, na), minus(nc, na)
+    na = vertex(normals, a)
+    dn1, dn2 = minus(vertex(normals, b), na), minus(vertex(normals, c), na)
     h = 0.0
     for _ in range(12):
         normal = combine(na, u, dn1, v, dn2)
@@ -641,27 +661,56 @@ def project_on_triangle(p, points, normals, a, b, c, best, out):
     return False
 
 
+@njit(inline="always")
+def sum_of_products(p, planes, origin, axis):
+    """(p - planes[origin:origin + 3]) . planes[axis:axis + 3]."""
+    return ((p[0] - planes[origin]) * planes[axis] + (p[1] - planes[origin + 1]) * planes[axis + 1]
+            + (p[2] - planes[origin + 2]) * planes[axis + 2])  # fmt: skip
+
+
+@njit(inline="always")
+def flat_coordinates(p, planes, t):
+    """(u, v, height) of p's projection on sample triangle t's plane (:func:`triangle_planes`)."""
+    o = PLANE * t
+    d0, d1, d2 = p[0] - planes[o], p[1] - planes[o + 1], p[2] - planes[o + 2]
+    height = d0 * planes[o + 3] + d1 * planes[o + 4] + d2 * planes[o + 5]
+    u = d0 * planes[o + 6] + d1 * planes[o + 7] + d2 * planes[o + 8]
+    v = d0 * planes[o + 9] + d1 * planes[o + 10] + d2 * planes[o + 11]
+    return u, v, height
+
+
 @njit(cache=True, nogil=True)
-def locate(p, points, normals, triangles, edges, out_weights, out_samples, out_where, uvh):
+def locate(p, points, normals, triangles, planes, edges, out_weights, out_samples, out_where,
+           uvh):  # fmt: skip
     """Barycentric weights of the point p (mm, on or near the surface) in the samples'
-    triangulation (flat row-major points and normals (3 P), triangles (3 S), border edges
-    (3 E): two samples and the triangle's third): of the triangle that holds p along its
+    triangulation (flat row-major points and normals (3 P), triangles (3 S), their planes
+    (PLANE S, :func:`triangle_planes`), border edges (3 E): two samples and the
+    triangle's third): of the triangle that holds p along its
     blended normals (:func:`project_on_triangle`) with the smallest height (the near side
     of a closed organ). The samples go into ``out_samples`` (as floats), the triangle and
-    the height into ``out_where`` (2; its triangle, the last contact's, is tried first: a
-    sliding contact is usually still in it, and its |h| then rules most others out
-    cheaply); ``uvh`` (3) is scratch.
+    the height into ``out_where`` (2); ``uvh`` (3) is scratch.
 
-    A point beyond the triangulation's border is clamped to the nearest point of the
-    border (returns FLAG_OUTSIDE_REGION), so weights stay continuous as it moves.
+    The triangle whose plane projection holds p deepest is solved first: it is usually
+    the one, and its |h| then rules most others out before their Newton (the bounds of
+    :func:`project_on_triangle`). A point beyond the triangulation's border is clamped to
+    the nearest point of the border (returns FLAG_OUTSIDE_REGION), so weights stay
+    continuous as it moves.
     """
-    best, found, bu, bv = np.inf, -1, 0.0, 0.0
     count = triangles.shape[0] // 3
-    seed = int(out_where[0]) if 0 <= out_where[0] < count else 0  # the last contact's first
+    first, deepest = 0, -np.inf
+    for t in range(count):
+        u, v, height = flat_coordinates(p, planes, t)
+        inside = min(u, v, 1.0 - u - v)
+        if inside > deepest and height * height <= planes[PLANE * t + 12]:
+            first, deepest = t, inside
+    best, found, bu, bv = np.inf, -1, 0.0, 0.0
     for k in range(count):
-        t = (seed + k) % count
-        a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
-        if not project_on_triangle(p, points, normals, a, b, c, best, uvh):
+        t = (first + k) % count
+        o = PLANE * t
+        height = sum_of_products(p, planes, o, o + 3)  # p's height over the plane
+        if height * height >= best * best:
+            continue  # |h| >= that height: this triangle cannot hold p nearer
+        if not project_on_triangle(p, points, normals, triangles, planes, t, best, uvh):
             continue
         u, v, h = uvh[0], uvh[1], uvh[2]
         if u >= -1e-12 and v >= -1e-12 and u + v <= 1.0 + 1e-12 and abs(h) < best:
@@ -669,6 +718,8 @@ def locate(p, points, normals, triangles, edges, out_weights, out_samples, out_w
             out_where[1] = h
     if found < 0:
         out_where[0] = -1.0
+        if edges.shape[0] == 0:  # a closed triangulation: p is off the surface
+            return nearest_corner(p, points, triangles, out_weights, out_samples, out_where)
         return clamp_to_border(p, points, normals, edges, out_weights, out_samples, out_where)
     for k in range(3):
         out_samples[k] = triangles[3 * found + k]
@@ -689,6 +740,24 @@ def edge_equation(d, e, na, dn, s):
     dg = -dot(e, e) * nn + 2.0 * re * dot(normal, dn) - dot(e, dn) * rn
     dg -= en * (-en + dot(r, dn))
     return g, dg
+
+
+@njit(cache=True, nogil=True)
+def nearest_corner(p, points, triangles, out_weights, out_samples, out_where):
+    """The sample nearest p, as weight 1 in a triangle that has it: where a closed
+    triangulation (no border) holds no point, i.e. p is far off the surface.
+    FLAG_OUTSIDE_REGION."""
+    best, best_t, best_k = np.inf, 0, 0
+    for t in range(triangles.shape[0] // 3):
+        for k in range(3):
+            d = distance2(points, int(triangles[3 * t + k]), p)
+            if d < best:
+                best, best_t, best_k = d, t, k
+    for k in range(3):
+        out_samples[k] = triangles[3 * best_t + (best_k + k) % 3]
+    out_weights[0], out_weights[1], out_weights[2] = 1.0, 0.0, 0.0
+    out_where[1] = math.sqrt(best)
+    return FLAG_OUTSIDE_REGION
 
 
 @njit(cache=True, nogil=True)
@@ -770,10 +839,13 @@ def contact_at(point, table, buf):
     sample triangle, its weights (buf[SAMPLES], buf[WEIGHTS]) and the height above it,
     the normal, the curves, buf[FLAGS] and, for the POD-ANM response, the neighbours'
     sections at the current depth."""
-    points, normals, forces, slopes, triangles, edges, records, offsets = contact_views(table)
+    points, normals, forces, slopes, triangles, planes, edges, records, offsets = contact_views(
+        table
+    )
     weights, samples = buf[WEIGHTS : WEIGHTS + 3], buf[SAMPLES : SAMPLES + 3]
     where, scratch = buf[TRIANGLE : TRIANGLE + 2], buf[LOCATE_SCRATCH : LOCATE_SCRATCH + 3]
-    flag = locate(point, points, normals, triangles, edges, weights, samples, where, scratch)
+    flag = locate(point, points, normals, triangles, planes, edges, weights, samples, where,
+                  scratch)  # fmt: skip
     knots = int(buf[KNOTS])
     prepare_curves(weights, samples, normals, forces, slopes, buf[NORMAL : NORMAL + 3],
                    buf[CURVE : CURVE + knots], buf[CURVE + knots : CURVE + 2 * knots])  # fmt: skip

@@ -293,6 +293,7 @@ def locate_points(sample_points, sample_normals, sample_triangles, queries):
 
     points, normals = _f8(np.ravel(sample_points)), _f8(np.ravel(sample_normals))
     triangles = _f8(np.ravel(sample_triangles))
+    planes = _f8(np.ravel(kernels.triangle_planes(sample_points, sample_triangles)))
     edges = _f8(np.ravel(kernels.border_edges(sample_triangles)))
     where, scratch = np.zeros(2), np.zeros(3)
     queries = _f8(np.reshape(queries, (-1, 3)))
@@ -300,7 +301,7 @@ def locate_points(sample_points, sample_normals, sample_triangles, queries):
     inside = np.zeros(len(queries), dtype=bool)
     for i, q in enumerate(queries):
         flag = kernels.locate(
-            q, points, normals, triangles, edges, weights[i], samples[i], where, scratch
+            q, points, normals, triangles, planes, edges, weights[i], samples[i], where, scratch
         )
         inside[i] = flag == 0
     return samples.astype(np.int64), weights, inside

@@ -500,7 +500,12 @@ class Simulator:
         """The error indicator at the contact (relative force error, 1): the samples'
         leave-one-out errors blended with the contact's weights (artifact
         ``samples/indicator``). It overestimates the error between well-spaced samples
-        (see README, "Any organ"); outside the trained region it is the border's."""
+        (see README, "Interpolation on the surface"); outside the trained region it is
+        the border's. NoContactError before the first ``set_contact``."""
+        if self._buf[kernels.CONTACTS] == 0:
+            raise NoContactError(
+                "error_estimate: no contact point yet; call set_contact(point) first"
+            )
         w, i = self._weights, self._samples
         e = self.model.indicator
         return float(w[0] * e[int(i[0])] + w[1] * e[int(i[1])] + w[2] * e[int(i[2])])

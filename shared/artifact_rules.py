@@ -290,6 +290,11 @@ def _sample_triangulation(artifact) -> None:
         raise _fail(
             artifact, "samples/normals of neighbouring samples differ by more than 60 degrees"
         )
+    if len(np.unique(np.sort(t, axis=1), axis=0)) < len(t):
+        raise _fail(artifact, "samples/triangles lists a triangle twice")
+    edges = np.sort(np.vstack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    if np.unique(edges, axis=0, return_counts=True)[1].max() > 2:
+        raise _fail(artifact, "samples/triangles has a sample edge in more than two triangles")
     facing = np.einsum("sx,skx->sk", n / area2[:, None], s["normals"][t])
     if np.any(facing < MIN_NORMAL_DOT):
         raise _fail(
@@ -297,9 +302,6 @@ def _sample_triangulation(artifact) -> None:
             "samples/triangles has a triangle not facing along its samples' normals "
             "(within 60 degrees, counter-clockwise seen from outside)",
         )
-    edges = np.sort(np.vstack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    if np.unique(edges, axis=0, return_counts=True)[1].max() > 2:
-        raise _fail(artifact, "samples/triangles has a sample edge in more than two triangles")
 
 
 def _surface(artifact) -> None:

@@ -94,6 +94,14 @@ def test_every_rule_of_every_integer_dataset_is_enforced(small_artifact, tmp_pat
     assert tried >= 10
 
 
+def third_on_an_edge(t: np.ndarray) -> np.ndarray:
+    """The triangles plus two more on the first triangle's edge (b, c), with samples not
+    in it: that edge then has three triangles (or more)."""
+    _, b, c = t[0]
+    others = sorted(set(np.unique(t).tolist()) - set(t[0].tolist()))[:2]
+    return np.vstack([t, [[b, c, d] for d in others]])
+
+
 @pytest.mark.parametrize(
     "name, change, match",
     [
@@ -103,7 +111,8 @@ def test_every_rule_of_every_integer_dataset_is_enforced(small_artifact, tmp_pat
         ("samples/stiffness", lambda a: -a, "samples/stiffness has negative values"),
         ("samples/normals", lambda a: 0 * a, "samples/normals has rows that are not unit"),
         ("samples/triangles", lambda t: t[:, ::-1].copy(), "not facing along its samples"),
-        ("samples/triangles", lambda t: np.vstack([t, t[:1]]), "edge in more than two"),
+        ("samples/triangles", lambda t: third_on_an_edge(t), "edge in more than two"),
+        ("samples/triangles", lambda t: np.vstack([t, t[:1, [1, 2, 0]]]), "triangle twice"),
         ("samples/depth", lambda a: 0 * a, "samples/depth must start at 0 and increase"),
         ("samples/depth", lambda a: a**2, "samples/depth must be uniform"),
         ("samples/reduced_stiffness", lambda a: a + np.triu(a, 1), "is not symmetric"),

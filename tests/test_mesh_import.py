@@ -474,7 +474,8 @@ BAD_MESHES = {
     "non-manifold edge": r"non-manifold boundary: the edge of file nodes \[4, 13\] at "
     r"\(10, 0, -5\) lies on 4 boundary faces",
     "two bodies": r"2 disconnected bodies \(cells per body: 96, 96\).*import one body per file",
-    "unmerged nodes": r"96 disconnected bodies .*coincide with another: merge duplicate nodes",
+    "unmerged nodes": r"nodes 0 and 64 \(0-based\) coincide at \(0, -5, -5\) mm \(within "
+    r".*; 384 such node\(s\)\).*merge duplicate nodes",
     "surface only": r"has no volume cells \(only triangle 80\): a surface mesh",
     "tets and hexes": r"mixed cell types tetra \(96\) and hexahedron \(16\)",
     "wedges": r"unsupported cell type\(s\) wedge \(16\)",

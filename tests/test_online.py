@@ -558,6 +558,7 @@ def test_every_error_the_runtime_raises_is_a_simulator_error(model):
     for name, call in {
         "step before contact": lambda: sim.step_displacement(np.zeros(3)),
         "force step before contact": lambda: sim.step_force(np.zeros(3)),
+        "error estimate before contact": lambda: sim.error_estimate,
         "point not finite": lambda: sim.set_contact([np.nan, 0.0, 0.0]),
         "point of strings": lambda: sim.set_contact("abc"),
         "output of a wrong shape": lambda: sim.surface_displacement(out[:2]),
@@ -579,7 +580,11 @@ def test_every_error_the_runtime_raises_is_a_simulator_error(model):
         raised[name] = info.value
     for name, error in raised.items():
         assert isinstance(error, SimulatorError), name
-    for name in ("step before contact", "force step before contact"):
+    for name in (
+        "step before contact",
+        "force step before contact",
+        "error estimate before contact",
+    ):
         assert isinstance(raised[name], online.NoContactError | RuntimeError), name
     for name in ("output of a wrong shape", "output of a wrong dtype"):
         assert isinstance(raised[name], online.OutputArrayError | ValueError), name

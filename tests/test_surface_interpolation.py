@@ -64,7 +64,8 @@ def located(p, points, normals, triangles):
     weights, samples, where, scratch = np.zeros(3), np.zeros(3), np.zeros(2), np.zeros(3)
     flag = kernels.locate(
         np.asarray(p, dtype=float), np.ravel(points), np.ravel(normals),
-        np.ravel(triangles).astype(float), np.ravel(kernels.border_edges(triangles)).astype(float),
+        np.ravel(triangles).astype(float), np.ravel(kernels.triangle_planes(points, triangles)),
+        np.ravel(kernels.border_edges(triangles)).astype(float),
         weights, samples, where, scratch,
     )  # fmt: skip
     return flag, samples.astype(int), weights, where[1]
@@ -154,3 +155,15 @@ def test_a_point_beyond_the_border_is_clamped_continuously(closed_organ):
         w_in = dict(zip(inside[1], inside[2], strict=True))
         assert w_in.get(b, 0.0) == pytest.approx(s, abs=1e-5)
         assert w_out[b] == pytest.approx(s, abs=0.05)  # 0.5 mm out: about the same point
+
+
+def test_off_the_surface_of_a_closed_organ_the_nearest_sample_answers(closed_organ):
+    """A closed triangulation has no border to clamp to: a point no triangle holds (the
+    organ's centre, far away) gets the nearest sample, weight 1, flagged outside."""
+    _, points, normals, triangles = closed_organ
+    for p in ([0.0, 0.0, 0.0], [0.0, 0.0, 1e6], [3e3, -2e3, 1e3]):
+        flag, samples, weights, _ = located(p, points, normals, triangles)
+        nearest = int(np.argmin(np.linalg.norm(points - np.array(p), axis=1)))
+        assert flag == kernels.FLAG_OUTSIDE_REGION
+        assert samples[0] == nearest and set(samples) <= set(range(len(points)))
+        assert list(weights) == [1.0, 0.0, 0.0]

@@ -326,11 +326,14 @@ def _solve_position(config, position, organ, group):
     problem = replace(config.problem, load=config.load.at(position))
     t0 = time.perf_counter()
     model = FullOrderModel(problem, comm=group, organ=organ, verbose=False)
-    order = CanonicalOrder(model.model.V)
-    pressure_order = CanonicalOrder(model.model.Q) if model.model.p is not None else None
-    path = _solve_load_path(model, order, pressure_order, group)
-    f, contact_local = _load_and_contact(config, model, order)
-    contact = order.gather_blocks(contact_local)
+    try:
+        order = CanonicalOrder(model.model.V)
+        pressure_order = CanonicalOrder(model.model.Q) if model.model.p is not None else None
+        path = _solve_load_path(model, order, pressure_order, group)
+        f, contact_local = _load_and_contact(config, model, order)
+        contact = order.gather_blocks(contact_local)
+    finally:
+        model.close()  # its factorisation, now: positions are solved one after another
     if group.rank != 0:
         return None
     datasets = _position_datasets(path, order, pressure_order, contact, f, model.sanity)

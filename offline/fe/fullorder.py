@@ -145,6 +145,11 @@ class FullOrderModel:
         return load_factor * self.load_vector * self.patch_displacement.integral
 
     # -- solve -----------------------------------------------------------------
+    def close(self) -> None:
+        """Free the solver's PETSc objects now (see :meth:`NewtonSolver.destroy`); the model
+        cannot solve afterwards. For loops that build one model after another."""
+        self.newton.destroy()
+
     def describe(self) -> str:
         """One line: mesh, element, DOFs, law and load."""
         dofs = self.model.num_dofs()

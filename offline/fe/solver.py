@@ -183,6 +183,16 @@ class NewtonSolver:
         """The PETSc nonlinear solver."""
         return self.problem.solver
 
+    def destroy(self) -> None:
+        """Free the solver's PETSc objects now (its factorisation included).
+
+        The SNES holds this object's tangent callback, a reference cycle through
+        PETSc that Python's collector does not free: without this a campaign that
+        solves one position after another in one process keeps every factorisation
+        (0.5-0.8 GB per liver solve; a 28-solve greedy run was killed at 11.8 GB).
+        """
+        self.problem.__del__()  # DOLFINx's own release of the SNES, matrices, vectors
+
     def solve(self, modified: bool = False) -> NewtonReport:
         """Solve from the current state of the unknowns.
 

@@ -414,9 +414,9 @@ def accuracy_description() -> str:
     return (
         "Solve the full-order model at held-out tool positions as in the model's training "
         "campaign, and compare the reduced model there at every load step: normal force and "
-        f"surface displacement. Targets: force {100 * FORCE_TARGETS['anm']:g} %% (POD-ANM) and "
-        f"{100 * FORCE_TARGETS['curves']:g} %% (curves), surface field {100 * FIELD_TARGET:g} "
-        "%% (relative L2). Exit status 0 when the check ran, whatever the verdicts; 1 if a "
+        f"surface displacement. Targets: force {100 * FORCE_TARGETS['anm']:g} % (POD-ANM) and "
+        f"{100 * FORCE_TARGETS['curves']:g} % (curves), surface field {100 * FIELD_TARGET:g} "
+        "% (relative L2). Exit status 0 when the check ran, whatever the verdicts; 1 if a "
         "held-out solve failed; 2 for bad input."
     )
 

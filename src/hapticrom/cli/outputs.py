@@ -25,7 +25,10 @@ def check_out_file(path: str | Path, label: str, make_parents: bool = False) -> 
     """An output file: not a directory, in an existing (or creatable) writable directory."""
     out = Path(path)
     if out.is_dir():
-        raise HapticromError(f"{label} is a directory; give a file name, e.g. {out / 'model.h5'}")
+        # The example keeps the kind of file asked for (a .msh, .json, ...): a directory named
+        # like a file was meant as one.
+        example = f"{out.stem}{out.suffix}" if out.suffix else "model.h5"
+        raise HapticromError(f"{label} is a directory; give a file name, e.g. {out / example}")
     if make_parents:
         check_ancestor(out.parent, label)
         return out
