@@ -29,7 +29,7 @@ list, a rule by its table) and nothing written: an unknown extension or unreadab
 an empty mesh, non-finite coordinates, coordinates (after ``scale``) too far or too close
 together, no volume cells (a surface mesh), unsupported or mixed cell types, repeated or
 out-of-range node indices, duplicate cells, degenerate cells (a corner Jacobian below
-:data:`DEGENERATE_SHAPE` x the cube of the cell's diameter), mixed orientations or tangled
+:data:`DEGENERATE_SHAPE` x the cube of the cell's longest edge), mixed orientations or tangled
 hexahedra, coincident nodes (unmerged duplicates: a slit inside the body), a face shared
 by more than two cells, several disconnected bodies, a boundary edge not shared by exactly
 two boundary faces, and the rules' own mistakes

@@ -254,6 +254,8 @@ def write_msh(
     require(cells.ndim == 2 and cells.shape[1] in CELL_TYPE_OF_NODES, "cells must be (m, 8|4)")
     unknown = sorted(set(facet_groups) - set(SURFACE_GROUPS))
     require(not unknown, f"unknown surface group(s) {unknown}; valid: {list(SURFACE_GROUPS)}")
+    for target in (path, sidecar_path(path)):
+        require(not target.is_dir(), f"cannot write mesh file {target}: it is a directory")
     options = {
         "General.Terminal": 0,
         "Mesh.MshFileVersion": 4.1,

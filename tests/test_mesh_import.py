@@ -577,6 +577,28 @@ BAD_RULES = [
         RULES.replace("[loadable]", "[loadable]\n[[loadable.nodes]]\nids = [1.5]\nbase = 0"),
         r"ids must be a finite integer, got 1.5",
     ),
+    # beyond int64: refused by the table, not an OverflowError when selecting
+    (
+        RULES.replace(
+            "[loadable]",
+            "[loadable]\n[[loadable.nodes]]\nids = [1, 99999999999999999999]\nbase = 0",
+        ),
+        r"\[\[loadable.nodes\]\] #1 ids must lie in \[0, 9007199254740991\], got "
+        r"99999999999999999999",
+    ),
+    # lengths whose square underflows or overflows: refused by the table, naming the key
+    (
+        RULES.replace("axis = [0.0, 0.0, 1.0]", "axis = [1e-200, 0, 1e-200]"),
+        r"\[\[loadable.normal_cone\]\] #1 axis must have a length in \[1e-100, 1e\+100\], got "
+        r"1.41e-200",
+    ),
+    (
+        RULES.replace(
+            "[loadable]",
+            "[loadable]\n[[loadable.half_space]]\npoint = [0, 0, 0]\nnormal = [0, 1e200, 1e200]",
+        ),
+        r"\[\[loadable.half_space\]\] #1 normal must have a length in .*got 1.41e\+200",
+    ),
     (RULES.split("[loadable]")[0], r"missing table \[loadable\]"),
     ("[clamped\n", "not valid TOML"),
 ]
@@ -596,6 +618,23 @@ def test_bad_rules_are_refused_and_nothing_is_written(tmp_path, text, message):
     assert no_files(out_dir)
 
 
+def test_check_refuses_what_import_refuses(tmp_path):
+    """``hapticrom check`` validates a rules file with the same table: a node id beyond
+    int64 or a tiny axis is refused there, before any mesh is read."""
+    from hapticrom.offline.check import check_config
+
+    ids = rules_file(
+        tmp_path, RULES + "[[loadable.nodes]]\nids = [18446744073709551616]\nbase = 1\n"
+    )
+    with pytest.raises(InputError, match=r"\[\[loadable.nodes\]\] #1 ids must lie in \[0, "):
+        check_config(ids)
+    axis = rules_file(tmp_path, RULES.replace("[0.0, 0.0, 1.0]", "[0, 1e-120, 0]"), "axis.toml")
+    with pytest.raises(InputError, match=r"#1 axis must have a length in \[1e-100, "):
+        check_config(axis)
+    unit = rules_file(tmp_path, RULES.replace("[0.0, 0.0, 1.0]", "[0, 0, 1e-90]"), "unit.toml")
+    assert check_config(unit).endswith(": OK")  # within the bounds: only the direction counts
+
+
 def test_no_rules_and_bad_outputs_are_refused(tmp_path):
     nodes, tets = tet_box()
     source = write(tmp_path / "box.vtu", nodes, [("tetra", tets)], "vtu")
@@ -608,7 +647,167 @@ def test_no_rules_and_bad_outputs_are_refused(tmp_path):
     for scale in (0.0, -2.0, float("nan"), float("inf")):
         with pytest.raises(InputError, match="--scale must be a positive number"):
             import_mesh(source, out_dir / "organ.msh", rules_file(tmp_path), scale=scale)
+    (tmp_path / "adir.vtu").mkdir()
+    with pytest.raises(InputError, match=r"mesh file .*adir.vtu is a directory"):
+        import_mesh(tmp_path / "adir.vtu", out_dir / "organ.msh", rules_file(tmp_path))
     assert no_files(out_dir)
+
+
+def test_a_sidecar_name_taken_by_a_directory_is_refused_first(tmp_path):
+    nodes, tets = tet_box()
+    source = write(tmp_path / "box.vtu", nodes, [("tetra", tets)], "vtu")
+    out_dir = tmp_path / "out"
+    (out_dir / "organ.json").mkdir(parents=True)
+    with pytest.raises(InputError, match=r"its sidecar .*organ.json is an existing directory"):
+        import_mesh(source, out_dir / "organ.msh", rules_file(tmp_path))
+    assert [p.name for p in out_dir.iterdir()] == ["organ.json"]
+    assert not any((out_dir / "organ.json").iterdir())
+
+
+def test_the_writer_refuses_directories_and_removes_its_partial_files(tmp_path):
+    """write_msh itself: a sidecar name taken by a directory is refused before any work; a
+    failure after the partial .msh is written (here its partial sidecar's name is a
+    directory) removes the partial .msh."""
+    from hapticrom.meshes.msh import write_msh
+
+    nodes, tets = tet_box()
+    (tmp_path / "organ.json").mkdir()
+    with pytest.raises(InputError, match=r"cannot write mesh file .*organ.json: it is a directory"):
+        write_msh(tmp_path / "organ.msh", nodes, tets, {}, {"name": "organ"})
+    (tmp_path / ".other.partial.json").mkdir()
+    with pytest.raises(IsADirectoryError):
+        write_msh(tmp_path / "other.msh", nodes, tets, {}, {"name": "other"})
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.partial.json", "organ.json"]
+    (tmp_path / ".other.partial.json").rmdir()
+    write_msh(tmp_path / "other.msh", nodes, tets, {}, {"name": "other"})  # the writer works
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["organ.json", "other.json", "other.msh"]
+
+
+# --- coincident nodes, far or tiny coordinates, graded meshes -----------------------------------
+
+
+@pytest.mark.parametrize("where", ["interior", "surface"])
+def test_coincident_nodes_are_refused(tmp_path, where):
+    """A node copied (same coordinates, or 1e-12 mm away) and used by the cells on one side
+    of it: a slit inside the body (interior) or a crack reaching the surface (surface), which
+    would become boundary faces. Refused naming the node and its copy."""
+    nodes, tets = tet_box()
+    target = [10.0, 0.0, 0.0] if where == "interior" else [10.0, 0.0, 5.0]
+    node = int(np.flatnonzero(np.all(nodes == target, axis=1))[0])
+    above = (nodes[tets].mean(axis=1)[:, 1] > 0) & np.any(tets == node, axis=1)
+    assert 0 < np.count_nonzero(above) < np.count_nonzero(np.any(tets == node, axis=1))
+    for offset in (0.0, 1e-12):
+        copy = nodes[node] + [offset, 0.0, 0.0]
+        split = tets.copy()
+        split[above] = np.where(split[above] == node, len(nodes), split[above])
+        source = write(tmp_path / "slit.vtu", np.vstack([nodes, copy]), [("tetra", split)], "vtu")
+        out_dir = tmp_path / "out"
+        out_dir.mkdir(exist_ok=True)
+        expected = (
+            rf"nodes {node} and {len(nodes)} \(0-based\) coincide at \(10, 0, {target[2]:g}\) "
+            r"mm .*2 such node\(s\)\).*merge duplicate nodes"
+        )
+        with pytest.raises(InputError, match=expected):
+            import_mesh(source, out_dir / "organ.msh", rules_file(tmp_path))
+        assert no_files(out_dir)
+
+
+def test_coordinates_beyond_the_artifacts_bound_are_refused(tmp_path):
+    """The artifact refuses points beyond MAX_LENGTH (mm): refused at import, after --scale,
+    naming the node; an unused node out there does not matter."""
+    from hapticrom.shared.artifact_rules import MAX_LENGTH
+
+    nodes, tets = tet_box()
+    rules = rules_file(tmp_path, BOX_RULES)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    shifted = nodes.copy()
+    shifted[:, 1] += MAX_LENGTH - 5.0 + 1e-3  # y in [MAX_LENGTH - 10, MAX_LENGTH + 1e-3]
+    cases = [
+        (shifted, 1.0, r"lies at \(.*, 1e\+04, .*\) mm \(file coordinates x --scale 1\)"),
+        (nodes + 1e15, 1.0, r"lies at \(1e\+15, 1e\+15, 1e\+15\) mm"),
+        (nodes, MAX_LENGTH / 10.0, r"lies at \(1\.5e\+04, .*x --scale 1000\)"),
+        (nodes * 1e10, 1e300, r"lies at \(.*inf.*\) mm \(file coordinates x --scale 1e\+300\)"),
+    ]
+    for points, scale, message in cases:
+        source = write(tmp_path / "far.vtu", points, [("tetra", tets)], "vtu")
+        with np.errstate(over="ignore"):
+            beyond = np.flatnonzero(np.abs(points * scale).max(axis=1) > MAX_LENGTH)
+        expected = (
+            rf"node {beyond[0]} \(0-based\) {message}.*beyond the {MAX_LENGTH:g} mm .*"
+            rf"\({len(beyond)} such node\(s\)\)"
+        )
+        with pytest.raises(InputError, match=expected):
+            import_mesh(source, out_dir / "organ.msh", rules, scale=scale)
+    assert no_files(out_dir)
+    # Within the bound (and a stray unused node far beyond it): imported.
+    inside = nodes + [0.0, 0.0, MAX_LENGTH - 5.0]
+    inside_rules = BOX_RULES.replace("4.9]", f"{MAX_LENGTH - 0.1}]").replace(
+        "5.1]", f"{MAX_LENGTH + 0.1}]"
+    )
+    inside_rules = inside_rules.replace("6.0, 6.0]", f"6.0, {MAX_LENGTH + 6}]")
+    source = write(tmp_path / "in.vtu", np.vstack([inside, [1e15, 0, 0]]), [("tetra", tets)], "vtu")
+    import_mesh(source, out_dir / "organ.msh", rules_file(tmp_path, inside_rules, "in.toml"))
+    assert read_back(out_dir / "organ.msh")["nodes"][:, 2].max() == MAX_LENGTH
+
+
+def test_a_mesh_scaled_to_nothing_is_refused(tmp_path):
+    nodes, tets = tet_box()
+    source = write(tmp_path / "box.vtu", nodes, [("tetra", tets)], "vtu")
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    with pytest.raises(InputError, match=r"the mesh spans 2e-299 mm .*x --scale 1e-300\), less "):
+        import_mesh(source, out_dir / "organ.msh", rules_file(tmp_path), scale=1e-300)
+    assert no_files(out_dir)
+
+
+def graded_hex_box(spacing: np.ndarray):
+    """A hexahedral box whose cells have the given widths along x, y and z (mm)."""
+    g = np.concatenate([[0.0], np.cumsum(spacing)])
+    n = len(spacing)
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    i, j, k = (a.ravel() for a in np.meshgrid(*[np.arange(n)] * 3, indexing="ij"))
+
+    def at(di, dj, dk):
+        return ((i + di) * (n + 1) + j + dj) * (n + 1) + k + dk
+
+    corners = [(0, 0, 0), (1, 0, 0), (1, 1, 0), (0, 1, 0), (0, 0, 1), (1, 0, 1), (1, 1, 1)]
+    corners.append((0, 1, 1))
+    return grid, np.stack([at(*c) for c in corners], axis=1)
+
+
+CONE_RULES = """
+[clamped]
+[[clamped.normal_cone]]
+axis = [0, 0, -1]
+max_angle = 30
+[loadable]
+[[loadable.normal_cone]]
+axis = [0, 0, 1]
+max_angle = 30
+"""
+
+
+def test_a_graded_mesh_is_not_degenerate(tmp_path):
+    """Cubes from 0.02 to 10 mm (a 500-fold volume range cubed): each cell is judged by its own
+    shape, not against the mean; a layer of plates (1e-7 of their width) is still refused."""
+    spacing = np.geomspace(0.02, 10.0, 8)
+    nodes, hexes = graded_hex_box(spacing)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    rules = rules_file(tmp_path, CONE_RULES)
+    source = write(tmp_path / "graded.vtu", nodes, [("hexahedron", hexes)], "vtu")
+    report = import_mesh(source, out_dir / "graded.msh", rules)
+    assert report.cells == 8**3 and report.groups["clamped"] == report.groups["loadable"] == 64
+    np.testing.assert_array_equal(read_back(out_dir / "graded.msh")["nodes"], nodes)
+
+    flat = spacing.copy()
+    flat[-1] = 0.02 * 1e-7  # the last layer in x, y and z: plates, needles and flakes
+    nodes, hexes = graded_hex_box(flat)
+    source = write(tmp_path / "flat.vtu", nodes, [("hexahedron", hexes)], "vtu")
+    plates = np.flatnonzero(np.any(nodes[hexes].max(axis=1) == nodes.max(axis=0), axis=1))
+    with pytest.raises(InputError, match=rf"degenerate volume cell #{plates[0]} .*volume ~ 0 "):
+        import_mesh(source, tmp_path / "flat.msh", rules)
 
 
 # --- downstream and the command line -------------------------------------------------------
@@ -685,6 +884,22 @@ def test_command_line_refusals(tmp_path, capsys, extra, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and message in err[0], err
     assert not out.parent.exists()
+
+
+def test_command_line_out_is_a_directory(tmp_path, capsys):
+    """--out naming an existing directory: the example is a .msh file in it."""
+    from hapticrom.cli import main
+
+    nodes, tets = tet_box()
+    source = write(tmp_path / "box.vtu", nodes, [("tetra", tets)], "vtu")
+    out = tmp_path / "organ.msh"
+    out.mkdir()
+    args = ["mesh", "import", source, "--out", out, "--rules", rules_file(tmp_path)]
+    assert main([str(a) for a in args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    example = f"is a directory; give a file name, e.g. {out / out.name}"
+    assert len(err) == 1 and err[0].endswith(example), err
+    assert not any(out.iterdir())
 
 
 def test_built_in_meshes_refuse_import_options(tmp_path, capsys):

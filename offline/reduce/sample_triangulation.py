@@ -17,9 +17,11 @@ their cells meet on the surface:
    of the samples (the restricted Delaunay faces are such faces; the faces of
    one tetrahedrisation never cross each other, so discretisation slop where
    four cells nearly meet cannot make two overlapping triangles);
-4. where a sample edge would still carry more than two triangles (a surface
-   through a Voronoi vertex), the worst-aligned triangles go, and triangles
-   whose normal turns from their samples' normals by more than 60 degrees go;
+4. triangles whose normal turns from their samples' normals, or whose samples'
+   normals turn from each other, by more than 60 degrees go (too few samples for
+   the curvature there: a hole, which the greedy trainer's ``cover`` fills); where
+   a sample edge would still carry more than two triangles (a surface through a
+   Voronoi vertex), the worst-aligned triangles go;
 5. each triangle is oriented with its samples' outward normals;
 6. where four samples lie on one sphere (symmetric placements), the cells
    may pick one diagonal of their quadrilateral and the tetrahedrisation the
@@ -162,8 +164,12 @@ def _alignment(points, normals, triples) -> np.ndarray:
 
 
 def _aligned(points, normals, triples) -> np.ndarray:
-    """The triangles that lie along the surface (normals within 60 degrees)."""
-    return triples[_alignment(points, normals, triples) >= MIN_ALIGNMENT]
+    """The triangles that lie along the surface: their normal and their samples' normals
+    pairwise within 60 degrees (the artifact's rule for neighbouring samples)."""
+    n = normals[triples]  # (T, 3 corners, 3)
+    pairwise = np.einsum("tix,tjx->tij", n, n).min(axis=(1, 2))
+    keep = (_alignment(points, normals, triples) >= MIN_ALIGNMENT) & (pairwise >= MIN_ALIGNMENT)
+    return triples[keep]
 
 
 def _manifold(points, normals, triples) -> np.ndarray:
