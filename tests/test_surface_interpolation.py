@@ -167,3 +167,43 @@ def test_off_the_surface_of_a_closed_organ_the_nearest_sample_answers(closed_org
         assert flag == kernels.FLAG_OUTSIDE_REGION
         assert samples[0] == nearest and set(samples) <= set(range(len(points)))
         assert list(weights) == [1.0, 0.0, 0.0]
+
+
+def test_every_triangle_meets_the_artifacts_normal_rules_even_with_rough_normals(closed_organ):
+    """Samples whose normals turn fast (tilted at random by up to ~70 degrees): every kept
+    triangle, hole fillings included, has its samples' normals pairwise within 60 degrees
+    and faces along each of them, as the artifact's rules require (a reduction refused
+    at the writer's read-back otherwise)."""
+    vertices, points, _, _ = closed_organ
+    faces = icosphere(3)[1]
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        normals = points / RADIUS + rng.normal(scale=0.7, size=points.shape)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        normals[np.einsum("px,px->p", normals, points) < 0] *= -1  # still outward
+        t = triangulate_samples(points, normals, vertices, faces, np.ones(len(faces), int))
+        n = normals[t.triangles]
+        assert np.einsum("tix,tjx->tij", n, n).min() >= 0.5
+        a, b, c = (points[t.triangles[:, k]] for k in range(3))
+        unit = np.cross(b - a, c - a)
+        unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+        assert np.einsum("tx,tkx->tk", unit, n).min() >= 0.5
+
+
+def test_a_hole_is_not_filled_across_samples_whose_normals_differ_by_over_60_degrees():
+    """A tetrahedron's surface missing its bottom face: the hole is filled when its
+    corners' normals agree; not when each faces the filling (55 degrees off it) but they
+    differ from each other by ~90 degrees (the artifact would refuse that triangle: the
+    liver's 56-sample reduction was, before this rule reached the filling)."""
+    from hapticrom.offline.reduce.sample_triangulation import _filled
+
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.3, 0.3, 1.0]])
+    sides = np.array([[0, 1, 3], [1, 2, 3], [2, 0, 3]])  # outward; the bottom (0, 2, 1) missing
+    down = np.tile([0.0, 0.0, -1.0], (4, 1))
+    down[3] = [0.0, 0.0, 1.0]
+    assert len(_filled(points, down, sides)) == 4
+    tilt = np.radians(55.0)
+    rough = down.copy()
+    for k, azimuth in enumerate(np.radians([0.0, 120.0, 240.0])):
+        rough[k] = [np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), -np.cos(tilt)]
+    assert len(_filled(points, rough, sides)) == 3

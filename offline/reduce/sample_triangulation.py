@@ -166,10 +166,14 @@ def _alignment(points, normals, triples) -> np.ndarray:
 def _aligned(points, normals, triples) -> np.ndarray:
     """The triangles that lie along the surface: their normal and their samples' normals
     pairwise within 60 degrees (the artifact's rule for neighbouring samples)."""
+    keep = _alignment(points, normals, triples) >= MIN_ALIGNMENT
+    return triples[keep & (_pairwise(normals, triples) >= MIN_ALIGNMENT)]
+
+
+def _pairwise(normals, triples) -> np.ndarray:
+    """The smallest cosine between two of each triangle's samples' normals."""
     n = normals[triples]  # (T, 3 corners, 3)
-    pairwise = np.einsum("tix,tjx->tij", n, n).min(axis=(1, 2))
-    keep = (_alignment(points, normals, triples) >= MIN_ALIGNMENT) & (pairwise >= MIN_ALIGNMENT)
-    return triples[keep]
+    return np.einsum("tix,tjx->tij", n, n).min(axis=(1, 2))
 
 
 def _manifold(points, normals, triples) -> np.ndarray:
@@ -208,7 +212,8 @@ def _filled(points, normals, triangles) -> np.ndarray:
     fills = []
     for loop in _short_loops(after):
         for candidate in _loop_fillings(points, loop):
-            if np.all(_facing(points, normals, candidate) >= MIN_ALIGNMENT):
+            facing = _facing(points, normals, candidate) >= MIN_ALIGNMENT
+            if np.all(facing & (_pairwise(normals, candidate) >= MIN_ALIGNMENT)):
                 fills.extend(candidate.tolist())
                 break
     return np.vstack([t, np.array(fills, dtype=np.int64).reshape(-1, 3)])
