@@ -40,7 +40,6 @@ from pathlib import Path
 import h5py
 import numpy as np
 from mpi4py import MPI
-from scipy.interpolate import PchipInterpolator
 
 from hapticrom.meshes.msh import read_surface
 from hapticrom.offline.campaign.config import CampaignConfig
@@ -50,6 +49,7 @@ from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.mpi import on_rank_zero, print0
 from hapticrom.offline.reduce.indicator import leave_one_out
 from hapticrom.offline.reduce.inputs import nominal_steps, surface_mesh
+from hapticrom.offline.reduce.interpolation import on_common_grid
 from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
 from hapticrom.online.model import locate_points
 from hapticrom.shared.checksum import array_digest
@@ -96,16 +96,6 @@ def read_force_curve(store: SnapshotStore, index: int, steps: int):
         depth = np.r_[0.0, _verified(f, "contact_displacement")[take] @ direction]
         force = np.r_[0.0, _verified(f, "force")[take] @ direction]
         return np.asarray(f.attrs["point"], dtype=float), direction, depth, force
-
-
-def on_common_grid(depths: list[np.ndarray], forces: list[np.ndarray]):
-    """(grid (K,), forces (P, K)): the curves on ``linspace(0, shallowest end, K)`` by monotone
-    cubic interpolation, K the points of the first curve (as the reduction's grid)."""
-    top = min(float(d[-1]) for d in depths)
-    grid = np.linspace(0.0, top, len(depths[0]))
-    return grid, np.array(
-        [PchipInterpolator(d, f)(grid) for d, f in zip(depths, forces, strict=True)]
-    )
 
 
 def solved_indices(store: SnapshotStore, indices) -> list[int]:

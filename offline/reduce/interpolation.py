@@ -77,6 +77,17 @@ def monotone_slopes(depth: np.ndarray, force: np.ndarray) -> np.ndarray:
     return PchipInterpolator(depth, force).derivative()(depth)
 
 
+def on_common_grid(depths: list[np.ndarray], forces: list[np.ndarray]):
+    """(grid (K,), forces (P, K)): the force curves on ``linspace(0, shallowest end, K)`` by
+    monotone cubic interpolation, K the points of the first curve. The one definition of the
+    grid: the artifact's (below) and the greedy trainer's indicator use it."""
+    top = min(float(d[-1]) for d in depths)
+    grid = np.linspace(0.0, top, len(depths[0]))
+    return grid, np.array(
+        [PchipInterpolator(d, f)(grid) for d, f in zip(depths, forces, strict=True)]
+    )
+
+
 def common_depth_grid(samples: list[Sample], reduced: list[ReducedSample]) -> DepthGrid:
     """Force curves and reduced coordinates on one uniform depth grid.
 
@@ -84,10 +95,7 @@ def common_depth_grid(samples: list[Sample], reduced: list[ReducedSample]) -> De
     force control each sample reached its own depths and is resampled
     (monotone cubic for the force, linear for the coordinates).
     """
-    K = len(samples[0].depth)
-    top = min(s.depth[-1] for s in samples)
-    grid = np.linspace(0.0, top, K)
-    forces = np.array([PchipInterpolator(s.depth, s.force)(grid) for s in samples])
+    grid, forces = on_common_grid([s.depth for s in samples], [s.force for s in samples])
     slopes = np.array([monotone_slopes(grid, f) for f in forces])
     coefficients = np.array(
         [
