@@ -39,7 +39,7 @@ from hapticrom.shared.accuracy import QUANTITIES, TARGETS, target, verdict
 from hapticrom.shared.errors import HapticromError, InputError
 from hapticrom.shared.geometry import plan_view
 
-FORMAT, VERSION = "hapticrom-accuracy", 2
+FORMAT, VERSION = "hapticrom-accuracy", 3  # 3: transport columns, dent, deepest, beyond
 RESPONSE_COLUMNS = {"curves": "curves", "anm": "ANM"}
 
 
@@ -73,6 +73,13 @@ class Step:
     depth: float  # mm, along the load direction
     f_fem: float  # N, normal force of the full-order model
     force: dict[str, float] = field(default_factory=dict)  # N, per combination
+    dent: dict[str, float] = field(default_factory=dict)  # relative error of the dent under
+    # the tool (the normal displacement of the surface node at the tool), per combination
+    deepest: dict[str, float] = field(default_factory=dict)  # mm from the tool to the
+    # rendered dent's deepest surface node, per combination
+    beyond: dict[str, bool] = field(default_factory=dict)  # the runtime extrapolated in depth
+    element: float = 0.0  # mm, the longest surface edge at the tool: "one element"
+    # last: the attribute named field hides dataclasses.field below it
     field: dict[str, float] = field(default_factory=dict)  # relative L2 error, per combination
 
 
@@ -223,12 +230,13 @@ def solve_held_out(plan: HeldOutPlan, work, comm=MPI.COMM_WORLD, restart=False, 
 
 # -- the comparison (rank 0, online runtime) ----------------------------------------------------
 def combinations(model) -> list[str]:
-    """The interpolation + response combinations the model offers, default first."""
-    names = ["podi+curves"]
+    """The interpolation + response combinations the model offers: the transported field
+    (the default) and PODI with each response, and Grassmann with the curves."""
+    names = ["transport+curves", "podi+curves"]
     if model.grassmann:
         names.append("grassmann+curves")
     if model.anm:
-        names.append("podi+anm")
+        names += ["transport+anm", "podi+anm"]
     return names
 
 
@@ -236,6 +244,22 @@ def relative_l2(approx: np.ndarray, exact: np.ndarray) -> float:
     """||approx - exact|| / ||exact|| (NaN for an exact zero)."""
     norm = float(np.linalg.norm(exact))
     return float(np.linalg.norm(approx - exact)) / norm if norm > 0 else float("nan")
+
+
+def dent_under_tool(field: np.ndarray, normal: np.ndarray, vertices: np.ndarray,
+                    tool: int) -> tuple[float, float]:  # fmt: skip
+    """(the normal displacement into the organ of the surface node at the tool, mm; the
+    distance from the tool to the node that moves in deepest, mm)."""
+    inward = -(field @ normal)
+    deepest = int(np.argmax(inward))
+    return float(inward[tool]), float(np.linalg.norm(vertices[deepest] - vertices[tool]))
+
+
+def element_size(model, vertex: int) -> float:
+    """The longest surface edge (mm) at a vertex: "one element" from it."""
+    t = model.triangles[np.any(model.triangles == vertex, axis=1)]
+    p = model.vertices[t]
+    return float(np.max(np.linalg.norm(p - np.roll(p, 1, axis=1), axis=2))) if len(t) else 0.0
 
 
 def compare_position(model, index: int, data: dict, attrs: dict) -> tuple[list[Step], bool]:
@@ -248,6 +272,9 @@ def compare_position(model, index: int, data: dict, attrs: dict) -> tuple[list[S
         for u, f in zip(data["contact_displacement"], data["force"], strict=True)
     ]
     nodes = model.artifact["surface"]["nodes"]
+    tool = int(np.argmin(np.linalg.norm(model.vertices - point, axis=1)))
+    for step in steps:
+        step.element = element_size(model, tool)
     out = np.zeros_like(model.vertices)
     outside = False
     for name in combinations(model):
@@ -257,9 +284,22 @@ def compare_position(model, index: int, data: dict, attrs: dict) -> tuple[list[S
         for step, u in zip(steps, data["displacement"], strict=True):
             normal = sim.contact_normal.copy()
             step.force[name] = float(sim.step_displacement(-step.depth * normal) @ normal)
+            # a depth the runtime extrapolates to (not one at the last knot but for rounding)
+            step.beyond[name] = sim.beyond_trained_depth and (
+                step.depth > (1 + 1e-6) * model.trained_depth
+            )
             sim.surface_displacement(out)
-            step.field[name] = relative_l2(out, u.reshape(-1, 3)[nodes])
+            exact = u.reshape(-1, 3)[nodes]
+            step.field[name] = relative_l2(out, exact)
+            dent, step.deepest[name] = dent_under_tool(out, normal, model.vertices, tool)
+            exact_dent = dent_under_tool(exact, normal, model.vertices, tool)[0]
+            step.dent[name] = abs(dent - exact_dent) / exact_dent if exact_dent > 0 else np.nan
     return steps, outside
+
+
+def _nanmax(values: list[float]) -> float:
+    finite = [v for v in values if np.isfinite(v)]
+    return max(finite) if finite else float("nan")
 
 
 def force_error(step: Step, name: str) -> float:
@@ -270,14 +310,24 @@ def force_error(step: Step, name: str) -> float:
 
 
 def summarise(steps: list[Step], names: list[str]) -> dict[str, dict]:
-    """Per combination: the largest force and field errors, their targets and verdicts."""
+    """Per combination, over the steps within its trained depth (the others are counted):
+    the largest force and field errors with their targets and verdicts, the largest error
+    of the dent under the tool and the farthest its deepest node lies from the tool (mm)."""
     summary = {}
     for name in names:
+        within = [s for s in steps if not s.beyond.get(name, False)]
         errors = {
-            "force": [force_error(s, name) for s in steps],
-            "field": [s.field[name] for s in steps],
+            "force": [force_error(s, name) for s in within],
+            "field": [s.field[name] for s in within],
         }
-        entry = {}
+        entry = {
+            "steps_beyond_trained_depth": len(steps) - len(within),
+            "max_dent_error": _nanmax([s.dent.get(name, np.nan) for s in within]),
+            "max_deepest_distance_mm": _nanmax([s.deepest.get(name, np.nan) for s in within]),
+            "deepest_within_one_element": all(
+                s.deepest.get(name, np.inf) <= s.element for s in within
+            ),
+        }
         for quantity, values in errors.items():
             finite = [v for v in values if np.isfinite(v)]
             worst = max(finite) if finite else float("nan")
@@ -346,28 +396,43 @@ def positions_text(plan: HeldOutPlan) -> str:
     return "\n".join(lines)
 
 
-def _podi_names(names: list[str]) -> list[str]:
-    return [n for n in names if n.startswith("podi+")]
+def _blended_names(names: list[str]) -> list[str]:
+    """The combinations whose forces the JSON rows carry (all but Grassmann's, whose force
+    is PODI's)."""
+    return [n for n in names if not n.startswith("grassmann+")]
+
+
+def _responses(names: list[str]) -> dict[str, str]:
+    """Per response, the first combination of it (its force column)."""
+    first = {}
+    for name in _blended_names(names):
+        first.setdefault(name.split("+")[1], name)
+    return first
 
 
 def steps_text(result: AccuracyResult) -> str:
-    """A table per held-out position (thesis Table 2.2 layout, plus the field error)."""
-    podi = _podi_names(result.names)
+    """A table per held-out position (thesis Table 2.2 layout): the force per response,
+    then the field error of every combination."""
+    forces, fields = _responses(result.names), result.names
     head = f"{'u (mm)':>8} {'F_FEM (N)':>10}"
-    for name in podi:
-        label = RESPONSE_COLUMNS[name.split("+")[1]]
-        head += f" {'F_' + label + ' (N)':>12} {'err %':>6} {'field %':>7}"
+    for response in forces:
+        head += f" {'F_' + RESPONSE_COLUMNS[response] + ' (N)':>12} {'err %':>6}"
+    for name in fields:
+        head += f" {name:>17}"
     blocks = []
     for index in dict.fromkeys(s.position for s in result.steps):
         rows = [s for s in result.steps if s.position == index]
         x, y, z = rows[0].point
         note = "  (outside the trained region: clamped)" if index in result.outside else ""
         lines = [f"\nheld-out position {index} at ({x:.3f}, {y:.3f}, {z:.3f}) mm{note}", head]
+        lines.append(f"{'':>8} {'':>10}" + " " * 20 * len(forces) + " field %".rjust(18))
         for s in rows:
             line = f"{s.depth:8.4f} {s.f_fem:10.5f}"
-            for name in podi:
+            for name in forces.values():
                 err = 100 * force_error(s, name)
-                line += f" {s.force[name]:12.5f} {err:6.2f} {100 * s.field[name]:7.2f}"
+                line += f" {s.force[name]:12.5f} {err:6.2f}"
+            for name in fields:
+                line += f" {100 * s.field[name]:17.2f}"
             lines.append(line)
         blocks.append("\n".join(lines))
     for index, why in sorted(result.failed.items()):
@@ -395,6 +460,22 @@ def summary_text(result: AccuracyResult) -> str:
         lines.append(f"{name:<18} " + " ".join(cells))
     lines += [f"  {q}: {meaning}" for q, meaning in QUANTITIES.items()]
     lines.append(
+        f"\n{'combination':<18} {'dent under tool':>15} {'deepest node from tool':>23}"
+        f" {'steps beyond trained depth (left out)':>38}"
+    )
+    for name, s in result.summary.items():
+        where = "within one element" if s["deepest_within_one_element"] else "beyond one element"
+        lines.append(
+            f"{name:<18} {100 * s['max_dent_error']:13.2f} % "
+            f"{s['max_deepest_distance_mm']:8.3f} mm ({where}) "
+            f"{s['steps_beyond_trained_depth']:>12d}"
+        )
+    lines.append(
+        "  dent under tool: max relative error of the normal displacement of the surface node "
+        "at the tool; deepest node: the farthest, over the steps, that the rendered dent's "
+        "deepest surface node lies from the tool"
+    )
+    lines.append(
         "  verdicts are information: a missed target says where the model is not to be "
         "trusted, not that the check failed"
     )
@@ -404,11 +485,11 @@ def summary_text(result: AccuracyResult) -> str:
 def result_json(result: AccuracyResult) -> dict:
     """The JSON of ``hapticrom accuracy --json`` (read by ``hapticrom report --accuracy``).
 
-    ``rows``: [position, [x, y, z], depth, F_FEM, one F_ROM per PODI combination of the
-    summary, in its order] (format 1 had these, and the summary's max errors, only);
+    ``rows``: [position, [x, y, z], depth, F_FEM, one F_ROM per combination of the summary
+    but Grassmann's, in its order] (format 1 had these, and the summary's max errors, only);
     ``field_errors``: the relative L2 field error of the same combinations, row by row.
     """
-    podi = _podi_names(result.names)
+    podi = _blended_names(result.names)
     plan = result.plan
     return {
         "format": FORMAT,
@@ -428,6 +509,9 @@ def result_json(result: AccuracyResult) -> dict:
             for s in result.steps
         ],  # fmt: skip
         "field_errors": [[s.field[n] for n in podi] for s in result.steps],
+        "dent_errors": [[s.dent[n] for n in podi] for s in result.steps],
+        "deepest_mm": [[s.deepest[n] for n in podi] for s in result.steps],
+        "beyond_trained_depth": [[s.beyond[n] for n in podi] for s in result.steps],
         "failed": {str(i): why for i, why in result.failed.items()},
         "outside_trained_region": result.outside,
         "seconds": result.seconds,

@@ -5,7 +5,8 @@ Start here: the default response of an artifact with POD-ANM series steps with
 :func:`step_force_anm` (force in, displacement out); the stored full-order curves
 (``response="curves"``) with :func:`step_displacement_curves` and
 :func:`step_force_curves`. :func:`prepare_contact` is ``set_contact`` in one call,
-:func:`place_scalpel` the scalpel's placement, ``surface_*`` the rendered surface.
+:func:`place_scalpel` the scalpel's placement, :func:`surface_grassmann` the Grassmann
+surface (the others: :mod:`hapticrom.online.surface_kernels`).
 
 Everything a step reads and writes is one float64 array per simulator, the
 *state buffer* (its layout: the constants below, ``NORMAL`` ... ``CURVE``); what the
@@ -1067,33 +1068,6 @@ def axpy(c, row, flat):
 
 
 @njit(
-    f"void({f8_1d}, {ro_f4_3d}, {ro_f8_3d}, {f8_1d}, {f8_2d})",
-    cache=True,
-    nogil=True,
-    fastmath=True,
-)
-def surface_podi(buf, basis_t, coefficients, scratch, out):
-    """PODI surface displacement at the last depth: sum_i w_i A_i c_i(depth), into out
-    (V, 3), mm.
-
-    ``basis_t`` is the surface basis transposed, (P, n, 3V): the inner loops run
-    over contiguous rows (vectorised axpys).
-    """
-    n = basis_t.shape[1]
-    k, a, b = depth_weights(buf[DEPTH], buf[STEP], coefficients.shape[1] - 1)
-    weights = buf[WEIGHTS : WEIGHTS + 3]
-    flat = out.reshape(out.size)
-    flat[:] = 0.0
-    for j in range(3):
-        i = int(buf[SAMPLES + j])
-        if weights[j] == 0.0:
-            continue
-        for m in range(n):
-            c = weights[j] * (a * coefficients[i, k, m] + b * coefficients[i, k + 1, m])
-            axpy(c, basis_t[i, m], flat)
-
-
-@njit(
     f"void({f8_1d}, int64, {ro_f4_3d}, {ro_f4_3d}, {f8_3d}, {ro_f8_3d}, {f8_1d}, {f8_2d})",
     cache=True,
     nogil=True,
@@ -1138,39 +1112,6 @@ def surface_grassmann(buf, reference, basis_t, tangents_t, frames, coefficients,
             if w == 0.0:
                 continue
             axpy(w, tangents_t[int(buf[SAMPLES + j]), m], flat)
-
-
-@njit(
-    f"void({f8_1d}, {ro_i8_1d}, {ro_f8_3d}, {ro_f4_3d}, {f8_1d}, {f8_2d})",
-    cache=True,
-    nogil=True,
-    fastmath=True,
-)
-def surface_anm(buf, offsets, coefficients, basis_t, scratch, out):
-    """Surface displacement sum_j w_j A_j c_j(a_j) (mm) from the series' coordinates.
-
-    ``coefficients`` (Z, N1, n): the artifact's series of the reduced coordinates;
-    the section and a of each neighbour are those of the last step.
-    """
-    base, n1, _, block = anm_layout(buf)
-    n = basis_t.shape[1]
-    flat = out.reshape(out.size)
-    flat[:] = 0.0
-    for j in range(3):
-        b = base + j * block
-        w = buf[b + BLOCK_WEIGHT]
-        if w == 0.0:
-            continue
-        i = int(buf[SAMPLES + j])
-        row_index = offsets[i] + int(buf[b + BLOCK_SECTION])
-        a = buf[b + BLOCK_A]
-        for m in range(n):
-            acc = 0.0
-            for k in range(n1 - 1, -1, -1):
-                acc = acc * a + coefficients[row_index, k, m]
-            scratch[m] = w * acc
-        for m in range(n):
-            axpy(scratch[m], basis_t[i, m], flat)
 
 
 # -- Grassmann interpolation of the bases ------------------------------------------------------

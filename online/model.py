@@ -7,10 +7,13 @@ from pathlib import Path
 
 import numpy as np
 
+from hapticrom.online.surface_chart import surface_chart
 from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
 from hapticrom.shared.geometry import plan_view
 
-INTERPOLATIONS = ("podi", "grassmann")
+# "transport" (the default): each neighbour's field carried to the contact before the blend
+# (online/surface_chart.py); "podi": blended where each was trained; "grassmann": the bases.
+INTERPOLATIONS = ("transport", "podi", "grassmann")
 RESPONSES = ("anm", "curves")
 
 
@@ -41,6 +44,8 @@ class ReducedModel:
         force, stiffness (P, K): normal reaction force curves (N) and slopes (N/mm).
         surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field;
         surface_basis_t (P, n, 3V): the same transposed, for the PODI kernel.
+        chart: the plan-view grid that carries each neighbour's field to the contact
+        (:class:`~hapticrom.online.surface_chart.SurfaceChart`), built at load.
         anm: the POD-ANM sections (artifact 1.1) as kernel records, or None.
     """
 
@@ -66,6 +71,10 @@ class ReducedModel:
         self.plan_origin, self.plan_axes, self.plan_points = plan_view(
             self.sample_points, self.sample_normals
         )
+        self.chart = surface_chart(
+            self.vertices, self.triangles, self.sample_points, self.sample_normals,
+            self.sample_triangles, self.surface_basis,
+        )  # fmt: skip
         if self.grassmann is not None:
             tangents = self.grassmann["tangents"]
             self.grassmann["tangents_t"] = np.ascontiguousarray(tangents.transpose(0, 2, 1))
@@ -73,7 +82,7 @@ class ReducedModel:
 
     def _freeze(self) -> None:
         """Every array read-only: simulators share the model, none may change it."""
-        tables = [vars(self), self.grassmann or {}, self.anm or {}]
+        tables = [vars(self), vars(self.chart), self.grassmann or {}, self.anm or {}]
         for table in tables:
             for value in table.values():
                 if isinstance(value, np.ndarray):
@@ -130,8 +139,12 @@ class ReducedModel:
         """Modes per sample, n."""
         return self.surface_basis.shape[2]
 
-    def simulator(self, interpolation: str = "podi", response: str | None = None, **limits):
+    def simulator(self, interpolation: str = "transport", response: str | None = None, **limits):
         """A new simulator state on this model (models are shared, simulators are not).
+
+        ``interpolation`` of the rendered surface: "transport" (each neighbour's field
+        carried to the contact, then blended: the dent under the tool), "podi" (blended
+        where each was trained) or "grassmann" (the bases interpolated; stored curves only).
 
         ``response``: "anm" (the POD-ANM series; the default when the artifact has
         them) or "curves" (the stored full-order force curves).
@@ -257,11 +270,11 @@ def sweep(model: ReducedModel) -> None:
     forces, displacements and surfaces finite and within the simulator's limits (10x the
     trained depth and force). Catches what no rule on single datasets sees (a field that
     overflows in the blend of two samples, a force that runs away beyond the trained depth)."""
-    combos = [("podi", "curves")]
+    combos = [("transport", "curves"), ("podi", "curves")]
     if model.grassmann:
         combos.append(("grassmann", "curves"))
     if model.anm:
-        combos.append(("podi", "anm"))
+        combos += [("transport", "anm"), ("podi", "anm")]
     surface = np.empty_like(model.vertices)
     for interpolation, response in combos:
         sim = model.simulator(interpolation, response)

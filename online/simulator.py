@@ -15,6 +15,11 @@ contact is frictionless: the normal component of ``d`` indents the tissue and
 the force is along the surface normal; to follow the tool sideways, move the
 contact point (``set_contact`` every step is fine: it is microseconds).
 
+The rendered surface (``interpolation``): "transport" (the default) carries each
+neighbour's field to the contact before the blend, so the dent is under the tool
+(:mod:`hapticrom.online.surface_chart`); "podi" blends them where each was trained;
+"grassmann" interpolates the bases.
+
 Work that depends only on the contact point happens in ``set_contact`` (one
 kernel call; the Grassmann frames, which only the surface needs, at the first
 ``surface_displacement`` after it). The steps allocate nothing: they write
@@ -49,7 +54,7 @@ import numbers
 
 import numpy as np
 
-from hapticrom.online import kernels
+from hapticrom.online import kernels, surface_kernels
 from hapticrom.online.model import INTERPOLATIONS, RESPONSES, ReducedModel
 from hapticrom.online.scalpel import CuttingController, readonly
 from hapticrom.shared.errors import (
@@ -109,7 +114,9 @@ def _check_config(model: ReducedModel, interpolation: str, response: str | None)
     if response == "anm" and model.anm is None:
         raise InputError("this artifact carries no POD-ANM series (format 1.1 'anm' group)")
     if response == "anm" and interpolation == "grassmann":
-        raise InputError("the POD-ANM response blends fields by PODI; use interpolation='podi'")
+        raise InputError(
+            "the POD-ANM response has no Grassmann field; use interpolation='transport' or 'podi'"
+        )
     if interpolation not in INTERPOLATIONS:
         raise InputError(f"interpolation must be one of {INTERPOLATIONS}, got {interpolation!r}")
     if interpolation == "grassmann" and model.grassmann is None:
@@ -159,7 +166,7 @@ class Simulator:
     def __init__(
         self,
         model: ReducedModel,
-        interpolation: str = "podi",
+        interpolation: str = "transport",
         max_displacement: float | None = None,
         max_force: float | None = None,
         response: str | None = None,
@@ -194,6 +201,12 @@ class Simulator:
         self._step_force = k.step_force_anm if anm else k.step_force_curves
         n = model.num_modes
         self._scratch = np.zeros(3 + 3 * n)  # (unused) + three n-vectors
+        self._coefficients = np.zeros((3, n))  # the neighbours' reduced coordinates
+        # The transported field's accumulated and one neighbour's field at the chart's nodes.
+        nodes = int(np.prod(model.chart.shape)) if interpolation == "transport" else 1
+        self._chart_fields = np.zeros((3, 3, nodes), dtype=np.float32)  # per neighbour
+        self._chart_rectangles = np.zeros((3, 5), dtype=np.int64)
+        self._chart_shifts = np.zeros((3, 12))
         self._frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
         self._frames_of = -1.0  # the contact (buf[CONTACTS]) the frames are of
         self._controlled = "displacement"  # the last step's control (the cuts' field needs it)
@@ -425,12 +438,20 @@ class Simulator:
         return out
 
     def _surface(self, out: np.ndarray) -> None:
-        m = self.model
+        m, c = self.model, self._coefficients
         if self.response == "anm":
             a = m.anm
-            kernels.surface_anm(
-                self._buf, a["offsets"], a["coefficients"], m.surface_basis_t, self._scratch, out
-            )
+            surface_kernels.anm_coefficients(self._buf, a["offsets"], a["coefficients"], c)
+        elif self.interpolation != "grassmann":
+            surface_kernels.curves_coefficients(self._buf, m.coefficients, c)
+        if self.interpolation == "transport":
+            ch = m.chart
+            surface_kernels.transported_surface(
+                self._buf, c, ch.node_basis, ch.sample_plan, m.sample_normals, ch.shape,
+                ch.read_rows, ch.read_columns, ch.spacing, ch.halo, ch.charted, ch.charted_node,
+                ch.charted_frac, ch.uncharted, m.surface_basis_t, self._chart_fields,
+                self._chart_rectangles, self._chart_shifts, out,
+            )  # fmt: skip
         elif self.interpolation == "grassmann":
             g = m.grassmann
             self._grassmann_frames()
@@ -439,7 +460,7 @@ class Simulator:
                 m.coefficients, self._scratch, out,
             )  # fmt: skip
         else:
-            kernels.surface_podi(self._buf, m.surface_basis_t, m.coefficients, self._scratch, out)
+            surface_kernels.blended_surface(self._buf, c, m.surface_basis_t, out)
         if self.cutting is not None:
             self.cutting.add_field(out, self._force, self.depth, self._controlled)
 

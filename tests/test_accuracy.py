@@ -99,8 +99,10 @@ def test_errors_are_against_a_full_order_solve(small_artifact, tmp_path):
     plan = with_positions(plan, [training, plan.positions[0]])
     result = accuracy.run_accuracy(plan, tmp_path / "work", MPI.COMM_SELF, quiet=True)
     assert not result.failed and set(result.names) == {
+        "transport+curves",
         "podi+curves",
         "grassmann+curves",
+        "transport+anm",
         "podi+anm",
     }
     steps = {i: [s for s in result.steps if s.position == i] for i in (0, 1)}
@@ -115,9 +117,13 @@ def test_errors_are_against_a_full_order_solve(small_artifact, tmp_path):
     assert worst(0, "podi+curves", "force") < 1e-8
     assert worst(0, "podi+anm", "force") < 1e-3  # the series' own tolerance
     assert worst(0, "podi+curves", "field") < 1e-2  # the POD truncation only
+    assert worst(0, "transport+curves", "field") < 1e-2  # and the chart's read-back
     for name in result.names:
         assert 1e-4 < worst(1, name, "force") < 0.2, name
         assert worst(1, name, "field") > 10 * worst(0, "podi+curves", "field"), name
+    for response in ("curves", "anm"):  # the dent carried to the tool: 6 % against 50 %
+        transported = worst(1, f"transport+{response}", "field")
+        assert transported < worst(1, f"podi+{response}", "field") / 4, response
 
     # An independent full-order solve at the held-out position gives the same F_FEM.
     config = accuracy.held_out_config(plan)
@@ -129,6 +135,7 @@ def test_errors_are_against_a_full_order_solve(small_artifact, tmp_path):
     assert all(f > 0 for f in fem)
     # and the summary is the worst of the steps, with the targets of the one place
     for name, entry in result.summary.items():
+        assert entry["steps_beyond_trained_depth"] == 0  # displacement control: trained depths
         assert entry["max_force_error"] == max(worst(0, name, "force"), worst(1, name, "force"))
         assert entry["force_target"] == FORCE_TARGETS[name.split("+")[1]]
         assert entry["field_target"] == FIELD_TARGET
@@ -155,13 +162,14 @@ def test_command_prints_positions_tables_verdicts_and_writes_json(small_artifact
     assert "snap moved (mm)" in text and text.count("random surface node (seed 3)") == 2
     assert "campaign 'held-out': 2 tool positions" in text  # the campaign's progress
     assert "held-out position 0 at (" in text and "held-out position 1 at (" in text
-    for name in ("podi+curves", "grassmann+curves", "podi+anm"):
+    for name in ("transport+curves", "podi+curves", "grassmann+curves", "transport+anm",
+                 "podi+anm"):  # fmt: skip
         line = next(row for row in text.splitlines() if row.startswith(name))
         target_force = f"{100 * FORCE_TARGETS[name.split('+')[1]]:.0f} %"
         assert target_force in line and "3 %" in line, line
         assert line.split().count("met") + line.split().count("missed") == 2, line
     data = json.loads(out.read_text())
-    assert data["format"] == "hapticrom-accuracy" and data["version"] == 2
+    assert data["format"] == "hapticrom-accuracy" and data["version"] == 3
     assert data["targets"] == json.loads(json.dumps(TARGETS))
     assert data["selection"] == {"method": "random", "seed": 3, "requested": 2}
     assert len(data["positions"]) == 2 and len(data["rows"]) == 2 * 4
@@ -169,8 +177,8 @@ def test_command_prints_positions_tables_verdicts_and_writes_json(small_artifact
         assert 0 < entry["max_force_error"] < 0.2, name
         assert entry["field_target"] == FIELD_TARGET and entry["field_verdict"] in ("met", "missed")
     results = read_accuracy(out)  # what the report reads
-    assert results.responses == ["podi+curves", "podi+anm"]
-    assert results.field.shape == (8, 2) and np.all(results.field > 0)
+    assert results.responses == ["transport+curves", "podi+curves", "transport+anm", "podi+anm"]
+    assert results.field.shape == (8, 4) and np.all(results.field > 0)
     assert {tuple(p["point"]) for p in data["positions"]} == {tuple(r[1]) for r in data["rows"]}
 
 
@@ -205,6 +213,5 @@ def test_two_ranks_give_the_serial_result(mesh_dir, tmp_path_factory):
     for row, step in zip(two["rows"], serial.steps, strict=True):
         assert row[0] == step.position and row[1] == step.point
         np.testing.assert_allclose(row[2:4], [step.depth, step.f_fem], rtol=1e-9)
-        np.testing.assert_allclose(
-            row[4:], [step.force["podi+curves"], step.force["podi+anm"]], rtol=1e-9
-        )
+        names = ("transport+curves", "podi+curves", "transport+anm", "podi+anm")
+        np.testing.assert_allclose(row[4:], [step.force[n] for n in names], rtol=1e-9)

@@ -12,7 +12,8 @@ from hapticrom.cli.console import log, result
 from hapticrom.cli.outputs import check_out_dir, check_out_file
 from hapticrom.shared.errors import HapticromError
 
-INTERPOLATIONS = ("podi", "grassmann")
+# as hapticrom.online.model.INTERPOLATIONS (not imported: the CLI starts without numba)
+INTERPOLATIONS = ("transport", "podi", "grassmann")
 RESPONSES = ("anm", "curves")
 # Bounds of the online commands' numbers: a servo loop of at most an hour (and at most
 # MAX_TICKS ticks, which the loop keeps in memory), bench runs that fit in memory (about
@@ -53,7 +54,7 @@ def interpolation_option(p) -> None:
     """``--interpolation``, as ``play`` and ``bench`` take it."""
     p.add_argument(
         "--interpolation",
-        default="podi",
+        default="transport",
         choices=INTERPOLATIONS,
         help="between the trained samples: %(choices)s (default %(default)s; grassmann needs "
         "the model's grassmann group)",
@@ -132,7 +133,11 @@ def cmd_report(args, petsc) -> int:
     from hapticrom.report import write_report
 
     path = write_report(
-        args.model, args.out, accuracy=args.accuracy, latency_steps=args.latency_steps
+        args.model,
+        args.out,
+        accuracy=args.accuracy,
+        latency_steps=args.latency_steps,
+        held_out_dir=args.held_out,
     )
     log.info(f"wrote {path}")
     return 0
@@ -147,6 +152,12 @@ def add_report(sub) -> None:
     )
     p.add_argument(
         "--accuracy", metavar="JSON", help="held-out errors: hapticrom accuracy MODEL --json JSON"
+    )
+    p.add_argument(
+        "--held-out",
+        metavar="DIR",
+        help="held-out solves of hapticrom accuracy MODEL (MODEL.heldout-8 by default): adds "
+        "the rendered surface against the full order at the position where PODI is worst",
     )
     number_option(
         p,

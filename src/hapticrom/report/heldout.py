@@ -57,8 +57,13 @@ def read_accuracy(path: str | Path) -> HeldOutResults:
     rows = data.get("rows")
     if not isinstance(rows, list) or not rows:
         raise HapticromError(f"accuracy file {path} has no 'rows'")
-    # One force per PODI combination is appended to each row, in the summary's order.
-    responses = [name for name in data["summary"] if name.startswith("podi+")]
+    # One force per combination is appended to each row, in the summary's order: every
+    # combination but Grassmann's from version 3 (with the transported field), the PODI
+    # ones before.
+    if data.get("version", 1) >= 3:
+        responses = [name for name in data["summary"] if not name.startswith("grassmann+")]
+    else:
+        responses = [name for name in data["summary"] if name.startswith("podi+")]
     try:
         table = [
             (
@@ -75,7 +80,8 @@ def read_accuracy(path: str | Path) -> HeldOutResults:
     if any(len(r[4]) != len(responses) or len(r[1]) != 3 for r in table):
         raise HapticromError(
             f"accuracy file {path}: each row needs [position, [x, y, z], depth, F_FEM] and one "
-            f"force per PODI combination of the summary ({', '.join(responses) or 'none'})"
+            "force per combination of the summary but Grassmann's "
+            f"({', '.join(responses) or 'none'})"
         )
     return HeldOutResults(
         summary=data["summary"],

@@ -1,0 +1,322 @@
+"""The chart that carries each neighbour's surface field to the contact (built at load).
+
+Why: PODI blends the three neighbours' fields where each was trained, so at an untrained
+contact it draws three shallow dents around the tool instead of one under it. The
+transported field (``interpolation="transport"``) moves each neighbour's field to the
+contact before blending:
+
+    u(X) = sum_j w_j R_j u_j(X + x_j - x)
+
+with the shift x_j - x taken in plan coordinates and R_j the rotation from the neighbour's
+normal to the contact's. Measured on the cornea demo (README, "The rendered surface"): the
+surface error drops from 8-13 % to 2-3 %, and the dent's deepest point is the vertex under
+the tool.
+
+The chart: the surface seen along the samples' mean normal (their plan view) splits into
+sheets, the part facing the viewer (layer 0) and the part facing away (layer 1); each is a
+height field over the plan, rasterised on one uniform grid of spacing ``spacing`` (mm). A
+node takes the values of the sheet triangle over it (the one nearest the viewer for layer 0,
+the farthest for layer 1, where a fold covers it twice); a node no triangle covers takes the
+values of the nearest covered node of its layer, so that a shifted read near a sheet's border
+stays on the organ. A vertex is *charted* when the four nodes of its cell are covered and its
+height is the sheet's there; the others (side walls, hidden folds) keep the blended field in
+place. The grid has a halo as wide as the largest shift (the longest sample-triangle edge),
+so a shifted read never leaves it.
+
+Layouts (N = layers x rows x columns nodes, row-major; flat node index
+``(layer * rows + a) * columns + b``): ``node_basis`` (P, n, 3, N) float32, each sample's
+surface modes at the nodes, component planes apart so the shifted reads of a row are
+contiguous; ``vertex_node`` (V,) the flat index of the lower-left node of each charted
+vertex's cell (-1: not charted) and ``vertex_frac`` (V, 2) its place in that cell.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from hapticrom.shared.geometry import plan_view
+
+FACING = math.cos(math.radians(75.0))  # a triangle whose normal is steeper belongs to no sheet
+SPACING_PER_EDGE = 0.8  # grid spacing / the median edge of the charted triangles
+MAX_NODES = 400_000  # a coarser grid beyond this (memory: P n 3 N float32)
+HEIGHT_TOLERANCE = 0.5  # in grid spacings: a vertex this far off its sheet is hidden
+BACK_PROJECTIONS = 64  # at most, rounds of fitting the nodes to the vertices read from them
+READ_BACK_TOLERANCE = 1e-3  # ... until the read-back's RMS error is this fraction of the RMS
+
+
+@dataclass(frozen=True)
+class SurfaceChart:
+    """The plan-view grid of a model's surface and its samples' modes on it (see module)."""
+
+    origin: np.ndarray  # (3,) mm
+    axes: np.ndarray  # (2, 3) unit, the plan's axes
+    spacing: float  # mm
+    shape: np.ndarray  # (3,) int64: layers, rows, columns
+    halo: int  # nodes of margin around the charted vertices' cells
+    sample_plan: np.ndarray  # (P, 2) mm, the samples' plan coordinates
+    node_basis: np.ndarray  # (P, n, 3, N) float32
+    vertex_node: np.ndarray  # (V,) int64, -1 where not charted
+    vertex_frac: np.ndarray  # (V, 2)
+    uncharted: np.ndarray  # (U,) int64: the vertices that keep the blended field
+    charted: np.ndarray  # (C,) int64: the others, in the order of their cells (locality)
+    charted_node: np.ndarray  # (C,) int64: vertex_node of those, in that order
+    charted_frac: np.ndarray  # (C, 2): vertex_frac of those, in that order
+    read_rows: np.ndarray  # (2,) int64: the rows [a0, a1) the charted vertices' cells read
+    read_columns: np.ndarray  # (2,) int64: the columns [b0, b1) they read
+
+    @property
+    def max_shift(self) -> float:
+        """The longest shift (mm) the halo holds."""
+        return (self.halo - 1) * self.spacing
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3) of a triangulated surface."""
+    a, b, c = (vertices[triangles[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)
+    normals = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], face)
+    length = np.linalg.norm(normals, axis=1)
+    return normals / np.where(length > 0, length, 1.0)[:, None]
+
+
+def _layers(vertices, triangles, normal):
+    """Each triangle's layer (0 facing the viewer, 1 away, -1 neither) and each vertex's."""
+    a, b, c = (vertices[triangles[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)
+    facing = face @ normal / np.maximum(np.linalg.norm(face, axis=1), 1e-300)
+    tri_layer = np.where(facing > FACING, 0, np.where(facing < -FACING, 1, -1))
+    vn = vertex_normals(vertices, triangles) @ normal
+    vertex_layer = np.where(vn > FACING, 0, np.where(vn < -FACING, 1, -1))
+    return tri_layer, vertex_layer
+
+
+def _spacing(vertices, triangles, tri_layer, nodes_per_mm2_area) -> float:
+    """The grid spacing: a fraction of the charted triangles' median edge, coarser if the
+    grid would exceed MAX_NODES."""
+    t = triangles[tri_layer >= 0]
+    edges = np.linalg.norm(vertices[t] - vertices[np.roll(t, 1, axis=1)], axis=2)
+    h = SPACING_PER_EDGE * float(np.median(edges))
+    return max(h, math.sqrt(nodes_per_mm2_area / MAX_NODES))
+
+
+def longest_sample_edge(plan: np.ndarray, sample_triangles: np.ndarray) -> float:
+    """The longest edge (mm) of the sample triangles in plan view: the largest shift a
+    contact inside them asks for (barycentric weights: x_j - x is within the triangle)."""
+    if len(sample_triangles) == 0:
+        return 0.0
+    t = plan[sample_triangles]
+    return float(np.max(np.linalg.norm(t - np.roll(t, 1, axis=1), axis=2)))
+
+
+def surface_chart(vertices, triangles, sample_points, sample_normals, sample_triangles,
+                  surface_basis) -> SurfaceChart:  # fmt: skip
+    """The chart of a model (see module). ``surface_basis`` (P, 3V, n)."""
+    origin, axes, _ = plan_view(sample_points, sample_normals)
+    normal = np.cross(axes[0], axes[1])
+    plan = (vertices - origin) @ axes.T
+    height = (vertices - origin) @ normal
+    sample_plan = (sample_points - origin) @ axes.T
+    tri_layer, vertex_layer = _layers(vertices, triangles, normal)
+    charted = vertex_layer >= 0
+    if not charted.any():
+        raise ValueError("no surface vertex faces along the samples' mean normal")
+    lo, hi = plan[charted].min(axis=0), plan[charted].max(axis=0)
+    h = _spacing(vertices, triangles, tri_layer, 2 * float(np.prod(hi - lo + 1e-9)))
+    halo = int(math.ceil(longest_sample_edge(sample_plan, sample_triangles) / h)) + 2
+    start = lo - halo * h
+    rows, columns = (int(math.ceil((hi[k] - lo[k]) / h)) + 2 * halo + 2 for k in range(2))
+    shape = (2, rows, columns)
+    node_tri, node_bary, node_height, covered = _rasterise(
+        plan, height, triangles, tri_layer.astype(np.int64), start, h, shape
+    )
+    source = _nearest_covered(covered.reshape(shape))
+    vertex_node, vertex_frac = _vertex_cells(
+        plan, height, vertex_layer, start, h, shape, covered, node_height
+    )
+    used = vertex_node[vertex_node >= 0]
+    charted = np.flatnonzero(vertex_node >= 0)
+    charted = charted[np.argsort(vertex_node[charted], kind="stable")].astype(np.int64)
+    a = (used % (rows * columns)) // columns
+    b = used % columns
+    return SurfaceChart(
+        origin=origin,
+        axes=axes,
+        spacing=h,
+        shape=np.array(shape, dtype=np.int64),
+        halo=halo,
+        sample_plan=sample_plan,
+        node_basis=_node_basis(
+            surface_basis,
+            triangles,
+            node_tri[source],
+            node_bary[source],
+            vertex_node,
+            vertex_frac,
+            columns,
+        ),  # fmt: skip
+        vertex_node=vertex_node,
+        vertex_frac=vertex_frac,
+        uncharted=np.flatnonzero(vertex_node < 0).astype(np.int64),
+        charted=charted,
+        charted_node=np.ascontiguousarray(vertex_node[charted]),
+        charted_frac=np.ascontiguousarray(vertex_frac[charted]),
+        read_rows=np.array([a.min(), a.max() + 2] if len(used) else [0, 0], dtype=np.int64),
+        read_columns=np.array([b.min(), b.max() + 2] if len(used) else [0, 0], dtype=np.int64),
+    )
+
+
+@njit(cache=True)
+def _rasterise(plan, height, triangles, tri_layer, start, h, shape):
+    """Per node: the covering triangle of its layer (nearest the viewer for layer 0,
+    farthest for layer 1), its barycentric weights there, the height, and whether any
+    triangle covers the node."""
+    layers, rows, columns = shape
+    N = layers * rows * columns
+    node_tri = np.full(N, -1, dtype=np.int64)
+    node_bary = np.zeros((N, 3))
+    node_height = np.zeros(N)
+    for t in range(triangles.shape[0]):
+        layer = tri_layer[t]
+        if layer < 0:
+            continue
+        i, j, k = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        x0, y0 = plan[i, 0], plan[i, 1]
+        e1x, e1y = plan[j, 0] - x0, plan[j, 1] - y0
+        e2x, e2y = plan[k, 0] - x0, plan[k, 1] - y0
+        det = e1x * e2y - e1y * e2x
+        if abs(det) < 1e-300:
+            continue
+        a_lo = max(int(math.floor((min(x0, x0 + e1x, x0 + e2x) - start[0]) / h)), 0)
+        a_hi = min(int(math.ceil((max(x0, x0 + e1x, x0 + e2x) - start[0]) / h)), rows - 1)
+        b_lo = max(int(math.floor((min(y0, y0 + e1y, y0 + e2y) - start[1]) / h)), 0)
+        b_hi = min(int(math.ceil((max(y0, y0 + e1y, y0 + e2y) - start[1]) / h)), columns - 1)
+        for a in range(a_lo, a_hi + 1):
+            px = start[0] + a * h - x0
+            for b in range(b_lo, b_hi + 1):
+                py = start[1] + b * h - y0
+                s = (px * e2y - py * e2x) / det
+                r = (e1x * py - e1y * px) / det
+                if s < -1e-12 or r < -1e-12 or s + r > 1.0 + 1e-12:
+                    continue
+                z = (1.0 - s - r) * height[i] + s * height[j] + r * height[k]
+                node = (layer * rows + a) * columns + b
+                if node_tri[node] >= 0 and (z <= node_height[node]) == (layer == 0):
+                    continue
+                node_tri[node] = t
+                node_bary[node, 0], node_bary[node, 1], node_bary[node, 2] = 1.0 - s - r, s, r
+                node_height[node] = z
+    return node_tri, node_bary, node_height, node_tri >= 0
+
+
+def _nearest_covered(covered: np.ndarray) -> np.ndarray:
+    """(N,) for every node the flat index of a nearest covered node of its layer (itself if
+    covered), by breadth-first growth over the 4-neighbours; a layer with no covered node
+    points at node 0 (its values are never read: no vertex is charted there)."""
+    layers, rows, columns = covered.shape
+    source = np.where(covered.ravel(), np.arange(covered.size), -1).reshape(covered.shape)
+    while (source < 0).any():
+        grown = source.copy()
+        for axis, step in ((1, 1), (1, -1), (2, 1), (2, -1)):
+            neighbour = np.roll(source, step, axis=axis)
+            edge = [slice(None)] * 3
+            edge[axis] = 0 if step == 1 else -1
+            neighbour[tuple(edge)] = -1  # no wrap-around
+            take = (grown < 0) & (neighbour >= 0)
+            grown[take] = neighbour[take]
+        if (grown == source).all():
+            break
+        source = grown
+    return np.where(source >= 0, source, 0).ravel()
+
+
+def _vertex_cells(plan, height, vertex_layer, start, h, shape, covered, node_height):
+    """Each vertex's cell (flat lower-left node, -1 if not charted) and place in it."""
+    layers, rows, columns = shape
+    cell = np.floor((plan - start) / h).astype(np.int64)
+    frac = (plan - start) / h - cell
+    a, b = cell[:, 0], cell[:, 1]
+    ok = (vertex_layer >= 0) & (a >= 0) & (a < rows - 1) & (b >= 0) & (b < columns - 1)
+    layer = np.maximum(vertex_layer, 0)
+    node = np.where(
+        ok, (layer * rows + np.clip(a, 0, rows - 2)) * columns + np.clip(b, 0, columns - 2), 0
+    )
+    corners = np.stack([node, node + columns, node + 1, node + columns + 1])
+    ok &= covered[corners].all(axis=0)
+    fa, fb = frac[:, 0], frac[:, 1]
+    weights = np.stack([(1 - fa) * (1 - fb), fa * (1 - fb), (1 - fa) * fb, fa * fb])
+    sheet_height = (weights * node_height[corners]).sum(axis=0)
+    ok &= np.abs(sheet_height - height) <= HEIGHT_TOLERANCE * h
+    return np.where(ok, node, -1).astype(np.int64), np.ascontiguousarray(frac)
+
+
+def _node_basis(surface_basis, triangles, node_tri, node_bary, vertex_node, vertex_frac,
+                columns) -> np.ndarray:  # fmt: skip
+    """(P, n, 3, N) float32: each sample's modes at the nodes, fitted so that the charted
+    vertices read back their own values.
+
+    The nodes first take the surface's values (barycentric in the covering triangle of each
+    node's source); a bilinear read at a vertex then smooths a sharp dent (measured on the
+    cornea demo: the node under the tool 1-5 % shallow). Rounds of residual correction
+    (each vertex's read-back error spread to the nodes the same way) bring the read-back
+    to the vertex values, until its RMS error is READ_BACK_TOLERANCE of the values' RMS, or
+    BACK_PROJECTIONS rounds (a Richardson iteration: 4-6 rounds on the cornea demo, where
+    the grid is finer than the mesh; more on a coarse mesh).
+    """
+    P, rows3, n = surface_basis.shape
+    corners = np.ascontiguousarray(triangles[np.maximum(node_tri, 0)])  # (N, 3)
+    out = np.empty((P, n, 3, len(node_tri)), dtype=np.float32)
+    _fit_nodes(surface_basis.reshape(P, rows3 // 3, 3 * n), corners, node_bary, vertex_node,
+               vertex_frac, columns, BACK_PROJECTIONS, READ_BACK_TOLERANCE, out)  # fmt: skip
+    return out
+
+
+@njit(cache=True)
+def _fit_nodes(modes, corners, bary, vertex_node, vertex_frac, columns, rounds, tolerance,
+               out):  # fmt: skip
+    """out[i, m, c, node] for every sample i (see :func:`_node_basis`); ``modes`` (P, V, 3n)."""
+    P, V, width = modes.shape
+    N = corners.shape[0]
+    nodes = np.zeros((N, width))
+    residual = np.zeros((V, width))
+    for i in range(P):
+        exact = modes[i].astype(np.float64)
+        _spread(exact, corners, bary, nodes, False)
+        scale = tolerance**2 * np.sum(exact**2)
+        for _ in range(rounds):
+            residual[:, :] = 0.0
+            for v in range(V):
+                s = vertex_node[v]
+                if s < 0:
+                    continue
+                fa, fb = vertex_frac[v, 0], vertex_frac[v, 1]
+                for k in range(width):
+                    read = (
+                        (1 - fa) * (1 - fb) * nodes[s, k]
+                        + fa * (1 - fb) * nodes[s + columns, k]
+                        + (1 - fa) * fb * nodes[s + 1, k]
+                        + fa * fb * nodes[s + columns + 1, k]
+                    )
+                    residual[v, k] = exact[v, k] - read
+            if np.sum(residual**2) <= scale:
+                break
+            _spread(residual, corners, bary, nodes, True)
+        for node in range(N):
+            for k in range(width):
+                out[i, k % (width // 3), k // (width // 3), node] = nodes[node, k]
+
+
+@njit(cache=True)
+def _spread(values, corners, bary, nodes, add):
+    """nodes (N, w) (+)= the surface values (V, w) at each node (barycentric)."""
+    for node in range(corners.shape[0]):
+        a, b, c = corners[node, 0], corners[node, 1], corners[node, 2]
+        wa, wb, wc = bary[node, 0], bary[node, 1], bary[node, 2]
+        for k in range(values.shape[1]):
+            value = wa * values[a, k] + wb * values[b, k] + wc * values[c, k]
+            nodes[node, k] = nodes[node, k] + value if add else value

@@ -1,0 +1,232 @@
+"""numba kernels of the rendered surface: the neighbours' coefficients, then one field.
+
+A surface is two steps. First the three neighbours' reduced coordinates at the last depth,
+unweighted, into a (3, n) array: from the stored curves' coefficients
+(:func:`curves_coefficients`) or from the POD-ANM series (:func:`anm_coefficients`).
+Then the field from them: blended where each neighbour was trained
+(:func:`blended_surface`, PODI) or carried to the contact first
+(:func:`transported_surface`, the chart of :mod:`hapticrom.online.surface_chart`).
+The Grassmann field (``kernels.surface_grassmann``) interpolates the bases themselves.
+
+Every kernel has an explicit signature (compiled or loaded from the cache at import) and
+allocates nothing. Units: mm.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from hapticrom.online.kernels import (
+    BLOCK_A,
+    BLOCK_SECTION,
+    DEPTH,
+    NORMAL,
+    SAMPLES,
+    STEP,
+    WEIGHTS,
+    anm_layout,
+    axpy,
+    depth_weights,
+    f8_1d,
+    f8_2d,
+    ro_f4_3d,
+    ro_f8_3d,
+    ro_i8_1d,
+)
+
+
+# -- the neighbours' reduced coordinates -------------------------------------------------------
+@njit(f"void({f8_1d}, {ro_f8_3d}, {f8_2d})", cache=True, nogil=True)
+def curves_coefficients(buf, coefficients, out):
+    """out[j] = c_i(depth) of neighbour j (i = buf[SAMPLES + j]), linear between the stored
+    depth knots of ``coefficients`` (P, K, n)."""
+    k, a, b = depth_weights(buf[DEPTH], buf[STEP], coefficients.shape[1] - 1)
+    for j in range(3):
+        i = int(buf[SAMPLES + j])
+        for m in range(out.shape[1]):
+            out[j, m] = a * coefficients[i, k, m] + b * coefficients[i, k + 1, m]
+
+
+@njit(f"void({f8_1d}, {ro_i8_1d}, {ro_f8_3d}, {f8_2d})", cache=True, nogil=True)
+def anm_coefficients(buf, offsets, series, out):
+    """out[j] = the POD-ANM series of neighbour j at its section and path parameter of the
+    last step (``series`` (Z, N1, n), Horner in a)."""
+    base, n1, _, block = anm_layout(buf)
+    for j in range(3):
+        b = base + j * block
+        i = int(buf[SAMPLES + j])
+        row = offsets[i] + int(buf[b + BLOCK_SECTION])
+        a = buf[b + BLOCK_A]
+        for m in range(out.shape[1]):
+            acc = 0.0
+            for k in range(n1 - 1, -1, -1):
+                acc = acc * a + series[row, k, m]
+            out[j, m] = acc
+
+
+# -- PODI: the fields blended where they were trained ---------------------------------------
+@njit(f"void({f8_1d}, {f8_2d}, {ro_f4_3d}, {f8_2d})", cache=True, nogil=True, fastmath=True)
+def blended_surface(buf, coefficients, basis_t, out):
+    """out (V, 3) = sum_j w_j A_j c_j: the neighbours' fields where each was trained (mm).
+    ``basis_t`` (P, n, 3V): the transposed surface bases (contiguous rows)."""
+    flat = out.reshape(out.size)
+    flat[:] = 0.0
+    for j in range(3):
+        w = buf[WEIGHTS + j]
+        if w == 0.0:
+            continue
+        i = int(buf[SAMPLES + j])
+        for m in range(coefficients.shape[1]):
+            axpy(w * coefficients[j, m], basis_t[i, m], flat)
+
+
+# -- the transported field ----------------------------------------------------------------
+@njit(inline="always")
+def rotation(a, b):
+    """The smallest rotation taking unit a to unit b (Rodrigues), row-major as a 9-tuple;
+    the identity for opposite vectors, which neighbouring samples never are."""
+    vx, vy, vz = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+    c = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    if c <= -0.99:
+        return 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0
+    f = 1.0 / (1.0 + c)
+    return (c + f * vx * vx, f * vx * vy - vz, f * vx * vz + vy,
+            f * vy * vx + vz, c + f * vy * vy, f * vy * vz - vx,
+            f * vz * vx - vy, f * vz * vy + vx, c + f * vz * vz)  # fmt: skip
+
+
+@njit(inline="always")
+def bilinear(f, s, columns, w00, w10, w01, w11):
+    """f at a point of the cell whose lower-left node is s (weights of its four nodes)."""
+    return w00 * f[s] + w10 * f[s + columns] + w01 * f[s + 1] + w11 * f[s + columns + 1]
+
+
+@njit(inline="always")
+def contract_rectangle(node_basis, i, c, shape, rows, columns, field):
+    """field (3, N) = sum_m c_m (the modes of sample i) over rows [rows[0], rows[1]) and
+    columns [columns[0], columns[1]) of every layer; the other nodes are not written."""
+    n_rows, n_cols = shape[1], shape[2]
+    count = columns[1] - columns[0]
+    for layer in range(shape[0]):
+        for a in range(rows[0], rows[1]):
+            first = (layer * n_rows + a) * n_cols + columns[0]
+            for comp in range(3):
+                out = field[comp, first : first + count]
+                out[:] = 0.0
+                for m in range(c.shape[0]):
+                    cm = np.float32(c[m])
+                    modes = node_basis[i, m, comp, first : first + count]
+                    for b in range(count):
+                        out[b] += cm * modes[b]
+
+
+@njit(inline="always")
+def read_shifted(field, s, fa, fb, n_cols, w, R, out, v):
+    """out[v] += w R field at node s + (fa, fb), bilinear; fa, fb in [0, 2): the vertex's
+    place in its cell plus the shift's fraction."""
+    da, db = int(fa), int(fb)  # 0 or 1: the shift's fraction moved the read a cell on
+    fa -= da
+    fb -= db
+    s += da * n_cols + db
+    w00, w10, w01, w11 = (1 - fa) * (1 - fb), fa * (1 - fb), (1 - fa) * fb, fa * fb
+    x = bilinear(field[0], s, n_cols, w00, w10, w01, w11)
+    y = bilinear(field[1], s, n_cols, w00, w10, w01, w11)
+    z = bilinear(field[2], s, n_cols, w00, w10, w01, w11)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = R
+    out[v, 0] += w * (r00 * x + r01 * y + r02 * z)
+    out[v, 1] += w * (r10 * x + r11 * y + r12 * z)
+    out[v, 2] += w * (r20 * x + r21 * y + r22 * z)
+
+
+@njit(inline="always")
+def read_neighbours(fields, charted, charted_node, charted_frac, n_cols, offsets, shifts, count,
+                    out):  # fmt: skip
+    """out[v] = sum_j w_j R_j field_j at (the vertex's place + the shift of neighbour j),
+    bilinear, at every charted vertex; ``shifts[j]`` = (w, fraction a, fraction b, R
+    row-major) and ``offsets[j]`` the shift's whole nodes, for the first ``count``."""
+    for v in charted:
+        out[v, 0] = out[v, 1] = out[v, 2] = 0.0
+    for j in range(count):
+        c, field, offset = shifts[j], fields[j], offsets[j]
+        w, fa, fb = c[0], c[1], c[2]  # local: out may alias nothing the compiler can prove
+        R = (c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10], c[11])
+        for k in range(charted.shape[0]):  # in the order of the cells: the reads stay local
+            read_shifted(field, charted_node[k] + offset, charted_frac[k, 0] + fa,
+                         charted_frac[k, 1] + fb, n_cols, w, R, out, charted[k])  # fmt: skip
+
+
+@njit(inline="always")
+def blended_vertices(buf, coefficients, basis_t, vertices, out):
+    """out[v] = sum_j w_j A_j c_j at the listed vertices only (the uncharted ones)."""
+    for v in vertices:
+        for comp in range(3):
+            r = 3 * v + comp
+            value = 0.0
+            for j in range(3):
+                w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
+                if w == 0.0:
+                    continue
+                for m in range(coefficients.shape[1]):
+                    value += w * coefficients[j, m] * basis_t[i, m, r]
+            out[v, comp] = value
+
+
+@njit(
+    "void(float64[::1], float64[:, ::1], Array(float32, 4, 'C', readonly=True), "
+    "Array(float64, 2, 'C', readonly=True), Array(float64, 2, 'C', readonly=True), "
+    "Array(int64, 1, 'C', readonly=True), Array(int64, 1, 'C', readonly=True), "
+    "Array(int64, 1, 'C', readonly=True), float64, int64, "
+    "Array(int64, 1, 'C', readonly=True), Array(int64, 1, 'C', readonly=True), "
+    "Array(float64, 2, 'C', readonly=True), "
+    "Array(int64, 1, 'C', readonly=True), Array(float32, 3, 'C', readonly=True), "
+    "float32[:, :, ::1], int64[:, ::1], float64[:, ::1], float64[:, ::1])",
+    cache=True,
+    nogil=True,
+    fastmath=True,
+)
+def transported_surface(buf, coefficients, node_basis, sample_plan, sample_normals, shape,
+                        rows, columns, spacing, halo, charted, charted_node, charted_frac,
+                        uncharted,
+                        basis_t, fields, rectangles, shifts, out):  # fmt: skip
+    """out (V, 3) = sum_j w_j R_j u_j(X + x_j - x) (mm): each neighbour's field carried to
+    the contact (shifted in plan view by x_j - x, rotated from its normal to the contact's)
+    read on the chart's grid at the charted vertices; the uncharted keep the blended field.
+    x = sum_j w_j x_j in plan view, so the field is as continuous as the weights.
+
+    ``fields`` (3, 3, N) float32: each neighbour's field at the nodes (single precision: it
+    is rendered, 1e-7 of a millimetre is far below a pixel, and twice the lanes vectorise);
+    ``rectangles`` (3, 5) int64: the node rows and columns each neighbour's field is needed
+    on, and its shift's whole nodes; ``shifts`` (3, 12): its weight, the shift's fractions
+    and the rotation (filled here: scratch).
+    """
+    xa = xb = 0.0
+    for j in range(3):
+        w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
+        xa += w * sample_plan[i, 0]
+        xb += w * sample_plan[i, 1]
+    limit = float(halo - 2)  # a corrupt state cannot read past the halo
+    normal = buf[NORMAL : NORMAL + 3]
+    n_cols = shape[2]
+    count = 0  # the neighbours with a weight, packed first
+    for j in range(3):
+        w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
+        if w == 0.0:
+            continue
+        sa = min(max((sample_plan[i, 0] - xa) / spacing, -limit), limit)
+        sb = min(max((sample_plan[i, 1] - xb) / spacing, -limit), limit)
+        ia, ib = int(math.floor(sa)), int(math.floor(sb))
+        r = rectangles[count]
+        r[0], r[1] = rows[0] + ia, rows[1] + ia + 1
+        r[2], r[3] = columns[0] + ib, columns[1] + ib + 1
+        r[4] = ia * n_cols + ib
+        contract_rectangle(node_basis, i, coefficients[j], shape, r[0:2], r[2:4], fields[count])
+        c = shifts[count]
+        c[0], c[1], c[2] = w, sa - ia, sb - ib
+        c[3:12] = rotation(sample_normals[i], normal)
+        count += 1
+    read_neighbours(fields, charted, charted_node, charted_frac, n_cols, rectangles[:, 4], shifts,
+                    count, out)  # fmt: skip
+    blended_vertices(buf, coefficients, basis_t, uncharted, out)

@@ -1,0 +1,217 @@
+"""The transported surface field: each neighbour's dent carried to the contact.
+
+On a plate every sample's field is the same dent centred on its own position, so the exact
+field at any contact is that dent centred on the contact (an analytic reference): the
+transported field must reproduce it, and PODI (the blend of three dents where they were
+trained) must not. Then: continuity as the contact slides across sample triangles, exact
+read-back at a training position, and the sides of an organ keep the blended field.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hapticrom.online import kernels, surface_kernels
+from hapticrom.online import surface_chart as surface_chart_module
+from hapticrom.online.surface_chart import surface_chart
+
+WIDTH = 12.0  # mm, the plate
+SPACING = 0.25  # mm, the surface mesh
+SIGMA = 0.6  # mm, the dent's radius
+SAMPLE_SPACING = 1.5  # mm
+
+
+def plate(thickness: float | None = None, spacing: float = SPACING):
+    """A square plate's upper surface (z = 0, outward +z) triangulated at SPACING, and with
+    ``thickness`` its lower surface (outward -z) and the four side walls, with a ring of
+    vertices half way down them: (V, 3), (T, 3)."""
+    n = int(round(WIDTH / spacing)) + 1
+    x = np.linspace(-WIDTH / 2, WIDTH / 2, n)
+    X, Y = np.meshgrid(x, x, indexing="ij")
+    top = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[:-1, 1:].ravel(),
+    )
+    up = np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    if thickness is None:
+        return top, up
+    bottom = top - [0.0, 0.0, thickness]
+    ring = np.concatenate([idx[:, 0], idx[-1, 1:], idx[-2::-1, -1], idx[0, -2:0:-1]])
+    middle = top[ring] - [0.0, 0.0, thickness / 2]
+    vertices = np.vstack([top, bottom, middle])
+    down = up[:, ::-1] + n * n
+    walls = []
+    for k in range(len(ring)):
+        p, q = ring[k], ring[(k + 1) % len(ring)]
+        mp, mq = 2 * n * n + k, 2 * n * n + (k + 1) % len(ring)
+        for upper_p, upper_q, lower_p, lower_q in ((p, q, mp, mq), (mp, mq, p + n * n, q + n * n)):
+            walls += [(upper_p, lower_p, upper_q), (upper_q, lower_p, lower_q)]
+    walls = np.array(walls)
+    # orient the walls outward (away from the plate's axis)
+    a, b, c = (vertices[walls[:, k]] for k in range(3))
+    outward = np.einsum("ij,ij->i", np.cross(b - a, c - a), (a + b + c) / 3)
+    walls[outward < 0] = walls[outward < 0][:, ::-1]
+    return vertices, np.vstack([up, down, walls])
+
+
+def dent(vertices: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """The analytic dent (V, 3) centred at ``centre``: into the plate, a Gaussian of SIGMA;
+    the lower surface follows the upper one."""
+    r2 = ((vertices[:, :2] - centre[:2]) ** 2).sum(axis=1)
+    field = np.zeros_like(vertices)
+    field[:, 2] = -np.exp(-r2 / SIGMA**2)
+    return field
+
+
+def samples_on(extent: float):
+    """Samples on a square lattice of SAMPLE_SPACING within +-extent, their normals (+z) and
+    a triangulation of the lattice."""
+    k = int(round(2 * extent / SAMPLE_SPACING)) + 1
+    s = np.linspace(-extent, extent, k)
+    X, Y = np.meshgrid(s, s, indexing="ij")
+    points = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    idx = np.arange(k * k).reshape(k, k)
+    a, b, c, d = (
+        idx[:-1, :-1].ravel(),
+        idx[1:, :-1].ravel(),
+        idx[1:, 1:].ravel(),
+        idx[:-1, 1:].ravel(),
+    )
+    triangles = np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return points, np.tile([0.0, 0.0, 1.0], (len(points), 1)), triangles.astype(np.int64)
+
+
+class PlateModel:
+    """A model whose sample i has one mode, the dent at its own position, coefficient 1."""
+
+    def __init__(self, thickness: float | None = None, spacing: float = SPACING):
+        self.vertices, self.triangles = plate(thickness, spacing)
+        self.points, self.normals, self.sample_triangles = samples_on(3.0)
+        basis = np.stack([dent(self.vertices, p).reshape(-1, 1) for p in self.points])
+        self.basis = basis.astype(np.float32)  # (P, 3V, 1)
+        self.basis_t = np.ascontiguousarray(self.basis.transpose(0, 2, 1))
+        self.chart = surface_chart(self.vertices, self.triangles, self.points, self.normals,
+                                   self.sample_triangles, self.basis)  # fmt: skip
+        nodes = int(np.prod(self.chart.shape))
+        self.fields = np.zeros((3, 3, nodes), dtype=np.float32)
+        self.rectangles = np.zeros((3, 5), dtype=np.int64)
+        self.shifts = np.zeros((3, 12))
+        self.buf = np.zeros(kernels.buffer_size(2))
+        self.coefficients = np.ones((3, 1))
+        for a in (self.basis, self.basis_t, *vars(self.chart).values()):
+            if isinstance(a, np.ndarray):
+                a.flags.writeable = False
+
+    def locate(self, point):
+        """Put the contact at ``point``: the runtime's weights, samples and normal."""
+        weights, samples = self.buf[kernels.WEIGHTS : kernels.WEIGHTS + 3], np.zeros(3)
+        where, scratch = np.zeros(2), np.zeros(3)
+        kernels.locate(
+            np.asarray(point, dtype=float), np.ravel(self.points), np.ravel(self.normals),
+            np.ravel(self.sample_triangles).astype(float),
+            np.ravel(kernels.triangle_planes(self.points, self.sample_triangles)),
+            np.ravel(kernels.border_edges(self.sample_triangles)).astype(float),
+            weights, samples, where, scratch,
+        )  # fmt: skip
+        self.buf[kernels.SAMPLES : kernels.SAMPLES + 3] = samples
+        self.buf[kernels.NORMAL : kernels.NORMAL + 3] = (0.0, 0.0, 1.0)
+
+    def transported(self, point) -> np.ndarray:
+        self.locate(point)
+        out, c = np.zeros_like(self.vertices), self.chart
+        surface_kernels.transported_surface(
+            self.buf, self.coefficients, c.node_basis, c.sample_plan, self.normals, c.shape,
+            c.read_rows, c.read_columns, c.spacing, c.halo, c.charted, c.charted_node,
+            c.charted_frac,
+            c.uncharted, self.basis_t, self.fields, self.rectangles, self.shifts, out,
+        )  # fmt: skip
+        return out
+
+    def blended(self, point) -> np.ndarray:
+        self.locate(point)
+        out = np.zeros_like(self.vertices)
+        surface_kernels.blended_surface(self.buf, self.coefficients, self.basis_t, out)
+        return out
+
+
+@pytest.fixture(scope="module")
+def slab():
+    return PlateModel(thickness=0.5)
+
+
+@pytest.fixture(scope="module")
+def fine_slab():
+    """The same plate meshed twice as finely: the chart's grid is twice as fine."""
+    return PlateModel(thickness=0.5, spacing=SPACING / 2)
+
+
+def relative(a, b) -> float:
+    return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+@pytest.mark.parametrize("point", [(0.37, -0.81, 0.0), (1.9, 1.1, 0.0), (-0.75, 0.75, 0.0)])
+def test_the_dent_is_carried_to_the_contact(slab, fine_slab, point):
+    """At untrained contacts the transported field is the dent under the tool, to the
+    grid's bilinear interpolation (and the fit's 1e-3): within 2 % with a grid spacing of a
+    third of the dent's radius, 1 % with half that. PODI's blend of three trained dents is
+    not the dent at all."""
+    exact = dent(slab.vertices, np.array(point))
+    transported, blended = slab.transported(point), slab.blended(point)
+    error = relative(transported, exact)
+    assert error < 0.02  # h = 0.2 mm against a dent of radius 0.6 mm
+    assert relative(blended, exact) > 0.5  # what the transport fixes: the test can fail
+    fine = relative(fine_slab.transported(point), dent(fine_slab.vertices, np.array(point)))
+    assert fine < 0.01
+    tool = int(np.argmin(np.linalg.norm(slab.vertices - point, axis=1)))
+    assert abs(transported[tool, 2] - exact[tool, 2]) < 0.03  # under the tool: 3 % of the dent
+    deepest = int(np.argmin(transported[:, 2]))
+    assert np.linalg.norm(slab.vertices[deepest, :2] - slab.vertices[tool, :2]) <= SPACING
+
+
+def test_a_training_position_reads_back_its_own_field(slab, monkeypatch):
+    """No shift: the grid fitted to the vertices (back-projection) reads back the sample's
+    own field, several times closer than the grid of the surface's values alone."""
+    point = slab.points[12]
+    fitted = relative(slab.transported(point), slab.blended(point))
+    monkeypatch.setattr(surface_chart_module, "BACK_PROJECTIONS", 0)
+    unfitted_model = PlateModel(thickness=0.5)
+    unfitted = relative(unfitted_model.transported(point), unfitted_model.blended(point))
+    assert fitted < 5e-3 and fitted < unfitted / 5
+
+
+def test_the_field_is_continuous_as_the_contact_slides(slab):
+    """Along a line across several sample triangles in 0.01 mm steps, no vertex jumps:
+    each step changes the field by at most what moving the exact dent 0.01 mm does, times
+    a margin for the interpolation."""
+    step = 0.01
+    path = np.column_stack([np.arange(-2.0, 2.0, step), np.full(400, 0.3), np.zeros(400)])
+    slope = np.exp(-0.5) * np.sqrt(2.0) / SIGMA  # the exact dent's steepest slope
+    previous = slab.transported(path[0])
+    for p in path[1:]:
+        field = slab.transported(p)
+        assert np.max(np.abs(field - previous)) < 3 * slope * step
+        previous = field
+
+
+def test_the_sides_keep_the_blended_field(slab):
+    """Walls (normal across the plan view) are not charted: PODI's values there."""
+    walls = np.abs(slab.vertices[:, 2] + 0.25) < 0.2  # strictly between the two surfaces
+    assert walls.any() and np.all(np.isin(np.flatnonzero(walls), slab.chart.uncharted))
+    point = (0.37, -0.81, 0.0)
+    uncharted = slab.chart.uncharted
+    np.testing.assert_allclose(
+        slab.transported(point)[uncharted], slab.blended(point)[uncharted], atol=1e-6
+    )
+
+
+def test_the_lower_surface_is_carried_too(slab):
+    """Both sheets of the plate: the dent on the lower surface moves with the contact."""
+    point = np.array([0.37, -0.81, 0.0])
+    lower = slab.vertices[:, 2] < -0.4
+    exact = dent(slab.vertices, point)
+    assert relative(slab.transported(point)[lower], exact[lower]) < 0.01
