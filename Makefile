@@ -69,7 +69,7 @@ demo: venv meshes/cornea.msh ## train the demo model (resumed), play, check, rep
 	$(TRAIN_DEMO)
 	$(VENV)/bin/hapticrom play $(DEMO_MODEL)
 	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom accuracy $(DEMO_MODEL) --json out/accuracy.json
-	$(VENV)/bin/hapticrom report $(DEMO_MODEL) --out out/report --accuracy out/accuracy.json
+	$(VENV)/bin/hapticrom report $(DEMO_MODEL) --out out/report --accuracy out/accuracy.json --held-out $(DEMO_MODEL:.h5=.heldout-8)
 	$(PY) bench/cutting_latency.py $(DEMO_MODEL)
 	$(PY) bench/cutting_runtime_accuracy.py $(DEMO_MODEL) --out out/cutting-runtime
 	@echo "reduced model: $(DEMO_MODEL) (snapshots: $(DEMO_MODEL:.h5=.campaign)); report: out/report/report.html; try: $(VENV)/bin/hapticrom bench $(DEMO_MODEL)"

@@ -232,11 +232,12 @@ def solve_held_out(plan: HeldOutPlan, work, comm=MPI.COMM_WORLD, restart=False, 
 def combinations(model) -> list[str]:
     """The interpolation + response combinations the model offers: the transported field
     (the default) and PODI with each response, and Grassmann with the curves."""
-    names = ["transport+curves", "podi+curves"]
+    fields = ["transport", "podi"] if model.chart is not None else ["podi"]
+    names = [f"{field}+curves" for field in fields]
     if model.grassmann:
         names.append("grassmann+curves")
     if model.anm:
-        names += ["transport+anm", "podi+anm"]
+        names += [f"{field}+anm" for field in fields]
     return names
 
 

@@ -43,7 +43,7 @@ def time_calls(fn, args_list) -> np.ndarray:
 def measure(
     path: str | Path,
     steps: int = 100_000,
-    interpolation: str = "transport",
+    interpolation: str | None = None,
     baseline_steps: int = 20_000,
     response: str | None = None,
 ) -> dict:
@@ -64,7 +64,7 @@ def measure(
             gc.enable()
     result = {
         "artifact": str(path),
-        "interpolation": interpolation,
+        "interpolation": sim.interpolation,
         "response": sim.response,
         "load_and_warm_up_s": load_seconds,
         **{name: percentiles(ns) for name, ns in calls.items()},

@@ -45,7 +45,8 @@ class ReducedModel:
         surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field;
         surface_basis_t (P, n, 3V): the same transposed, for the PODI kernel.
         chart: the plan-view grid that carries each neighbour's field to the contact
-        (:class:`~hapticrom.online.surface_chart.SurfaceChart`), built at load.
+        (:class:`~hapticrom.online.surface_chart.SurfaceChart`), built at load; None where
+        one plan view cannot hold the samples (then the surface is PODI's blend).
         anm: the POD-ANM sections (artifact 1.1) as kernel records, or None.
     """
 
@@ -82,7 +83,8 @@ class ReducedModel:
 
     def _freeze(self) -> None:
         """Every array read-only: simulators share the model, none may change it."""
-        tables = [vars(self), vars(self.chart), self.grassmann or {}, self.anm or {}]
+        chart = vars(self.chart) if self.chart is not None else {}
+        tables = [vars(self), chart, self.grassmann or {}, self.anm or {}]
         for table in tables:
             for value in table.values():
                 if isinstance(value, np.ndarray):
@@ -139,12 +141,13 @@ class ReducedModel:
         """Modes per sample, n."""
         return self.surface_basis.shape[2]
 
-    def simulator(self, interpolation: str = "transport", response: str | None = None, **limits):
+    def simulator(self, interpolation: str | None = None, response: str | None = None, **limits):
         """A new simulator state on this model (models are shared, simulators are not).
 
         ``interpolation`` of the rendered surface: "transport" (each neighbour's field
-        carried to the contact, then blended: the dent under the tool), "podi" (blended
-        where each was trained) or "grassmann" (the bases interpolated; stored curves only).
+        carried to the contact, then blended: the dent under the tool; the default where the
+        model has a chart), "podi" (blended where each was trained; the default otherwise)
+        or "grassmann" (the bases interpolated; stored curves only).
 
         ``response``: "anm" (the POD-ANM series; the default when the artifact has
         them) or "curves" (the stored full-order force curves).
@@ -270,11 +273,12 @@ def sweep(model: ReducedModel) -> None:
     forces, displacements and surfaces finite and within the simulator's limits (10x the
     trained depth and force). Catches what no rule on single datasets sees (a field that
     overflows in the blend of two samples, a force that runs away beyond the trained depth)."""
-    combos = [("transport", "curves"), ("podi", "curves")]
+    fields = ["transport", "podi"] if model.chart is not None else ["podi"]
+    combos = [(field, "curves") for field in fields]
     if model.grassmann:
         combos.append(("grassmann", "curves"))
     if model.anm:
-        combos += [("transport", "anm"), ("podi", "anm")]
+        combos += [(field, "anm") for field in fields]
     surface = np.empty_like(model.vertices)
     for interpolation, response in combos:
         sim = model.simulator(interpolation, response)

@@ -36,7 +36,7 @@ def play(
     path: str | Path,
     rate: float = 1000.0,
     seconds: float = 3.0,
-    interpolation: str = "transport",
+    interpolation: str | None = None,
     realtime: bool = True,
     say: Callable[[str], None] = print,
 ) -> dict:

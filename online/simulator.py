@@ -107,6 +107,11 @@ def _limit(value, default: float, name: str, unit: str) -> float:
 
 def _check_config(model: ReducedModel, interpolation: str, response: str | None) -> str:
     """The response to use (the model's default if None); InputError if they do not fit."""
+    if interpolation == "transport" and model.chart is None:
+        raise InputError(
+            "this model's samples face all around (no plan view charts its surface): "
+            "use interpolation='podi'"
+        )
     if response is None:
         response = "anm" if model.anm is not None else "curves"
     if response not in RESPONSES:
@@ -166,11 +171,13 @@ class Simulator:
     def __init__(
         self,
         model: ReducedModel,
-        interpolation: str = "transport",
+        interpolation: str | None = None,
         max_displacement: float | None = None,
         max_force: float | None = None,
         response: str | None = None,
     ):
+        if interpolation is None:
+            interpolation = "transport" if model.chart is not None else "podi"
         response = _check_config(model, interpolation, response)
         self.model, self.interpolation, self.response = model, interpolation, response
         anm = model.anm if response == "anm" else None

@@ -42,6 +42,7 @@ from hapticrom.shared.geometry import plan_view
 
 FACING = math.cos(math.radians(75.0))  # a triangle whose normal is steeper belongs to no sheet
 SPACING_PER_EDGE = 0.8  # grid spacing / the median edge of the charted triangles
+MIN_MEAN_NORMAL = 0.5  # samples' mean unit normal shorter than this: no plan view
 MAX_NODES = 400_000  # a coarser grid beyond this (memory: P n 3 N float32)
 HEIGHT_TOLERANCE = 0.5  # in grid spacings: a vertex this far off its sheet is hidden
 BACK_PROJECTIONS = 64  # at most, rounds of fitting the nodes to the vertices read from them
@@ -115,8 +116,12 @@ def longest_sample_edge(plan: np.ndarray, sample_triangles: np.ndarray) -> float
 
 
 def surface_chart(vertices, triangles, sample_points, sample_normals, sample_triangles,
-                  surface_basis) -> SurfaceChart:  # fmt: skip
-    """The chart of a model (see module). ``surface_basis`` (P, 3V, n)."""
+                  surface_basis) -> SurfaceChart | None:  # fmt: skip
+    """The chart of a model (see module; ``surface_basis`` (P, 3V, n)), or None where one plan
+    view cannot hold it: samples facing all around (their mean unit normal shorter than
+    MIN_MEAN_NORMAL, a closed organ trained all over) or no vertex facing along it."""
+    if np.linalg.norm(np.mean(sample_normals, axis=0)) < MIN_MEAN_NORMAL:
+        return None
     origin, axes, _ = plan_view(sample_points, sample_normals)
     normal = np.cross(axes[0], axes[1])
     plan = (vertices - origin) @ axes.T
@@ -125,7 +130,7 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
     tri_layer, vertex_layer = _layers(vertices, triangles, normal)
     charted = vertex_layer >= 0
     if not charted.any():
-        raise ValueError("no surface vertex faces along the samples' mean normal")
+        return None
     lo, hi = plan[charted].min(axis=0), plan[charted].max(axis=0)
     h = _spacing(vertices, triangles, tri_layer, 2 * float(np.prod(hi - lo + 1e-9)))
     halo = int(math.ceil(longest_sample_edge(sample_plan, sample_triangles) / h)) + 2

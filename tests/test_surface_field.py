@@ -215,3 +215,25 @@ def test_the_lower_surface_is_carried_too(slab):
     lower = slab.vertices[:, 2] < -0.4
     exact = dent(slab.vertices, point)
     assert relative(slab.transported(point)[lower], exact[lower]) < 0.01
+
+
+def test_samples_facing_all_around_have_no_chart():
+    """A closed organ trained all over: no plan view holds it, so there is no chart, the
+    simulator's default field is PODI's and the transport is refused with a clear error."""
+    from types import SimpleNamespace
+
+    from test_surface_interpolation import icosphere
+
+    from hapticrom.online.simulator import _check_config
+    from hapticrom.shared.errors import InputError
+
+    vertices, faces = icosphere(2)
+    points = vertices[::7]
+    normals = points / np.linalg.norm(points, axis=1)[:, None]
+    basis = np.zeros((len(points), vertices.size, 1), dtype=np.float32)
+    triangles = np.array([[0, 1, 2]], dtype=np.int64)
+    assert surface_chart(vertices, faces, points, normals, triangles, basis) is None
+    model = SimpleNamespace(chart=None, anm=None, grassmann=None)
+    with pytest.raises(InputError, match="interpolation='podi'"):
+        _check_config(model, "transport", "curves")
+    assert _check_config(model, "podi", None) == "curves"

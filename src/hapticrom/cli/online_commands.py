@@ -54,10 +54,10 @@ def interpolation_option(p) -> None:
     """``--interpolation``, as ``play`` and ``bench`` take it."""
     p.add_argument(
         "--interpolation",
-        default="transport",
+        default=None,
         choices=INTERPOLATIONS,
-        help="between the trained samples: %(choices)s (default %(default)s; grassmann needs "
-        "the model's grassmann group)",
+        help="of the rendered surface: %(choices)s (default: transport, or podi where one plan "
+        "view cannot chart the model's samples; grassmann needs the model's grassmann group)",
     )
 
 

@@ -17,6 +17,8 @@ online runtime runs. The parts:
 - :mod:`~hapticrom.report.timing` -- the step latency (``hapticrom bench``'s timing loop);
 - :mod:`~hapticrom.report.figures`, :mod:`~hapticrom.report.surface` -- the PNGs (Agg
   canvas, never pyplot: nothing global changes);
+- :mod:`~hapticrom.report.field_comparison` -- the rendered surface against the full order
+  at a held-out position (``--held-out DIR``);
 - :mod:`~hapticrom.report.page` -- the HTML.
 """
 
@@ -33,6 +35,13 @@ from hapticrom.report.content import (
     magnification,
     sanity_rows,
 )
+from hapticrom.report.field_comparison import (
+    FieldComparison,
+    field_figure,
+    held_out_comparison,
+    require_held_out_dir,
+)
+from hapticrom.report.field_comparison import caption as field_caption
 from hapticrom.report.figures import (
     accuracy_figure,
     eigenvalue_figure,
@@ -61,13 +70,19 @@ def write_report(
     out_dir: str | Path,
     accuracy: str | Path | None = None,
     latency_steps: int = 20_000,
+    held_out_dir: str | Path | None = None,
 ) -> Path:
-    """Write ``out_dir/report.html`` and its PNGs for the artifact at ``model_path``."""
+    """Write ``out_dir/report.html`` and its PNGs for the artifact at ``model_path``; with
+    ``held_out_dir`` (a campaign directory of ``hapticrom accuracy``) also the rendered
+    surface against the full order at one of its positions."""
     require_matplotlib()
     if latency_steps < 1:
         raise HapticromError(f"--latency-steps must be positive, got {latency_steps}")
     held_out = read_accuracy(accuracy) if accuracy is not None else None  # fail before work
+    if held_out_dir is not None:
+        held_out_dir = require_held_out_dir(held_out_dir, model_path)
     model = load(model_path)
+    comparison = None if held_out_dir is None else held_out_comparison(model, held_out_dir)
     central = central_sample(model)
     # Timed first, before the plotting has filled the heap and the caches.
     latencies = step_latencies_us(model, central, latency_steps)
@@ -80,8 +95,10 @@ def write_report(
         factor=magnification(model.vertices, displacement),
         held_out=held_out,
         held_out_source=None if accuracy is None else Path(accuracy),
+        field_caption=None if comparison is None else field_caption(model, comparison),
+        field_source=held_out_dir,
     )
-    figures = draw(model, facts, displacement, force)
+    figures = draw(model, facts, displacement, force, comparison)
     name = model.artifact.group_attrs["model"].get("name", model.path.stem)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -93,9 +110,10 @@ def write_report(
     return report
 
 
-def draw(model: ReducedModel, facts: Facts, displacement, force: float) -> Figures:
+def draw(model: ReducedModel, facts: Facts, displacement, force: float,
+         comparison: FieldComparison | None = None) -> Figures:  # fmt: skip
     """Every figure of the report; ``displacement`` (mm) and ``force`` (N) at the trained
-    depth at the central sample."""
+    depth at the central sample; ``comparison``: the held-out field comparison, if any."""
     held_out = facts.held_out
     return Figures(
         eigenvalues=eigenvalue_figure(model, facts.central),
@@ -106,4 +124,5 @@ def draw(model: ReducedModel, facts: Facts, displacement, force: float) -> Figur
             surface_figure(model, displacement, facts.factor, force, facts.central, view)
             for view in VIEWS
         ],
+        field=None if comparison is None else field_figure(model, comparison),
     )

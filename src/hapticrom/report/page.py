@@ -19,6 +19,7 @@ from hapticrom.report.content import (
     sanity_rows,
     summary_rows,
 )
+from hapticrom.report.field_comparison import HELD_OUT_COMMAND
 from hapticrom.report.figures import Png
 from hapticrom.report.heldout import (
     ACCURACY_COMMAND,
@@ -41,6 +42,8 @@ class Facts:
     factor: float  # magnification of the deformed surface
     held_out: HeldOutResults | None = None
     held_out_source: Path | None = None  # the accuracy JSON
+    field_caption: str | None = None  # of the held-out field comparison (--held-out)
+    field_source: Path | None = None  # its held-out campaign directory
 
 
 @dataclass(frozen=True)
@@ -52,10 +55,12 @@ class Figures:
     held_out: Png | None
     latency: Png
     surfaces: list[Png]
+    field: Png | None = None  # the held-out field comparison (--held-out)
 
     def all(self) -> list[Png]:
         """Every PNG drawn, in the order of the sections."""
-        pngs = [self.eigenvalues, self.curves, self.held_out, self.latency, *self.surfaces]
+        pngs = [self.eigenvalues, self.curves, self.held_out, self.field, self.latency,
+                *self.surfaces]  # fmt: skip
         return [png for png in pngs if png is not None]
 
 
@@ -64,9 +69,10 @@ EIGENVALUES = "POD eigenvalue decay"
 CURVES = "Load-displacement curves: ROM vs full order"
 SANITY = "Physics sanity of the training"
 HELD_OUT = "Force and surface-field error at held-out positions"
+FIELD = "Rendered surface vs full order at a held-out position"
 LATENCY = "Step latency"
 DEFORMED = "Deformed surface"
-SECTION_HEADINGS = (SUMMARY, SANITY, EIGENVALUES, CURVES, HELD_OUT, LATENCY, DEFORMED)
+SECTION_HEADINGS = (SUMMARY, SANITY, EIGENVALUES, CURVES, HELD_OUT, FIELD, LATENCY, DEFORMED)
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; color: #222; }
@@ -240,6 +246,34 @@ def _held_out_section(results: HeldOutResults | None, source: Path | None, png, 
     )
 
 
+def _field_section(caption: str | None, source: Path | None, png, model) -> str:
+    if png is None:
+        command = HELD_OUT_COMMAND.format(model=model.path)
+        return _section(
+            FIELD,
+            _paragraph(
+                "Not drawn for this report. It compares the surface the runtime renders with "
+                "the full-order one at a held-out tool position; the held-out solves come from "
+                f"<code>{_esc(command)}</code> (written to MODEL.heldout-8 by default), then run "
+                "<code>hapticrom report MODEL.h5 --out DIR --held-out MODEL.heldout-8</code>."
+            ),
+        )
+    return _section(
+        FIELD,
+        _paragraph(
+            f"From the full-order solves in <code>{_esc(source)}</code>. Top: |u| in plan "
+            "view (along the samples' mean normal; white dots: the training samples; red +: "
+            "the tool; dashed: the cross-section), the full order and the runtime's two "
+            "interpolations of the surface field, <i>transport</i> (each neighbouring "
+            "sample's field carried to the contact, the default) and <i>podi</i> (blended "
+            "where each was trained). Bottom: the displacement into the organ along the "
+            "dashed line."
+        ),
+        _image(png),
+        _paragraph(_esc(caption)),
+    )
+
+
 def _latency_section(us: np.ndarray, sample: int, response: str, png: Png) -> str:
     return _section(
         LATENCY,
@@ -274,6 +308,7 @@ def sections(model: ReducedModel, facts: Facts, figures: Figures) -> list[str]:
         _eigenvalue_section(model, figures.eigenvalues),
         _curves_section(model, facts.samples, facts.response, figures.curves),
         _held_out_section(facts.held_out, facts.held_out_source, figures.held_out, model),
+        _field_section(facts.field_caption, facts.field_source, figures.field, model),
         _latency_section(facts.latencies, facts.central, facts.response, figures.latency),
         _deformed_section(figures.surfaces, facts.factor),
     ]
