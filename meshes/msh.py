@@ -264,7 +264,8 @@ def write_msh(
     }
     # Write next to the target, then rename: a crash never leaves a half mesh, and a
     # failure (e.g. the sidecar's name taken by a directory) removes the partial files.
-    partial = path.with_name(f".{path.stem}.partial.msh")
+    # ... named by process: two processes writing the same mesh do not share partial files
+    partial = path.with_name(f".{path.stem}.partial-{os.getpid()}.msh")
     partial_sidecar = partial.with_suffix(".json")
     try:
         with gmsh_model(f"hapticrom-write-{path.stem}", options):

@@ -43,7 +43,7 @@ from hapticrom.shared.geometry import plan_view
 FACING = math.cos(math.radians(75.0))  # a triangle whose normal is steeper belongs to no sheet
 SPACING_PER_EDGE = 0.8  # grid spacing / the median edge of the charted triangles
 MIN_MEAN_NORMAL = 0.5  # samples' mean unit normal shorter than this: no plan view
-MAX_NODES = 400_000  # a coarser grid beyond this (memory: P n 3 N float32)
+MAX_VALUES = 30_000_000  # P n 3 N, the modes on the grid (120 MB float32): coarser beyond
 HEIGHT_TOLERANCE = 0.5  # in grid spacings: a vertex this far off its sheet is hidden
 BACK_PROJECTIONS = 64  # at most, rounds of fitting the nodes to the vertices read from them
 READ_BACK_TOLERANCE = 1e-3  # ... until the read-back's RMS error is this fraction of the RMS
@@ -97,13 +97,19 @@ def _layers(vertices, triangles, normal):
     return tri_layer, vertex_layer
 
 
-def _spacing(vertices, triangles, tri_layer, nodes_per_mm2_area) -> float:
-    """The grid spacing: a fraction of the charted triangles' median edge, coarser if the
-    grid would exceed MAX_NODES."""
+def _spacing(vertices, triangles, tri_layer, extent, longest_shift, values_per_node) -> float:
+    """The grid spacing: SPACING_PER_EDGE of the charted triangles' median edge, coarser
+    until the modes on the grid (``values_per_node`` per node, the halo included) fit in
+    MAX_VALUES: an artifact cannot make the runtime allocate without bound."""
     t = triangles[tri_layer >= 0]
     edges = np.linalg.norm(vertices[t] - vertices[np.roll(t, 1, axis=1)], axis=2)
-    h = SPACING_PER_EDGE * float(np.median(edges))
-    return max(h, math.sqrt(nodes_per_mm2_area / MAX_NODES))
+    h = max(SPACING_PER_EDGE * float(np.median(edges)), 1e-9 * max(float(extent.max()), 1.0))
+    while True:
+        halo = math.ceil(longest_shift / h) + 2
+        nodes = 2 * math.prod(math.ceil(e / h) + 2 * halo + 2 for e in extent)
+        if nodes * values_per_node <= MAX_VALUES:
+            return h
+        h *= 1.25
 
 
 def longest_sample_edge(plan: np.ndarray, sample_triangles: np.ndarray) -> float:
@@ -132,8 +138,10 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
     if not charted.any():
         return None
     lo, hi = plan[charted].min(axis=0), plan[charted].max(axis=0)
-    h = _spacing(vertices, triangles, tri_layer, 2 * float(np.prod(hi - lo + 1e-9)))
-    halo = int(math.ceil(longest_sample_edge(sample_plan, sample_triangles) / h)) + 2
+    longest = longest_sample_edge(sample_plan, sample_triangles)
+    P, _, n = surface_basis.shape
+    h = _spacing(vertices, triangles, tri_layer, hi - lo, longest, 3 * P * n)
+    halo = int(math.ceil(longest / h)) + 2
     start = lo - halo * h
     rows, columns = (int(math.ceil((hi[k] - lo[k]) / h)) + 2 * halo + 2 for k in range(2))
     shape = (2, rows, columns)

@@ -26,6 +26,17 @@ try:  # libmpi must be loaded before test modules import dolfinx
 except ImportError:
     pass
 
+if os.environ.get("PYTEST_XDIST_WORKER"):  # `make test` runs two workers on one JIT cache
+    try:
+        import dolfinx.jit
+
+        # A worker that finds a form being compiled by the other waits for it: up to 10 min
+        # (DOLFINx's 10 s is shorter than compiling the larger forms on a busy machine).
+        _, doc = dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS["timeout"]
+        dolfinx.jit.DOLFINX_DEFAULT_JIT_OPTIONS["timeout"] = (600, doc)
+    except ImportError:  # the runtime-only install: no JIT
+        pass
+
 
 def _comm_size() -> int:
     for var in ("PMI_SIZE", "OMPI_COMM_WORLD_SIZE", "PMIX_SIZE"):
@@ -44,8 +55,9 @@ def pytest_collection_modifyitems(config, items):
 
 @pytest.fixture(scope="session")
 def mesh_dir() -> Path:
-    """Coarse test meshes, generated afresh by rank 0 in every session (a second or two)."""
-    d = ROOT / ".cache" / "test-meshes"
+    """Coarse test meshes, generated afresh by rank 0 in every session (a second or two);
+    one directory per pytest-xdist worker (``make test`` runs two)."""
+    d = ROOT / ".cache" / "test-meshes" / os.environ.get("PYTEST_XDIST_WORKER", "main")
     from mpi4py import MPI
 
     comm = MPI.COMM_WORLD

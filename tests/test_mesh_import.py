@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import re
 import tomllib
 from collections import Counter
@@ -674,11 +675,12 @@ def test_the_writer_refuses_directories_and_removes_its_partial_files(tmp_path):
     (tmp_path / "organ.json").mkdir()
     with pytest.raises(InputError, match=r"cannot write mesh file .*organ.json: it is a directory"):
         write_msh(tmp_path / "organ.msh", nodes, tets, {}, {"name": "organ"})
-    (tmp_path / ".other.partial.json").mkdir()
+    partial = f".other.partial-{os.getpid()}.json"  # the writer's, named by process
+    (tmp_path / partial).mkdir()
     with pytest.raises(IsADirectoryError):
         write_msh(tmp_path / "other.msh", nodes, tets, {}, {"name": "other"})
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.partial.json", "organ.json"]
-    (tmp_path / ".other.partial.json").rmdir()
+    assert sorted(p.name for p in tmp_path.iterdir()) == [partial, "organ.json"]
+    (tmp_path / partial).rmdir()
     write_msh(tmp_path / "other.msh", nodes, tets, {}, {"name": "other"})  # the writer works
     assert sorted(p.name for p in tmp_path.iterdir()) == ["organ.json", "other.json", "other.msh"]
 

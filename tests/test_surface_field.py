@@ -237,3 +237,17 @@ def test_samples_facing_all_around_have_no_chart():
     with pytest.raises(InputError, match="interpolation='podi'"):
         _check_config(model, "transport", "curves")
     assert _check_config(model, "podi", None) == "curves"
+
+
+def test_the_grid_is_bounded_whatever_the_mesh(monkeypatch):
+    """A fine mesh (or long sample edges) cannot make the chart allocate without bound: the
+    grid coarsens until the modes on it fit in MAX_VALUES."""
+    vertices, triangles = plate(0.5)
+    points, normals, sample_triangles = samples_on(3.0)
+    basis = np.stack([dent(vertices, p).reshape(-1, 1) for p in points]).astype(np.float32)
+    free = surface_chart(vertices, triangles, points, normals, sample_triangles, basis)
+    cap = free.node_basis.size // 4
+    monkeypatch.setattr(surface_chart_module, "MAX_VALUES", cap)
+    bounded = surface_chart(vertices, triangles, points, normals, sample_triangles, basis)
+    assert bounded.node_basis.size <= cap < free.node_basis.size
+    assert bounded.spacing > free.spacing
