@@ -109,8 +109,8 @@ def _check_config(model: ReducedModel, interpolation: str, response: str | None)
     """The response to use (the model's default if None); InputError if they do not fit."""
     if interpolation == "transport" and model.chart is None:
         raise InputError(
-            "this model's samples face all around (no plan view charts its surface): "
-            "use interpolation='podi'"
+            "this model has no surface chart (one plan view cannot hold its samples and "
+            "surface, see hapticrom.online.surface_chart): use interpolation='podi'"
         )
     if response is None:
         response = "anm" if model.anm is not None else "curves"

@@ -38,12 +38,15 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from hapticrom.shared.errors import ArtifactError
 from hapticrom.shared.geometry import plan_view
 
 FACING = math.cos(math.radians(75.0))  # a triangle whose normal is steeper belongs to no sheet
 SPACING_PER_EDGE = 0.8  # grid spacing / the median edge of the charted triangles
 MIN_MEAN_NORMAL = 0.5  # samples' mean unit normal shorter than this: no plan view
 MAX_VALUES = 30_000_000  # P n 3 N, the modes on the grid (120 MB float32): coarser beyond
+MAX_NODES = 1_000_000  # N: the build's own arrays and each simulator's (36 bytes a node)
+MAX_RASTER = 50_000_000  # node visits of the rasterisation (the triangles' bounding boxes)
 HEIGHT_TOLERANCE = 0.5  # in grid spacings: a vertex this far off its sheet is hidden
 BACK_PROJECTIONS = 64  # at most, rounds of fitting the nodes to the vertices read from them
 READ_BACK_TOLERANCE = 1e-3  # ... until the read-back's RMS error is this fraction of the RMS
@@ -97,19 +100,26 @@ def _layers(vertices, triangles, normal):
     return tri_layer, vertex_layer
 
 
-def _spacing(vertices, triangles, tri_layer, extent, longest_shift, values_per_node) -> float:
+def _spacing(vertices, triangles, tri_layer, extent, longest_shift, values_per_node):
     """The grid spacing: SPACING_PER_EDGE of the charted triangles' median edge, coarser
-    until the modes on the grid (``values_per_node`` per node, the halo included) fit in
-    MAX_VALUES: an artifact cannot make the runtime allocate without bound."""
+    until the grid (the halo included) has at most MAX_NODES nodes and the modes on it at
+    most MAX_VALUES values: an artifact cannot make the load allocate without bound. None
+    when no triangle faces the samples or no spacing fits (a halo of many times the grid:
+    samples far apart over a small surface; more modes than the budget holds)."""
     t = triangles[tri_layer >= 0]
+    if len(t) == 0:
+        return None
     edges = np.linalg.norm(vertices[t] - vertices[np.roll(t, 1, axis=1)], axis=2)
     h = max(SPACING_PER_EDGE * float(np.median(edges)), 1e-9 * max(float(extent.max()), 1.0))
-    while True:
+    for _ in range(200):  # x 1.25 each: 200 rounds span 19 decades
         halo = math.ceil(longest_shift / h) + 2
         nodes = 2 * math.prod(math.ceil(e / h) + 2 * halo + 2 for e in extent)
-        if nodes * values_per_node <= MAX_VALUES:
+        if nodes <= MAX_NODES and nodes * values_per_node <= MAX_VALUES:
             return h
+        if 2 * (2 * halo + 2) ** 2 > MAX_NODES and longest_shift / h < 1:
+            break  # the halo's own nodes no longer shrink with the spacing
         h *= 1.25
+    return None
 
 
 def longest_sample_edge(plan: np.ndarray, sample_triangles: np.ndarray) -> float:
@@ -141,18 +151,24 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
     longest = longest_sample_edge(sample_plan, sample_triangles)
     P, _, n = surface_basis.shape
     h = _spacing(vertices, triangles, tri_layer, hi - lo, longest, 3 * P * n)
+    if h is None:
+        return None
     halo = int(math.ceil(longest / h)) + 2
     start = lo - halo * h
     rows, columns = (int(math.ceil((hi[k] - lo[k]) / h)) + 2 * halo + 2 for k in range(2))
     shape = (2, rows, columns)
+    if _raster_visits(plan, triangles[tri_layer >= 0], h) > MAX_RASTER:
+        return None  # overlapping or huge triangles: PODI's blend instead
     node_tri, node_bary, node_height, covered = _rasterise(
         plan, height, triangles, tri_layer.astype(np.int64), start, h, shape
     )
-    source = _nearest_covered(covered.reshape(shape))
+    source = _nearest_covered(covered.reshape(-1), np.array(shape, dtype=np.int64))
     vertex_node, vertex_frac = _vertex_cells(
-        plan, height, vertex_layer, start, h, shape, covered, node_height
+        plan, height, vertex_layer, start, h, shape, covered, node_height, halo
     )
     used = vertex_node[vertex_node >= 0]
+    if len(used) == 0:
+        return None
     charted = np.flatnonzero(vertex_node >= 0)
     charted = charted[np.argsort(vertex_node[charted], kind="stable")].astype(np.int64)
     a = (used % (rows * columns)) // columns
@@ -227,34 +243,56 @@ def _rasterise(plan, height, triangles, tri_layer, start, h, shape):
     return node_tri, node_bary, node_height, node_tri >= 0
 
 
-def _nearest_covered(covered: np.ndarray) -> np.ndarray:
+@njit(cache=True)
+def _nearest_covered(covered, shape):
     """(N,) for every node the flat index of a nearest covered node of its layer (itself if
-    covered), by breadth-first growth over the 4-neighbours; a layer with no covered node
-    points at node 0 (its values are never read: no vertex is charted there)."""
-    layers, rows, columns = covered.shape
-    source = np.where(covered.ravel(), np.arange(covered.size), -1).reshape(covered.shape)
-    while (source < 0).any():
-        grown = source.copy()
-        for axis, step in ((1, 1), (1, -1), (2, 1), (2, -1)):
-            neighbour = np.roll(source, step, axis=axis)
-            edge = [slice(None)] * 3
-            edge[axis] = 0 if step == 1 else -1
-            neighbour[tuple(edge)] = -1  # no wrap-around
-            take = (grown < 0) & (neighbour >= 0)
-            grown[take] = neighbour[take]
-        if (grown == source).all():
-            break
-        source = grown
-    return np.where(source >= 0, source, 0).ravel()
+    covered): breadth-first over the 4-neighbours from all covered nodes at once, O(N). A
+    layer with no covered node points at node 0 (never read: no vertex is charted there)."""
+    rows, columns = shape[1], shape[2]
+    N = covered.shape[0]
+    source = np.full(N, -1, dtype=np.int64)
+    queue = np.empty(N, dtype=np.int64)
+    head = tail = 0
+    for node in range(N):
+        if covered[node]:
+            source[node] = node
+            queue[tail] = node
+            tail += 1
+    while head < tail:
+        node = queue[head]
+        head += 1
+        b = node % columns
+        a = (node // columns) % rows
+        for da, db in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            if 0 <= a + da < rows and 0 <= b + db < columns:
+                other = node + da * columns + db
+                if source[other] < 0:
+                    source[other] = source[node]
+                    queue[tail] = other
+                    tail += 1
+    for node in range(N):
+        if source[node] < 0:
+            source[node] = 0
+    return source
 
 
-def _vertex_cells(plan, height, vertex_layer, start, h, shape, covered, node_height):
-    """Each vertex's cell (flat lower-left node, -1 if not charted) and place in it."""
+def _raster_visits(plan, triangles, h) -> float:
+    """How many nodes the rasterisation visits: the triangles' bounding boxes in nodes."""
+    corners = plan[triangles]  # (T, 3, 2)
+    span = np.floor((corners.max(axis=1) - corners.min(axis=1)) / h) + 2
+    return float(np.sum(span[:, 0] * span[:, 1]))
+
+
+def _vertex_cells(plan, height, vertex_layer, start, h, shape, covered, node_height, halo):
+    """Each vertex's cell (flat lower-left node, -1 if not charted) and place in it. A cell
+    lies at least ``halo`` nodes from the grid's edges (then every shifted read of the
+    kernel stays inside the grid, whatever the rounding)."""
     layers, rows, columns = shape
     cell = np.floor((plan - start) / h).astype(np.int64)
-    frac = (plan - start) / h - cell
+    frac = np.clip((plan - start) / h - cell, 0.0, 1.0)
     a, b = cell[:, 0], cell[:, 1]
-    ok = (vertex_layer >= 0) & (a >= 0) & (a < rows - 1) & (b >= 0) & (b < columns - 1)
+    inside = (a >= halo) & (a <= rows - 2 - halo) & (b >= halo) & (b <= columns - 2 - halo)
+    ok = (vertex_layer >= 0) & inside
     layer = np.maximum(vertex_layer, 0)
     node = np.where(
         ok, (layer * rows + np.clip(a, 0, rows - 2)) * columns + np.clip(b, 0, columns - 2), 0
@@ -286,6 +324,10 @@ def _node_basis(surface_basis, triangles, node_tri, node_bary, vertex_node, vert
     out = np.empty((P, n, 3, len(node_tri)), dtype=np.float32)
     _fit_nodes(surface_basis.reshape(P, rows3 // 3, 3 * n), corners, node_bary, vertex_node,
                vertex_frac, columns, BACK_PROJECTIONS, READ_BACK_TOLERANCE, out)  # fmt: skip
+    if not np.all(np.isfinite(out)):  # float32 overflow of a finite basis near its maximum
+        raise ArtifactError(
+            "samples/surface_basis: its modes overflow single precision on the surface chart"
+        )
     return out
 
 
@@ -301,6 +343,7 @@ def _fit_nodes(modes, corners, bary, vertex_node, vertex_frac, columns, rounds, 
         exact = modes[i].astype(np.float64)
         _spread(exact, corners, bary, nodes, False)
         scale = tolerance**2 * np.sum(exact**2)
+        previous = np.inf
         for _ in range(rounds):
             residual[:, :] = 0.0
             for v in range(V):
@@ -316,8 +359,10 @@ def _fit_nodes(modes, corners, bary, vertex_node, vertex_frac, columns, rounds, 
                         + fa * fb * nodes[s + columns + 1, k]
                     )
                     residual[v, k] = exact[v, k] - read
-            if np.sum(residual**2) <= scale:
+            squared = np.sum(residual**2)
+            if squared <= scale or squared >= previous:  # converged, or no longer converging
                 break
+            previous = squared
             _spread(residual, corners, bary, nodes, True)
         for node in range(N):
             for k in range(width):

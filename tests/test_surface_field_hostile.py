@@ -1,0 +1,558 @@
+"""Hostile inputs for the transported surface (issue 15): the chart built at load and the
+numba kernel that reads it.
+
+Artifacts here are written with ``write_artifact``, which reads each file back with
+``read_artifact``: every one of them passes the artifact's rules, so whatever happens
+next is the runtime's to handle. The attacks that hung the chart's build (a red team's
+findings, fixed: the grid's node budget, an O(N) extension, the rasterisation's budget)
+now build in process and get no chart; the out-of-bounds question is answered by a Python
+mirror of the kernel's index arithmetic, never by letting a kernel read past an array.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+import textwrap
+import threading
+
+import numpy as np
+import pytest
+from test_surface_field import dent, plate, samples_on
+
+from hapticrom.online import load, surface_kernels
+from hapticrom.online import surface_chart as surface_chart_module
+from hapticrom.online.surface_chart import SurfaceChart, surface_chart
+from hapticrom.shared.artifact import read_artifact, write_artifact
+from hapticrom.shared.errors import ArtifactError, InputError, SimulatorBusyError
+
+pytestmark = pytest.mark.serial
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+# -- building blocks ---------------------------------------------------------------------
+def square_sheet(n: int = 9, width: float = 4.0):
+    """A flat square (z = 0, outward +z) of n x n vertices: (V, 3), (T, 3)."""
+    x = np.linspace(-width / 2, width / 2, n)
+    X, Y = np.meshgrid(x, x, indexing="ij")
+    vertices = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
+    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return vertices, np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+
+
+def sample_triangle(edge: float, normal=UP):
+    """Three samples on a right triangle of legs ``edge`` (mm) at the origin, one normal."""
+    points = np.array([[0.0, 0.0, 0.0], [edge, 0.0, 0.0], [0.0, edge, 0.0]])
+    return points, np.tile(normal, (3, 1)), np.array([[0, 1, 2]])
+
+
+def dip(vertices: np.ndarray, samples: int, depth: float = 0.1) -> np.ndarray:
+    """(P, 3V, 1) float32: every sample's one mode, the whole surface ``depth`` mm down."""
+    basis = np.zeros((samples, 3 * len(vertices), 1), dtype=np.float32)
+    basis[:, 2::3, 0] = -depth
+    return basis
+
+
+def write_model(path, vertices, triangles, points, normals, sample_triangles, basis,
+                coefficient=1.0):  # fmt: skip
+    """A minimal artifact (stored curves, no POD-ANM, no cutting), written and read back by
+    ``write_artifact``: it passes every rule of ``read_artifact``. Each sample's reduced
+    coordinates grow linearly to ``coefficient`` at the trained depth (1 mm)."""
+    P, n, K = len(points), basis.shape[2], 3
+    depth = np.linspace(0.0, 1.0, K)
+    content = {
+        "model": {
+            "attrs": {
+                "name": "hostile",
+                "mode": "displacement",
+                "contact_radius": 0.5,
+                "surface_group": "loadable",
+                "material": {"law": "neo-hookean"},
+                "campaign_hash": "0" * 64,
+            }
+        },
+        "surface": {
+            "vertices": np.asarray(vertices, dtype=np.float64),
+            "triangles": np.asarray(triangles, dtype=np.int64),
+            "nodes": np.arange(len(vertices), dtype=np.int64),
+            "groups": np.ones(len(triangles), dtype=np.int64),
+        },
+        "samples": {
+            "points": np.asarray(points, dtype=np.float64),
+            "normals": np.asarray(normals, dtype=np.float64),
+            "triangles": np.asarray(sample_triangles, dtype=np.int64),
+            "indicator": np.zeros(P),
+            "depth": depth,
+            "force": np.tile(depth, (P, 1)),
+            "stiffness": np.ones((P, K)),
+            "surface_basis": np.asarray(basis, dtype=np.float32),
+            "coefficients": np.tile(coefficient * depth[None, :, None], (P, 1, n)),
+            "reduced_stiffness": np.tile(np.eye(n), (P, 1, 1)),
+            "contact_rows": np.zeros((P, 3, n)),
+            "eigenvalues": np.ones((P, 1)),
+        },
+    }
+    write_artifact(path, content, {"description": "a crafted model (tests)"})
+    return path
+
+
+# -- a Python mirror of transported_surface's index arithmetic ---------------------------
+def kernel_shifts(chart: SurfaceChart, samples, weights) -> list[tuple[float, float]]:
+    """The shifts (in grid nodes, before the clamp) transported_surface computes for the
+    neighbours with a weight: (x_j - x) / spacing in plan view, x = sum_j w_j x_j."""
+    samples = np.asarray(samples, dtype=np.int64)
+    plan = chart.sample_plan[samples]
+    x = np.asarray(weights) @ plan
+    return [tuple((plan[j] - x) / chart.spacing) for j in range(3) if weights[j] != 0.0]
+
+
+def clamped(chart: SurfaceChart, s: float) -> float:
+    limit = float(chart.halo - 2)
+    return min(max(s, -limit), limit)
+
+
+def index_violations(chart: SurfaceChart, sa: float, sb: float) -> list[str]:
+    """What transported_surface would index outside the grid, or read outside the rectangle it
+    contracted, for one neighbour at the clamped shift (sa, sb) nodes (empty: none)."""
+    _, rows, cols = (int(v) for v in chart.shape)
+    ia, ib = int(np.floor(sa)), int(np.floor(sb))
+    r0, r1 = int(chart.read_rows[0]) + ia, int(chart.read_rows[1]) + ia + 1
+    c0, c1 = int(chart.read_columns[0]) + ib, int(chart.read_columns[1]) + ib + 1
+    problems = []
+    # contract_rectangle: field[comp, first:first + (c1 - c0)], first = (l rows + a) cols + c0
+    if r0 < 0 or r1 > rows or c0 < 0 or c1 > cols:
+        first = [(layer * rows + a) * cols + c0 for layer in (0, 1) for a in range(r0, r1)]
+        problems.append(
+            f"contract_rectangle rows [{r0}, {r1}) columns [{c0}, {c1}) leave the {rows} x "
+            f"{cols} grid (slice starts {min(first)}..{max(first)}, "
+            f"{'-1: an empty slice that is then written' if -1 in first else 'wrapped'})"
+        )
+    # read_shifted: s + da cols + db and its three neighbours, per charted vertex
+    fa = chart.charted_frac[:, 0] + (sa - ia)
+    fb = chart.charted_frac[:, 1] + (sb - ib)
+    da, db = fa.astype(np.int64), fb.astype(np.int64)  # int(): toward zero, fa, fb >= 0
+    s = chart.charted_node + ia * cols + ib + da * cols + db
+    for node in (s, s + 1, s + cols, s + cols + 1):
+        layer, a, b = node // (rows * cols), (node % (rows * cols)) // cols, node % cols
+        same_layer = layer == chart.charted_node // (rows * cols)
+        inside = (node >= 0) & same_layer & (a >= r0) & (a < r1) & (b >= c0) & (b < c1)
+        if not inside.all():
+            problems.append(f"read_shifted reads node {int(node[~inside][0])} outside")
+    if np.any((da > 1) | (db > 1)):
+        problems.append("read_shifted moved more than one cell")
+    return problems
+
+
+def extreme_shifts(chart: SurfaceChart) -> list[float]:
+    """Shifts (nodes) at and near the clamp's limits and around zero (from below too)."""
+    limit = float(chart.halo - 2)
+    values = [-limit, np.nextafter(-limit, 0.0), -limit + 0.5, -0.5, -1e-17, 0.0, 0.5]
+    return values + [np.nextafter(limit, 0.0), limit - 0.5, limit]
+
+
+def plate_chart():
+    """The plate of test_surface_field: two sheets, side walls, 49 samples (dents)."""
+    vertices, triangles = plate(0.5)
+    points, normals, sample_triangles = samples_on(3.0)
+    basis = np.stack([dent(vertices, p).reshape(-1, 1) for p in points]).astype(np.float32)
+    return surface_chart(vertices, triangles, points, normals, sample_triangles, basis)
+
+
+def long_edge_chart():
+    """A 4 mm sheet under samples 30 mm apart: a halo far wider than the surface."""
+    vertices, triangles = square_sheet()
+    points, normals, sample_triangles = sample_triangle(30.0)
+    return surface_chart(vertices, triangles, points, normals, sample_triangles,
+                         dip(vertices, 3))  # fmt: skip
+
+
+def far_tilted_chart():
+    """Samples tilted 17 degrees, 10 m away from the surface in plan view."""
+    vertices, triangles = square_sheet(n=13, width=6.0)
+    vertices[:, 0] += 1.0e4
+    normal = np.array([np.sin(0.3), 0.0, np.cos(0.3)])
+    points, normals, sample_triangles = sample_triangle(2.0, normal)
+    return surface_chart(vertices, triangles, points, normals, sample_triangles,
+                         dip(vertices, 3))  # fmt: skip
+
+
+# -- defences that hold ------------------------------------------------------------------
+@pytest.mark.parametrize("build", [plate_chart, long_edge_chart, far_tilted_chart])
+def test_the_clamped_shift_keeps_every_index_inside_the_grid(build):
+    """Defence. For every shift the clamp lets through (up to halo - 2 nodes either way,
+    fractions at their edges, a shift a hair below zero), every slice contract_rectangle
+    takes lies in the grid and every node read_shifted reads lies in the rectangle just
+    contracted, in the vertex's own layer: the kernel's reads stay in bounds."""
+    chart = build()
+    assert chart is not None and len(chart.charted) > 0
+    for sa in extreme_shifts(chart):
+        for sb in extreme_shifts(chart):
+            assert index_violations(chart, sa, sb) == [], (sa, sb)
+
+
+def test_the_mirror_sees_a_rectangle_beyond_the_halo():
+    """The mirror can fail: the plate's chart with the charted cells' rows and columns widened
+    to the whole grid (no halo left) is reported at the largest shifts, not at zero."""
+    chart = plate_chart()
+    _, rows, cols = (int(v) for v in chart.shape)
+    wide = dataclasses.replace(chart, read_rows=np.array([0, rows - 1]),
+                               read_columns=np.array([0, cols - 1]))  # fmt: skip
+    limit = float(chart.halo - 2)
+    assert index_violations(wide, 0.0, 0.0) == []
+    assert index_violations(wide, limit, 0.0) and index_violations(wide, 0.0, -limit)
+
+
+@pytest.fixture(scope="module")
+def plate_model(tmp_path_factory):
+    """The plate (49 samples, one dent mode each) as a loaded artifact (its sweep passed)."""
+    vertices, triangles = plate(0.5)
+    points, normals, sample_triangles = samples_on(3.0)
+    basis = np.stack([dent(vertices, p).reshape(-1, 1) for p in points]).astype(np.float32)
+    path = tmp_path_factory.mktemp("plate") / "plate.h5"
+    write_model(path, vertices, triangles, points, normals, sample_triangles, basis)
+    return load(path, isolate=False)
+
+
+def render_on_poisoned_scratch(model, sim) -> np.ndarray:
+    """The kernel itself, on the simulator's state, with its per-neighbour scratch fields
+    filled with NaN first: contract_rectangle overwrites the rectangle each neighbour needs,
+    so a NaN in the result is a read outside it (an independent check of the mirror)."""
+    chart = model.chart
+    coefficients = np.zeros((3, model.num_modes))
+    surface_kernels.curves_coefficients(sim._buf, model.coefficients, coefficients)
+    fields = np.full((3, 3, int(np.prod(chart.shape))), np.nan, dtype=np.float32)
+    out = np.full_like(model.vertices, np.nan)
+    surface_kernels.transported_surface(
+        sim._buf, coefficients, chart.node_basis, chart.sample_plan, model.sample_normals,
+        chart.shape, chart.read_rows, chart.read_columns, chart.spacing, chart.halo,
+        chart.charted, chart.charted_node, chart.charted_frac, chart.uncharted,
+        model.surface_basis_t, fields, np.zeros((3, 5), dtype=np.int64), np.zeros((3, 12)), out,
+    )  # fmt: skip
+    return out
+
+
+HUGE = np.finfo(np.float64).max
+CONTACTS = [
+    (0.37, -0.81, 0.0),  # inside
+    (1.5, 1.5, 0.0),  # a sample
+    (3.0, 0.2, 0.0),  # the border
+    (3.0 + 1e-12, 3.0, 0.0),  # just beyond a corner
+    (40.0, -25.0, 3.0),  # outside, clamped to the border
+    (0.2, 0.3, 1.0e5),  # far above
+    (0.2, 0.3, -1.0e5),  # far below (through the plate)
+    (1.0e12, -1.0e12, 0.0),
+    (HUGE, HUGE, HUGE),  # finite, the largest there is
+    (HUGE, -HUGE, 0.0),  # makes inf - inf inside locate's projections
+    (-HUGE, 5e-324, HUGE),
+]
+
+
+@pytest.mark.parametrize("point", CONTACTS)
+def test_every_reachable_contact_shifts_within_the_halo(plate_model, point):
+    """Defence. Whatever finite point set_contact gets (inside, on and beyond the border,
+    far off the surface, the largest floats), locate's weights are finite, in [0, 1] up to
+    round-off and sum to 1, so no shift is NaN (int(floor(NaN)) would be any index) and the
+    halo holds every shift without the clamp; the indices are in bounds and the rendered
+    surface is finite."""
+    model = plate_model
+    sim = model.simulator()
+    sim.set_contact(np.array(point, dtype=np.float64))
+    samples, weights = sim.weights
+    assert np.all(np.isfinite(weights)) and abs(weights.sum() - 1.0) < 1e-9
+    assert np.all(weights >= -1e-9) and np.all(weights <= 1.0 + 1e-9)
+    chart = model.chart
+    for sa, sb in kernel_shifts(chart, samples, weights):
+        assert max(abs(sa), abs(sb)) <= chart.halo - 2 + 1e-6  # the clamp never engages
+        assert index_violations(chart, clamped(chart, sa), clamped(chart, sb)) == []
+    sim.step_displacement(-0.5 * np.array(sim.contact_normal))
+    out = sim.surface_displacement(np.empty_like(model.vertices))
+    assert np.all(np.isfinite(out))
+    poisoned = render_on_poisoned_scratch(model, sim)
+    assert np.all(np.isfinite(poisoned))  # no node outside the contracted rectangles was read
+    np.testing.assert_allclose(poisoned, out, rtol=0, atol=1e-6)
+
+
+def test_a_second_thread_is_refused_while_a_step_is_inside(plate_model):
+    """Defence. While one thread is inside step_displacement (held there by an input whose
+    conversion blocks), surface_displacement and set_contact from another thread raise
+    SimulatorBusyError and change nothing; once the step is out, the surface renders and
+    equals a fresh simulator's at the same state."""
+    model = plate_model
+    sim = model.simulator()
+    point = np.array([0.37, -0.81, 0.0])
+    sim.set_contact(point)
+    entered, release = threading.Event(), threading.Event()
+    push = np.array([0.0, 0.0, -0.4])
+
+    class Blocking:
+        def __array__(self, dtype=None, copy=None):
+            entered.set()
+            release.wait(10.0)
+            return push.copy()
+
+    errors = []
+
+    def step():
+        try:
+            sim.step_displacement(Blocking())
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    worker = threading.Thread(target=step)
+    worker.start()
+    try:
+        assert entered.wait(10.0)
+        out = np.full_like(model.vertices, 7.0)
+        with pytest.raises(SimulatorBusyError):
+            sim.surface_displacement(out)
+        assert np.all(out == 7.0)  # nothing written
+        with pytest.raises(SimulatorBusyError):
+            sim.set_contact(np.array([1.0, 1.0, 0.0]))
+    finally:
+        release.set()
+        worker.join(10.0)
+    assert not worker.is_alive() and errors == []
+    reference = model.simulator()
+    reference.set_contact(point)
+    reference.step_displacement(push)
+    np.testing.assert_array_equal(
+        sim.surface_displacement(np.empty_like(model.vertices)),
+        reference.surface_displacement(np.empty_like(model.vertices)),
+    )
+
+
+def test_simulators_sharing_a_model_render_on_parallel_threads(plate_model):
+    """Defence. Two simulators on one model render the transported surface on two threads at
+    once (the kernel lets the GIL go): each gets exactly what it gets alone."""
+    model = plate_model
+    contacts = [np.array([0.37, -0.81, 0.0]), np.array([-1.9, 2.2, 0.0])]
+    sims, alone = [], []
+    for p in contacts:
+        sim = model.simulator()
+        sim.set_contact(p)
+        sim.step_displacement(np.array([0.0, 0.0, -0.6]))
+        sims.append(sim)
+        alone.append(sim.surface_displacement(np.empty_like(model.vertices)).copy())
+    mismatches = []
+
+    def render(k):
+        out = np.empty_like(model.vertices)
+        for _ in range(100):
+            if not np.array_equal(sims[k].surface_displacement(out), alone[k]):
+                mismatches.append(k)
+
+    threads = [threading.Thread(target=render, args=(k,)) for k in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60.0)
+    assert mismatches == [] and not any(t.is_alive() for t in threads)
+    assert not np.allclose(alone[0], alone[1])  # two different dents: the check can fail
+
+
+def test_samples_facing_all_around_load_with_the_blended_field(tmp_path):
+    """Defence. Samples all over a sphere (mean normal near zero): no chart, the model loads,
+    the default field is PODI's and asking for the transport is one InputError."""
+    from test_surface_interpolation import icosphere
+
+    vertices, triangles = icosphere(2)
+    points, sample_triangles = icosphere(1)
+    normals = points / np.linalg.norm(points, axis=1)[:, None]
+    assert np.linalg.norm(normals.mean(axis=0)) < 0.1
+    path = write_model(tmp_path / "sphere.h5", vertices, triangles, points, normals,
+                       sample_triangles, dip(vertices, len(points)))  # fmt: skip
+    model = load(path, isolate=False)
+    assert model.chart is None
+    assert model.simulator().interpolation == "podi"
+    with pytest.raises(InputError, match="interpolation='podi'"):
+        model.simulator("transport")
+
+
+def test_a_surface_seen_edge_on_has_no_chart(tmp_path):
+    """Defence. A wall seen edge-on from the samples (no vertex faces their plan normal):
+    no chart, the model loads with the blended field."""
+    vertices, triangles = square_sheet()
+    vertices = vertices[:, [0, 2, 1]]  # the sheet stood up: normal along y
+    points, normals, sample_triangles = sample_triangle(1.0)
+    path = write_model(tmp_path / "wall.h5", vertices, triangles, points, normals,
+                       sample_triangles, dip(vertices, 3))  # fmt: skip
+    model = load(path, isolate=False)
+    assert model.chart is None and model.simulator().interpolation == "podi"
+
+
+# -- findings: each fails until fixed ----------------------------------------------------
+def test_a_model_with_many_modes_loads_or_is_refused_in_time(tmp_path):
+    """Finding (hang). _spacing coarsens the grid by 1.25 until P n 3 N <= MAX_VALUES, but the
+    grid never has fewer than 2 (2 halo + 2)^2 >= 72 nodes: when 3 P n 72 > MAX_VALUES
+    (P n > 138,888) no spacing fits and the loop never ends (h grows to inf and stays).
+    10,000 samples of 14 modes on a one-triangle surface: a 25 MB file that passes every
+    rule, and load() spins in _spacing forever."""
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    P, n = 10_000, 14
+    rng = np.random.default_rng(3)
+    points = np.zeros((P, 3))
+    points[:, :2] = rng.uniform(0.0, 1.0, (P, 2))
+    points[:3] = vertices
+    basis = np.zeros((P, 9, n), dtype=np.float32)
+    # in process: a hang would stop at pytest's timeout; the fix returns at once
+    chart = surface_chart(vertices, np.array([[0, 1, 2]]), points, np.tile(UP, (P, 1)),
+                          np.array([[0, 1, 2]]), basis)  # fmt: skip
+    assert chart is None  # no grid holds the modes: the model renders PODI's blend
+
+
+def test_a_long_sample_edge_does_not_stall_the_chart(tmp_path):
+    """Finding (hang). Samples 300 mm apart over a 4 mm surface (nothing else odd): the halo
+    makes the grid as large as MAX_VALUES allows (2 x 1100^2 nodes for 3 samples of one
+    mode) and almost none of it is covered, so _nearest_covered's breadth-first growth,
+    one numpy pass over all nodes per ring, runs ~1100 passes: over a minute (100 mm apart:
+    19 s; a single 1 um triangle under samples 1 mm apart: 75 s)."""
+    vertices, triangles = square_sheet()
+    points, normals, sample_triangles = sample_triangle(300.0)
+    chart = surface_chart(vertices, triangles, points, normals, sample_triangles,
+                          dip(vertices, 3))  # fmt: skip
+    assert chart is None or int(np.prod(chart.shape)) <= surface_chart_module.MAX_NODES
+
+
+def big_overlapping_sheet(copies: int):
+    """A 100 mm square listed ``copies`` times (two triangles each; nothing forbids repeated
+    surface triangles), plus 2 copies + 1 separate facing triangles of 1 um that make the
+    median edge, hence the grid spacing, tiny: (V, 3), (T, 3)."""
+    tiny = 2 * copies + 1
+    corner = np.array([[0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, 1e-3, 0.0]])
+    small = np.concatenate([corner + [2e-3 * k, 0.0, 0.0] for k in range(tiny)])
+    square = np.array([[0.0, 0.0, 0.0], [100.0, 0.0, 0.0], [100.0, 100.0, 0.0], [0.0, 100.0, 0.0]])
+    vertices = np.vstack([small, square])
+    triangles = np.vstack([
+        np.arange(3 * tiny).reshape(tiny, 3),
+        np.tile([[0, 1, 2], [0, 2, 3]], (copies, 1)) + 3 * tiny,
+    ])  # fmt: skip
+    return vertices, triangles
+
+
+def test_overlapping_surface_triangles_do_not_stall_the_rasterisation(tmp_path):
+    """Finding (hang). _rasterise visits every node of each charted triangle's bounding box:
+    T triangles over the whole grid cost T N. 3,000 repeats of a 100 mm square (2 triangles
+    each) and 6,001 1-um triangles for the median edge: 12,001 triangles (a few hundred kB),
+    a grid of 2 x 1056^2 nodes, about a minute of rasterisation (1,000 repeats: 17 s)."""
+    vertices, triangles = big_overlapping_sheet(3000)
+    points, normals, sample_triangles = sample_triangle(1.0)
+    chart = surface_chart(vertices, triangles, points, normals, sample_triangles,
+                          dip(vertices, 3))  # fmt: skip
+    assert chart is None  # the rasterisation's budget: PODI's blend instead
+
+
+MEMORY_CHILD = """
+import resource, sys
+import numpy as np
+from hapticrom.online.surface_chart import surface_chart
+data = np.load(sys.argv[1])
+args = [data[k] for k in ("v", "t", "p", "n", "s", "b")]
+unit = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+surface_chart(unit, np.array([[0, 1, 2]]), *args[2:5], args[5][:, :9])  # kernels loaded first
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+chart = surface_chart(*args)
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print((after - before) / 1024.0, chart.node_basis.nbytes / 2**20, int(np.prod(chart.shape)))
+"""
+
+
+def test_the_chart_stays_within_its_memory_budget(tmp_path):
+    """Finding (memory). MAX_VALUES bounds the modes on the grid (120 MB of float32) but not
+    the nodes: with P n small the grid may have MAX_VALUES / (3 P n) nodes (3.3 million for
+    3 samples of one mode) and the build keeps some 170 bytes per node besides (barycentric
+    weights, heights, the breadth-first copies, the fit's float64 nodes), so a 13-vertex
+    surface (a 100 mm square and three 1 um triangles: 2.2 million nodes) raises the peak
+    memory by ~360 MB; each simulator then allocates 36 bytes per node more (80 MB here).
+    Budget: the build's peak growth within twice MAX_VALUES' 120 MB."""
+    vertices, triangles = big_overlapping_sheet(1)
+    points, normals, sample_triangles = sample_triangle(1.0)
+    data = tmp_path / "inputs.npz"
+    np.savez(data, v=vertices, t=triangles, p=points, n=normals, s=sample_triangles,
+             b=dip(vertices, 3))  # fmt: skip
+    code = textwrap.dedent(MEMORY_CHILD)
+    child = subprocess.run([sys.executable, "-c", code, str(data)], capture_output=True,
+                           text=True, timeout=120)  # fmt: skip
+    assert child.returncode == 0, child.stderr[-2000:]
+    growth, node_basis, nodes = (float(v) for v in child.stdout.split())
+    assert node_basis <= 120.0
+    assert growth <= 240.0, f"peak +{growth:.0f} MB for {nodes:.0f} nodes"
+
+
+def test_a_surface_with_no_facing_triangle_is_not_refused_as_unreadable(tmp_path):
+    """Finding (wrong refusal). A pleated sheet whose every triangle is steeper than FACING
+    but whose ridge vertices face the samples: _spacing takes the median of no edges (NaN),
+    math.ceil(NaN) raises ValueError and load() refuses the model with "cannot be set up
+    (ValueError: cannot convert float NaN to integer)", naming nothing. No triangle can be
+    charted, so the chart should be None (the blended field), like a surface seen edge-on."""
+    xs, zs = np.arange(6) * 0.1, np.array([0.0, 1.0, 0.0, 1.0, 0.0, 1.0])
+    vertices = np.array([[x, y, z] for x, z in zip(xs, zs, strict=True) for y in (0.0, 1.0)])
+    strips = 2 * np.arange(5)[:, None]  # each strip between two ridges: two triangles
+    triangles = np.vstack([strips + [0, 2, 3], strips + [0, 3, 1]])
+    points, normals, sample_triangles = sample_triangle(1.0)
+    path = write_model(tmp_path / "pleat.h5", vertices, triangles, points, normals,
+                       sample_triangles, dip(vertices, 3))  # fmt: skip
+    try:
+        model = load(path, isolate=False)
+    except ArtifactError as exc:
+        assert "surface/" in str(exc), str(exc)  # a refusal must name the culprit
+    else:
+        assert model.chart is None
+
+
+def test_a_chart_with_no_charted_vertex_contracts_inside_the_grid():
+    """Finding (index contract, low). A surface whose vertices face the samples but none has
+    its cell covered (here a single triangle: no grid cell fits in it) gets a chart with no
+    charted vertex and read_rows = read_columns = [0, 0]. transported_surface still
+    contracts a rectangle [ia, ia + 1) x [ib, ib + 1) around it: negative slice starts for
+    layer 0 (numba wraps them), and at ia = 0, ib = -1 the slice [-1:0], which is empty and
+    then written through (out[0] lands on the last node: in the array by luck, not by
+    design). Either no chart (None) or a rectangle inside the grid."""
+    vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    points, normals, sample_triangles = sample_triangle(1.0)
+    chart = surface_chart(vertices, np.array([[0, 1, 2]]), points, normals, sample_triangles,
+                          dip(vertices, 3))  # fmt: skip
+    if chart is None:
+        return
+    assert len(chart.charted) == 0
+    problems = {p for sa in extreme_shifts(chart) for sb in extreme_shifts(chart)
+                for p in index_violations(chart, sa, sb)}  # fmt: skip
+    assert not problems, "\n".join(sorted(problems, key=lambda p: "-1:" not in p)[:3])
+
+
+def test_a_finite_surface_basis_gives_finite_values_on_the_grid():
+    """Finding (non-finite values into a fastmath kernel). The back-projection fits the nodes
+    in float64 and stores them as float32: a surface basis near float32's range (finite,
+    so every rule passes) overflows to inf at a quarter of the nodes. At load the sweep
+    then refuses the file as "the model's curves surface is not finite" rather than
+    naming samples/surface_basis, and inf reaches transported_surface, compiled with
+    fastmath (which assumes no inf or NaN). The chart must hold finite values or refuse."""
+    vertices, triangles = plate(0.5)
+    points, normals, sample_triangles = samples_on(3.0)
+    rng = np.random.default_rng(1)
+    big = 0.5 * np.finfo(np.float32).max
+    basis = (rng.choice([-1.0, 1.0], size=(len(points), vertices.size, 1)) * big).astype(np.float32)
+    assert np.all(np.isfinite(basis))
+    try:
+        chart = surface_chart(vertices, triangles, points, normals, sample_triangles, basis)
+    except ArtifactError as exc:
+        assert "surface_basis" in str(exc)
+        return
+    if chart is not None:
+        bad = int(np.count_nonzero(~np.isfinite(chart.node_basis)))
+        assert bad == 0, f"{bad} of {chart.node_basis.size} node values are not finite"
+
+
+def test_the_crafted_artifacts_pass_the_reader(tmp_path):
+    """The overlapping-sheet attack is real: read_artifact accepts a surface that lists one
+    triangle several times (every crafted file here goes through write_artifact, which
+    reads it back, so each passes the reader's rules)."""
+    vertices, triangles = big_overlapping_sheet(3)
+    assert len(np.unique(np.sort(triangles, axis=1), axis=0)) < len(triangles)  # repeats
+    points, normals, sample_triangles = sample_triangle(1.0)
+    path = write_model(tmp_path / "m.h5", vertices, triangles, points, normals,
+                       sample_triangles, dip(vertices, 3))  # fmt: skip
+    assert read_artifact(path).symbols["T"] == len(triangles)
