@@ -72,11 +72,6 @@ class SurfaceChart:
     read_rows: np.ndarray  # (2,) int64: the rows [a0, a1) the charted vertices' cells read
     read_columns: np.ndarray  # (2,) int64: the columns [b0, b1) they read
 
-    @property
-    def max_shift(self) -> float:
-        """The longest shift (mm) the halo holds."""
-        return (self.halo - 1) * self.spacing
-
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Area-weighted unit vertex normals (V, 3) of a triangulated surface."""

@@ -22,22 +22,25 @@ SIGMA = 0.6  # mm, the dent's radius
 SAMPLE_SPACING = 1.5  # mm
 
 
+def lattice(half: float, n: int):
+    """An n x n square lattice over [-half, half]^2 at z = 0 and its triangles, two per
+    square, counter-clockwise seen from +z: (n^2, 3), (2 (n - 1)^2, 3)."""
+    x = np.linspace(-half, half, n)
+    X, Y = np.meshgrid(x, x, indexing="ij")
+    points = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    idx = np.arange(n * n).reshape(n, n)
+    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
+    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    return points, np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+
+
 def plate(thickness: float | None = None, spacing: float = SPACING):
     """A square plate's upper surface (z = 0, outward +z) triangulated at SPACING, and with
     ``thickness`` its lower surface (outward -z) and the four side walls, with a ring of
     vertices half way down them: (V, 3), (T, 3)."""
     n = int(round(WIDTH / spacing)) + 1
-    x = np.linspace(-WIDTH / 2, WIDTH / 2, n)
-    X, Y = np.meshgrid(x, x, indexing="ij")
-    top = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
+    top, up = lattice(WIDTH / 2, n)
     idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = (
-        idx[:-1, :-1].ravel(),
-        idx[1:, :-1].ravel(),
-        idx[1:, 1:].ravel(),
-        idx[:-1, 1:].ravel(),
-    )
-    up = np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
     if thickness is None:
         return top, up
     bottom = top - [0.0, 0.0, thickness]
@@ -71,18 +74,7 @@ def dent(vertices: np.ndarray, centre: np.ndarray) -> np.ndarray:
 def samples_on(extent: float):
     """Samples on a square lattice of SAMPLE_SPACING within +-extent, their normals (+z) and
     a triangulation of the lattice."""
-    k = int(round(2 * extent / SAMPLE_SPACING)) + 1
-    s = np.linspace(-extent, extent, k)
-    X, Y = np.meshgrid(s, s, indexing="ij")
-    points = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
-    idx = np.arange(k * k).reshape(k, k)
-    a, b, c, d = (
-        idx[:-1, :-1].ravel(),
-        idx[1:, :-1].ravel(),
-        idx[1:, 1:].ravel(),
-        idx[:-1, 1:].ravel(),
-    )
-    triangles = np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    points, triangles = lattice(extent, int(round(2 * extent / SAMPLE_SPACING)) + 1)
     return points, np.tile([0.0, 0.0, 1.0], (len(points), 1)), triangles.astype(np.int64)
 
 
