@@ -19,7 +19,7 @@ import threading
 
 import numpy as np
 import pytest
-from test_surface_field import dent, plate, samples_on
+from test_surface_field import dent, lattice, plate, samples_on
 
 from hapticrom.online import load, surface_kernels
 from hapticrom.online import surface_chart as surface_chart_module
@@ -35,13 +35,7 @@ UP = np.array([0.0, 0.0, 1.0])
 # -- building blocks ---------------------------------------------------------------------
 def square_sheet(n: int = 9, width: float = 4.0):
     """A flat square (z = 0, outward +z) of n x n vertices: (V, 3), (T, 3)."""
-    x = np.linspace(-width / 2, width / 2, n)
-    X, Y = np.meshgrid(x, x, indexing="ij")
-    vertices = np.column_stack([X.ravel(), Y.ravel(), np.zeros(X.size)])
-    idx = np.arange(n * n).reshape(n, n)
-    a, b = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel()
-    c, d = idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    return vertices, np.vstack([np.column_stack([a, b, c]), np.column_stack([a, c, d])])
+    return lattice(width / 2, n)
 
 
 def sample_triangle(edge: float, normal=UP):
