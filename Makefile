@@ -74,7 +74,7 @@ DEMO_MODEL ?= out/cornea-soft.h5
 TRAIN_DEMO = $(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom train $(DEMO_CAMPAIGN) --out $(DEMO_MODEL)
 demo: venv meshes/cornea.msh ## train the demo model (resumed), play, check, report and cut it
 	$(TRAIN_DEMO)
-	$(VENV)/bin/hapticrom play $(DEMO_MODEL)
+	$(VENV)/bin/hapticrom play $(DEMO_MODEL) --out out/play
 	$(VENV)/bin/mpirun -n $(NP) $(VENV)/bin/hapticrom accuracy $(DEMO_MODEL) --json out/accuracy.json
 	$(VENV)/bin/hapticrom report $(DEMO_MODEL) --out out/report --accuracy out/accuracy.json --held-out $(DEMO_MODEL:.h5=.heldout-8)
 	$(PY) bench/cutting_latency.py $(DEMO_MODEL)

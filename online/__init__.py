@@ -8,8 +8,9 @@ simulator can ``pip install hapticrom`` alone::
 
     model = hapticrom.online.load("cornea.h5")     # verifies the artifact, warms the kernels
     sim = model.simulator()                       # or simulator("grassmann")
-    sim.set_contact(np.array([0.0, 0.0, 0.0]))    # mm, on the surface
-    d = np.array([0.0, 0.0, -0.3])                # tool displacement, mm
+    force = sim.step_position(np.array([0.0, 0.0, 0.3]))  # tool tip centre (mm) -> N
+    sim.set_contact(np.array([0.0, 0.0, 0.0]))    # or: a contact point (mm, on the surface)
+    d = np.array([0.0, 0.0, -0.3])                # and the tool displacement from it, mm
     force = sim.step_displacement(d)              # reaction force on the tool, N
 
 Units: mm, N. See :mod:`hapticrom.online.simulator` for the contact model. Every error
@@ -18,7 +19,8 @@ a damaged artifact is an :class:`ArtifactError`.
 
 Modules: :mod:`~hapticrom.online.model` (the loaded artifact), :mod:`~hapticrom.online.simulator`
 (the servo loop's object), :mod:`~hapticrom.online.kernels` (the numba kernels and the state
-buffer's layout), :mod:`~hapticrom.online.scalpel` (the simulator's cutting controller),
+buffer's layout), :mod:`~hapticrom.online.proxy` (``step_position``: the tool tip against
+the surface), :mod:`~hapticrom.online.scalpel` (the simulator's cutting controller),
 :mod:`~hapticrom.online.cutting`, :mod:`~hapticrom.online.coupled_patch`,
 :mod:`~hapticrom.online.tool_load`, :mod:`~hapticrom.online.cut_render`,
 :mod:`~hapticrom.online.cut_worker` (the cuts), :mod:`~hapticrom.online.latency`,

@@ -103,6 +103,14 @@ def _time_runtime(model: ReducedModel, sim, steps: int, baseline_steps: int) -> 
         for t in np.linspace(0.1, 0.9, 5000)[:, None]
     ]
     calls["set_contact"] = time_calls(sim.set_contact, slide)
+    # Position in, force out: the scripted oblique press, slide and lift, then the stiffness.
+    from hapticrom.online.play import scripted_tips
+
+    tips = list(scripted_tips(model, max(steps, 1000)))
+    calls["step_position"] = time_calls(sim.step_position, tips)
+    sim.step_position(tips[len(tips) // 2])  # in contact, mid-slide
+    stiffness = np.zeros((3, 3))
+    calls["stiffness"] = time_calls(lambda _: sim.stiffness(stiffness), range(20_000))
     ref = NumpySimulator(model, sim.response, root="newton")  # the kernels' algorithm
     ref.set_contact(centre)
     steps = displacements[:baseline_steps]
@@ -115,6 +123,8 @@ TARGETS = {
     "surface_displacement p99": ("surface_displacement", "p99_us", 100.0),
     "surface_displacement at an untrained contact p99": ("surface_untrained", "p99_us", 50.0),
     "set_contact p99": ("set_contact", "p99_us", 20.0),
+    "step_position p99 (contact detection included)": ("step_position", "p99_us", 10.0),
+    "stiffness p99": ("stiffness", "p99_us", 2.0),
 }
 
 
@@ -126,8 +136,9 @@ def report(result: dict) -> str:
         f"vertices): load + warm-up {result['load_and_warm_up_s']:.2f} s (target 2 s)",
         f"{'call':28s} {'p50 us':>9s} {'p99 us':>9s} {'max us':>9s} {'calls':>8s}",
     ]
-    for key in ("step_displacement", "step_force", "set_contact", "surface_displacement",
-                "surface_untrained", "numpy_step_displacement"):  # fmt: skip
+    keys = ("step_displacement", "step_force", "set_contact", "step_position", "stiffness",
+            "surface_displacement", "surface_untrained", "numpy_step_displacement")  # fmt: skip
+    for key in keys:
         r = result[key]
         lines.append(
             f"{key:28s} {r['p50_us']:9.2f} {r['p99_us']:9.2f} {r['max_us']:9.1f} {r['calls']:8d}"

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hapticrom.online.proxy import contact_surface
 from hapticrom.online.surface_chart import surface_chart
 from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
 from hapticrom.shared.geometry import plan_view
@@ -76,6 +77,8 @@ class ReducedModel:
             self.vertices, self.triangles, self.sample_points, self.sample_normals,
             self.sample_triangles, self.surface_basis,
         )  # fmt: skip
+        self._sheets: dict[float, np.ndarray] = {}
+        self.contact_sheet(self.contact_radius)  # built at load: refused here if it cannot be
         if self.grassmann is not None:
             tangents = self.grassmann["tangents"]
             self.grassmann["tangents_t"] = np.ascontiguousarray(tangents.transpose(0, 2, 1))
@@ -135,6 +138,24 @@ class ReducedModel:
     def trained_force(self) -> float:
         """Smallest of the samples' largest trained forces (N)."""
         return float(self.force[:, -1].min())
+
+    @property
+    def contact_radius(self) -> float:
+        """The training tool tip's radius (mm): the default of ``step_position``'s sphere."""
+        return float(self.artifact.group_attrs["model"]["contact_radius"])
+
+    def contact_sheet(self, radius: float) -> np.ndarray:
+        """The loadable surface offset by a tool tip's ``radius`` (mm), as the proxy's table
+        (:func:`~hapticrom.online.proxy.contact_surface`); built once per radius."""
+        sheet = self._sheets.get(radius)
+        if sheet is None:
+            groups = np.asarray(self.artifact["surface"]["groups"])
+            try:
+                sheet = contact_surface(self.vertices, self.triangles, groups, radius)
+            except ValueError as exc:
+                raise ArtifactError(f"{self.path}: surface/groups: {exc}") from None
+            self._sheets[radius] = sheet
+        return sheet
 
     @property
     def num_modes(self) -> int:

@@ -1,24 +1,35 @@
-"""A scripted tool path driven through the runtime as a servo loop would (``hapticrom play``).
+"""Tool paths driven through the runtime as a servo loop would (``hapticrom play``).
 
-Press at the centre of the trained region, slide across it at constant depth,
-release; each servo tick moves the contact point (``set_contact``) and asks for
-the force (``step_displacement``), paced in real time at ``rate`` Hz (busy
-waiting, like a servo thread) or as fast as possible.
+Position in, force out: each servo tick hands the tool tip's centre to
+``step_position`` and gets the force back, paced in real time (busy waiting, like
+a servo thread) or as fast as possible. The path is the built-in scripted one
+(:func:`scripted_tips`: approach, press at 30 degrees from the normal, slide 2 mm
+across the centre of the trained region following the curvature, lift) or a CSV
+file of the tip's positions over time (:func:`read_path`). The history (tip, force,
+depth, contact) can be written as CSV and drawn.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from hapticrom.online import proxy
 from hapticrom.online.model import load
+from hapticrom.shared.errors import InputError
+
+MAX_PATH_ROWS = 3_600_000  # an hour at 1 kHz
+MAX_COORDINATE = 1e4  # mm: a tip 10 m away is a unit mistake, not a path
+HISTORY_COLUMNS = ("t_s", "x_mm", "y_mm", "z_mm", "fx_n", "fy_n", "fz_n", "depth_mm", "contact")
 
 
 def tool_path(model, ticks: int, depth_fraction: float = 0.8):
-    """Contact points (mm) and depths (mm) of press (25 %), slide (50 %), release (25 %)."""
+    """Contact points (mm) and depths (mm) of press (25 %), slide (50 %), release (25 %)
+    along a straight line through the plan view (the contact-point path of ``export``)."""
     chart = model.plan_points
     centre = chart.mean(axis=0)
     half = 0.35 * (chart[:, 0].max() - chart[:, 0].min())
@@ -32,6 +43,107 @@ def tool_path(model, ticks: int, depth_fraction: float = 0.8):
     return points, depth
 
 
+def sheet_point(sheet: np.ndarray, p, direction) -> tuple[np.ndarray, np.ndarray]:
+    """Where the ray from p along ``direction`` (unit) first enters the offset sheet, and
+    the sheet's blended unit normal there (mm). ValueError if it misses the sheet."""
+    p, direction = np.asarray(p, dtype=np.float64), np.asarray(direction, dtype=np.float64)
+    state = np.zeros(proxy.state_size(sheet))
+    reach = 2.0 * float(np.ptp(proxy.sheet_views(sheet)[0].reshape(-1, 3), axis=0).max()) + 1.0
+    end = p + reach * direction
+    t, s = proxy.first_crossing(p, (end[0], end[1], end[2]), sheet, state)
+    if t < 0:
+        raise ValueError(f"the ray from {p.round(3).tolist()} mm misses the loadable surface")
+    x = p + s * (end - p)
+    views = proxy.sheet_views(sheet)
+    offset, tri = views[0].reshape(-1, 3), views[3].reshape(-1, 3).astype(np.int64)
+    a, b, c = offset[tri[t]]
+    weights = np.linalg.lstsq(np.column_stack([b - a, c - a]), x - a, rcond=None)[0]
+    _, _, n = proxy.proxy_frame(sheet, t, 1.0 - weights.sum(), weights[0], weights[1])
+    return x, np.array(n)
+
+
+def scripted_tips(model, ticks: int, radius: float | None = None, depth_fraction: float = 0.8,
+                  angle_deg: float = 30.0, slide_mm: float = 2.0) -> np.ndarray:  # fmt: skip
+    """Tip centres (ticks, 3) mm of the built-in path: approach from 1 mm above and press
+    along a line ``angle_deg`` from the normal (30 %), slide ``slide_mm`` across the
+    centre of the trained region at a constant depth along the normal, following the
+    curvature (40 %), lift along the normal (30 %). The depth is ``depth_fraction`` of the
+    trained depth; the sphere's radius is the training's unless given."""
+    radius = model.contact_radius if radius is None else radius
+    sheet = model.contact_sheet(radius)
+    centre = model.sample_points[int(np.argmin(np.linalg.norm(model.plan_points, axis=1)))]
+    normal = model.sample_normals[int(np.argmin(np.linalg.norm(model.plan_points, axis=1)))]
+    along = model.plan_axes[0] - (model.plan_axes[0] @ normal) * normal
+    along /= np.linalg.norm(along)
+    depth = depth_fraction * model.trained_depth
+    n_press, n_slide = int(0.3 * ticks), int(0.4 * ticks)
+    n_lift = ticks - n_press - n_slide
+    slide = []
+    for s in np.linspace(-0.5 * slide_mm, 0.5 * slide_mm, max(n_slide, 2)):
+        x, n = sheet_point(sheet, centre + s * along + 5.0 * normal, -normal)
+        slide.append(x - depth * n)
+    slide = np.array(slide)
+    _, n_a = sheet_point(sheet, slide[0] + 5.0 * normal, -normal)
+    angle = math.radians(angle_deg)
+    inward = -(math.cos(angle) * n_a + math.sin(angle) * along)  # pressing towards the slide
+    start = slide[0] - (depth + 1.0) / math.cos(angle) * inward
+    press = start + np.linspace(0.0, 1.0, n_press)[:, None] * (slide[0] - start)
+    _, n_b = sheet_point(sheet, slide[-1] + 5.0 * normal, -normal)
+    lift = slide[-1] + np.linspace(0.0, depth + 1.0, n_lift)[:, None] * n_b
+    return np.vstack([press, slide[:n_slide], lift])[:ticks]
+
+
+def read_path(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(times (N,) s, tip centres (N, 3) mm) of a CSV file with columns t, x, y, z (a
+    header line ``t,x,y,z`` optional; ``#`` comments). Refused with one InputError naming
+    the line: not 4 numbers, not finite, times not increasing from >= 0, a coordinate
+    beyond 10 m, more than an hour of rows at 1 kHz, an empty file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"tool path {path}: cannot read it ({exc})") from None
+    rows, lines = [], []
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line or (not rows and line.replace(" ", "").lower() == "t,x,y,z"):
+            continue
+        if len(rows) >= MAX_PATH_ROWS:
+            raise InputError(f"tool path {path}: more than {MAX_PATH_ROWS:,} rows")
+        rows.append(_path_row(path, number, line))
+        lines.append(number)
+    if not rows:
+        raise InputError(f"tool path {path}: no rows (columns t, x, y, z)")
+    data = np.array(rows)
+    steps = np.diff(data[:, 0])
+    if data[0, 0] < 0 or np.any(steps <= 0):
+        bad = 0 if data[0, 0] < 0 else int(np.argmax(steps <= 0)) + 1
+        raise InputError(
+            f"tool path {path}, line {lines[bad]}: times must increase from 0 or later "
+            f"(t = {data[bad, 0]:g} s)"
+        )
+    return data[:, 0], np.ascontiguousarray(data[:, 1:])
+
+
+def _path_row(path: Path, number: int, line: str) -> list[float]:
+    fields = line.split(",")
+    try:
+        values = [float(f) for f in fields]
+    except ValueError:
+        values = []
+    if len(values) != 4 or not all(math.isfinite(v) for v in values):
+        raise InputError(
+            f"tool path {path}, line {number}: expected 4 finite numbers t, x, y, z "
+            f"(s, mm), got {line[:80]!r}"
+        )
+    if max(abs(v) for v in values[1:]) > MAX_COORDINATE:
+        raise InputError(
+            f"tool path {path}, line {number}: a coordinate beyond {MAX_COORDINATE:g} mm "
+            "(the path is in mm)"
+        )
+    return values
+
+
 def play(
     path: str | Path,
     rate: float = 1000.0,
@@ -39,63 +151,104 @@ def play(
     interpolation: str | None = None,
     realtime: bool = True,
     say: Callable[[str], None] = print,
+    tip_path: str | Path | None = None,
+    out: str | Path | None = None,
 ) -> dict:
-    """Drive :func:`tool_path` through a simulator of the artifact at ``path`` as a servo
-    loop would, ``rate`` Hz for ``seconds`` (paced in real time, or as fast as possible),
-    reporting through ``say``; returns the achieved rate and the physics' latencies."""
+    """Drive the scripted path (``rate`` Hz for ``seconds``) or the CSV ``tip_path`` through
+    ``step_position`` of a simulator of the artifact at ``path``, as a servo loop would
+    (paced in real time, or as fast as possible), reporting through ``say``. With ``out``
+    (a path prefix) the history goes to OUT.csv and, with matplotlib, OUT.png. Returns
+    the achieved rate, the physics' latencies and the peak force."""
     model = load(path)
     sim = model.simulator(interpolation)
-    ticks = int(rate * seconds)
+    if tip_path is None:
+        ticks = int(rate * seconds)
+        times, tips = np.arange(ticks) / rate, scripted_tips(model, ticks)
+        what = "approach, press at 30 deg, slide 2 mm across the centre, lift"
+    else:
+        times, tips = read_path(tip_path)
+        what = f"{tip_path}: {len(times)} positions over {times[-1]:.3g} s"
     say(f"playing {model.describe()}")
+    source = "the POD-ANM series" if sim.response == "anm" else "the stored full-order curves"
     pacing = "real time" if realtime else "free running"
-    say(
-        f"press - slide - release, {ticks} ticks at {rate:g} Hz ({pacing}); force from "
-        + ("the POD-ANM series" if sim.response == "anm" else "the stored full-order curves")
-    )
-    forces, physics_ns, elapsed = _servo_loop(sim, model, ticks, rate, realtime, say)
+    say(f"{what}; tip radius {sim.tool_radius:g} mm; {pacing}; force from {source}")
+    history, physics_ns, elapsed = _servo_loop(sim, times, tips, realtime, say)
     us = physics_ns / 1e3
     summary = {
-        "ticks": ticks,
-        "achieved_rate_hz": ticks / elapsed,
+        "ticks": len(times),
+        "achieved_rate_hz": len(times) / elapsed,
         "physics_p50_us": float(np.percentile(us, 50)),
         "physics_p99_us": float(np.percentile(us, 99)),
         "physics_max_us": float(us.max()),
-        "max_force_n": float(np.linalg.norm(forces, axis=1).max()),
+        "max_force_n": float(np.linalg.norm(history[:, 4:7], axis=1).max()),
         "max_rate_hz": 1e6 / float(np.percentile(us, 99)),
     }
     say(
         f"achieved {summary['achieved_rate_hz']:.0f} Hz over {elapsed:.2f} s; physics per tick "
-        f"(set_contact + step) p50 {summary['physics_p50_us']:.1f} us, p99 "
+        f"(step_position) p50 {summary['physics_p50_us']:.1f} us, p99 "
         f"{summary['physics_p99_us']:.1f} us, max {summary['physics_max_us']:.0f} us "
         f"(room for {summary['max_rate_hz']:.0f} Hz at p99); "
         f"peak force {summary['max_force_n']:.4f} N"
     )
+    if out is not None:
+        for written in write_history(history, out):
+            say(f"wrote {written}")
     return summary
 
 
-def _servo_loop(sim, model, ticks: int, rate: float, realtime: bool, say) -> tuple:
-    """(forces (ticks, 3) N, physics time per tick (ns), seconds in all) of the loop."""
-    points, depths = tool_path(model, ticks)
-    forces = np.zeros((ticks, 3))
+def _servo_loop(sim, times, tips, realtime: bool, say) -> tuple:
+    """(history (N, 9): t, tip, force, depth, contact; physics time per tick (ns);
+    seconds in all) of the loop."""
+    ticks = len(times)
+    history = np.zeros((ticks, len(HISTORY_COLUMNS)))
+    history[:, 0], history[:, 1:4] = times, tips
     physics_ns = np.zeros(ticks, dtype=np.int64)
-    d = np.zeros(3)
-    period = 1.0 / rate
     clock = time.perf_counter
     start = clock()
     for i in range(ticks):
         if realtime:
-            target = start + i * period
-            while clock() < target:
+            while clock() < start + times[i] - times[0]:
                 pass
         t0 = time.perf_counter_ns()
-        sim.set_contact(points[i])
-        np.multiply(sim.contact_normal, -depths[i], out=d)
-        forces[i] = sim.step_displacement(d)
+        force = sim.step_position(tips[i])
         physics_ns[i] = time.perf_counter_ns() - t0
+        history[i, 4:7] = force
+        history[i, 7], history[i, 8] = sim.depth, sim.in_contact
         if i % max(1, ticks // 15) == 0:
-            outside = "  (outside trained region)" if sim.outside_trained_region else ""
+            state = "contact" if sim.in_contact else "free"
             say(
-                f"  t {i / rate:6.3f} s  contact {np.round(points[i], 3)} mm  "
-                f"depth {depths[i]:.3f} mm  force {np.linalg.norm(forces[i]):.5f} N{outside}"
+                f"  t {times[i]:6.3f} s  tip {np.round(tips[i], 3)} mm  {state:7s} depth "
+                f"{sim.depth:.3f} mm  force {np.linalg.norm(force):.5f} N"
             )
-    return forces, physics_ns, clock() - start
+    return history, physics_ns, clock() - start
+
+
+def write_history(history: np.ndarray, out: str | Path) -> list[Path]:
+    """OUT.csv (the columns of HISTORY_COLUMNS) and, if matplotlib is installed, OUT.png
+    (force and depth over time)."""
+    out = Path(out)
+    csv = out.with_name(out.name + ".csv")
+    np.savetxt(csv, history, delimiter=",", header=",".join(HISTORY_COLUMNS), comments="",
+               fmt="%.9g")  # fmt: skip
+    written = [csv]
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return written
+    fig, (top, bottom) = plt.subplots(2, 1, sharex=True, figsize=(7, 5))
+    for c, name in enumerate("xyz"):
+        top.plot(history[:, 0], history[:, 4 + c], label=f"F{name}")
+    top.plot(history[:, 0], np.linalg.norm(history[:, 4:7], axis=1), "k", label="|F|")
+    top.set_ylabel("force on the tool (N)")
+    top.legend(loc="upper left", ncol=4, fontsize=8)
+    bottom.plot(history[:, 0], history[:, 7], "k")
+    bottom.set_ylabel("depth (mm)")
+    bottom.set_xlabel("time (s)")
+    fig.tight_layout()
+    png = out.with_name(out.name + ".png")
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return [*written, png]

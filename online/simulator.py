@@ -4,9 +4,15 @@ A haptic servo loop (OpenHaptics, CHAI3D) calls the physics about 1,000
 times a second with a position and expects a force back::
 
     sim = hapticrom.online.load("cornea.h5").simulator()
+    force = sim.step_position(tip)          # the tool tip's centre in, reaction force out
+    sim.surface_displacement(vertex_disp)   # for rendering, into a caller-owned (V, 3) array
+
+``step_position`` finds the contact itself (a spherical tip and a proxy on the surface:
+:mod:`hapticrom.online.proxy`). A host with its own collision detection gives the contact
+point and the tool's displacement from it instead::
+
     sim.set_contact(point)                  # where the tool touches (may slide)
     force = sim.step_displacement(d)        # tool displacement in, reaction force out
-    sim.surface_displacement(vertex_disp)   # for rendering, into a caller-owned (V, 3) array
 
 The model is the PODI contact model of the artifact: the samples' force-depth
 curves and reduced fields, interpolated over the tool position (barycentric in
@@ -54,7 +60,7 @@ import numbers
 
 import numpy as np
 
-from hapticrom.online import kernels, surface_kernels
+from hapticrom.online import kernels, proxy, surface_kernels
 from hapticrom.online.model import INTERPOLATIONS, RESPONSES, ReducedModel
 from hapticrom.online.scalpel import CuttingController, readonly
 from hapticrom.shared.errors import (
@@ -71,6 +77,7 @@ __all__ = ["ScalpelInputError", "Simulator", "SimulatorBusyError", "StepInputErr
 _NDARRAY, _F8 = np.ndarray, np.dtype(np.float64)
 _KEPT = "state unchanged"
 _place_scalpel, _NO_VERTEX = kernels.place_scalpel, kernels.NO_VERTEX  # no lookups per call
+_step_position, _stiffness = proxy.step_position, proxy.stiffness
 
 
 def _as_vector(value, out: np.ndarray, what: str, error: type[Exception]) -> np.ndarray:
@@ -175,6 +182,7 @@ class Simulator:
         max_displacement: float | None = None,
         max_force: float | None = None,
         response: str | None = None,
+        tool_radius: float | None = None,
     ):
         if interpolation is None:
             interpolation = "transport" if model.chart is not None else "podi"
@@ -218,6 +226,12 @@ class Simulator:
         self._frames_of = -1.0  # the contact (buf[CONTACTS]) the frames are of
         self._controlled = "displacement"  # the last step's control (the cuts' field needs it)
         self.cutting: CuttingController | None = None  # the scalpel, from its first placement
+        # step_position's sphere against the offset sheet, and the proxy's state on it.
+        self.tool_radius = _limit(tool_radius, model.contact_radius, "tool_radius", "mm")
+        self._sheet = model.contact_sheet(self.tool_radius)
+        self._proxy = np.zeros(proxy.state_size(self._sheet))
+        self._proxy_out = readonly(self._proxy[proxy.STATE_PROXY : proxy.STATE_PROXY + 3])
+        self._foot_out = readonly(self._proxy[proxy.STATE_FOOT : proxy.STATE_FOOT + 3])
         # True while a thread is inside a call. A flag, not a lock: a lock's acquire and
         # release cost more than half a step. Under CPython's GIL nothing runs between its
         # test and its setting, so a second thread always sees it (the steps' kernels let
@@ -347,6 +361,72 @@ class Simulator:
             return self._displacement_out
         finally:
             self._inside = False
+
+    def step_position(self, tip) -> np.ndarray:
+        """Tool tip centre ``tip`` (mm) in, reaction force on the tool (N) out: position in,
+        force out, as a haptic device's servo loop calls it.
+
+        The tip is a sphere of ``tool_radius`` (the training's by default); the proxy
+        finds the contact, slides it over the surface as the tip moves, releases it when
+        the tip leaves, and never lets it pass through the organ (see
+        :mod:`hapticrom.online.proxy`). Out of contact the force is zero (``in_contact``
+        False). A displacement beyond ``max_displacement`` is held at it (``saturated``),
+        not refused: a servo loop must get a force every tick. A tip that is not 3
+        finite numbers raises StepInputError (the state unchanged). The returned array
+        (read only) is reused by the next call.
+        """
+        if self._inside:
+            self._busy("step_position")
+        self._inside = True
+        try:
+            try:  # a 1-D float64 array goes straight in; anything else: TypeError
+                region = _step_position(tip, self._sheet, self._proxy, self._table, self._buf)
+            except TypeError:  # the slower path: converted into a buffer, or refused
+                p = self._converted(tip, "tool tip (mm)")
+                region = _step_position(p, self._sheet, self._proxy, self._table, self._buf)
+            if region < _NO_VERTEX:
+                status = -region if region != -kernels.POSITION_NOT_FINITE else kernels.NOT_FINITE
+                self._refuse(status, "tool tip (mm)", tip, math.inf)
+            self._controlled = "displacement"
+            if self.cutting is not None and self._proxy[proxy.STATE_MODE] == proxy.TOUCHING:
+                self.cutting.moved(region)
+                self.cutting.displacement_stepped(self._force)
+            return self._force_out
+        finally:
+            self._inside = False
+
+    def stiffness(self, out: np.ndarray) -> np.ndarray:
+        """The 3x3 contact stiffness K (N/mm) of the last step into ``out`` (a C-contiguous
+        float64 (3, 3) array): the force on the tool near the tip x is F(x + dx) ~ F - K dx,
+        for hosts that step the physics slower than the device loop and extrapolate.
+        Frictionless: K = dF/ddepth n n^T; zero out of contact."""
+        try:
+            status = _stiffness(self._buf, out)
+        except TypeError:
+            status = kernels.WRONG_SHAPE
+        if status:
+            raise OutputArrayError(
+                f"out must be a C-contiguous float64 array of shape (3, 3), got "
+                f"{getattr(out, 'dtype', type(out).__name__)} {np.shape(out)}"
+            )
+        return out
+
+    @property
+    def proxy(self) -> np.ndarray:
+        """Where the tool's centre would be if the tissue did not yield (mm; read only): on
+        the surface offset by the tool radius in contact, the tip itself when free."""
+        return self._proxy_out
+
+    @property
+    def contact_point(self) -> np.ndarray:
+        """Where ``step_position``'s tool touches the undeformed surface (mm; read only): the
+        proxy's foot, the point the contact model is evaluated at."""
+        return self._foot_out
+
+    @property
+    def saturated(self) -> bool:
+        """Whether the last ``step_position`` held the displacement at ``max_displacement``."""
+        return bool(self._proxy[proxy.STATE_SATURATED])
 
     # -- cutting -------------------------------------------------------------------
     def scalpel(self, position, blade_direction, background: bool = False) -> None:

@@ -36,17 +36,21 @@ HELP = {
 
 # -- play ------------------------------------------------------------------------------------
 def cmd_play(args, petsc) -> int:
-    """Drive the scripted tool path through the runtime; what it does goes to the log."""
+    """Drive the scripted tool path (or --path) through the runtime; what it does goes to
+    the log, the history to --out."""
     ticks = int(args.rate * args.seconds)
-    if not 1 <= ticks <= MAX_TICKS:
+    if args.path is None and not 1 <= ticks <= MAX_TICKS:
         raise HapticromError(
             f"play --rate {args.rate:g} --seconds {args.seconds:g} is {ticks:,} servo ticks; "
             f"give between 1 and {MAX_TICKS:,} (an hour at 1 kHz)"
         )
+    if args.out is not None:
+        check_out_file(args.out + ".csv", f"play --out {args.out}")
     from hapticrom.online.play import play
 
     play(args.model, rate=args.rate, seconds=args.seconds, interpolation=args.interpolation,
-         realtime=not args.free_running, say=log.info)  # fmt: skip
+         realtime=not args.free_running, say=log.info, tip_path=args.path,
+         out=args.out)  # fmt: skip
     return 0
 
 
@@ -84,6 +88,18 @@ def add_play(sub) -> None:
     )
     interpolation_option(p)
     p.add_argument("--free-running", action="store_true", help="do not pace in real time")
+    p.add_argument(
+        "--path",
+        metavar="CSV",
+        help="the tool tip's centre over time instead of the scripted path: a CSV file with "
+        "columns t, x, y, z (s, mm; header line optional); --rate and --seconds then unused",
+    )
+    p.add_argument(
+        "--out",
+        metavar="PREFIX",
+        help="write the history (tip, force, depth, contact) to PREFIX.csv and a plot to "
+        "PREFIX.png (matplotlib)",
+    )
 
 
 # -- bench -----------------------------------------------------------------------------------

@@ -1,0 +1,98 @@
+"""``hapticrom play``: the scripted oblique path, a CSV tool path (and hostile ones), the
+written history."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hapticrom.online as online
+from hapticrom.online.play import HISTORY_COLUMNS, play, read_path, scripted_tips
+from hapticrom.shared.errors import InputError
+
+pytestmark = pytest.mark.serial
+
+
+@pytest.fixture(scope="module")
+def model(small_artifact):
+    return online.load(small_artifact)
+
+
+def test_the_scripted_path_presses_obliquely_slides_and_lifts(model):
+    """Free at the start, in contact along the 2 mm slide at a constant depth, free at the
+    end; the press comes in 30 degrees from the normal, and the slide follows the surface."""
+    ticks = 1000
+    tips = scripted_tips(model, ticks)
+    sim = model.simulator()
+    depths, contact = np.zeros(ticks), np.zeros(ticks, dtype=bool)
+    for i, tip in enumerate(tips):
+        sim.step_position(tip)
+        depths[i], contact[i] = sim.depth, sim.in_contact
+    assert not contact[0] and not contact[-1]
+    slide = slice(int(0.3 * ticks) + 1, int(0.7 * ticks) - 1)
+    assert contact[slide].all()
+    target = 0.8 * model.trained_depth
+    np.testing.assert_allclose(depths[slide], target, rtol=0.02)  # facets of the coarse mesh
+    press = np.diff(tips[: int(0.3 * ticks)], axis=0).mean(axis=0)
+    sim.step_position(tips[int(0.3 * ticks)])
+    cosine = -press @ np.asarray(sim.contact_normal) / np.linalg.norm(press)
+    assert abs(np.degrees(np.arccos(cosine)) - 30.0) < 3.0
+    length = np.linalg.norm(np.diff(tips[slide], axis=0), axis=1).sum()
+    assert 1.8 < length < 2.3  # 2 mm along the curved surface (at the tip's depth)
+
+
+def test_a_csv_path_is_played_and_its_history_written(model, tmp_path):
+    tips = scripted_tips(model, 300)
+    csv = tmp_path / "path.csv"
+    rows = np.column_stack([np.arange(300) / 1000.0, tips])
+    csv.write_text("t,x,y,z\n" + "\n".join(",".join(f"{v:.12g}" for v in r) for r in rows))
+    summary = play(model.path, tip_path=csv, realtime=False, say=lambda _: None,
+                   out=tmp_path / "history")  # fmt: skip
+    history = np.loadtxt(tmp_path / "history.csv", delimiter=",", skiprows=1)
+    header = (tmp_path / "history.csv").read_text().splitlines()[0]
+    assert header == ",".join(HISTORY_COLUMNS) and history.shape == (300, len(HISTORY_COLUMNS))
+    np.testing.assert_allclose(history[:, 1:4], tips, atol=1e-11)
+    sim = model.simulator()
+    expected = np.array([sim.step_position(t).copy() for t in tips])
+    np.testing.assert_allclose(history[:, 4:7], expected, rtol=1e-8, atol=1e-15)
+    assert summary["ticks"] == 300 and summary["max_force_n"] > 0
+    assert (tmp_path / "history.png").stat().st_size > 1000
+
+
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("", "no rows"),
+        ("t,x,y,z\n", "no rows"),
+        ("0,1,2\n", "line 1: expected 4 finite numbers"),
+        ("0,1,2,3\n0.1,1,2,nan\n", "line 2: expected 4 finite numbers"),
+        ("0,1,2,3\n0.1,a,2,3\n", "line 2: expected 4 finite numbers"),
+        ("0,1,2,3\n0.1,1,2,3,4\n", "line 2: expected 4 finite numbers"),
+        ("0,1,2,3\n0,1,2,3\n", "line 2: times must increase"),
+        ("# a comment\n0.2,1,2,3\n0.1,1,2,3\n", "line 3: times must increase"),
+        ("-1,1,2,3\n", "line 1: times must increase from 0"),
+        ("0,1,2,3\n1,1e9,2,3\n", "line 2: a coordinate beyond"),
+        ("t,x,y,z\n0,1,2,3\nt,x,y,z\n", "line 3: expected 4 finite numbers"),
+    ],
+)
+def test_a_bad_csv_path_is_refused_naming_the_line(tmp_path, text, message):
+    path = tmp_path / "path.csv"
+    path.write_text(text)
+    with pytest.raises(InputError, match=message):
+        read_path(path)
+
+
+def test_a_missing_or_binary_path_is_refused(tmp_path):
+    with pytest.raises(InputError, match="cannot read it"):
+        read_path(tmp_path / "absent.csv")
+    (tmp_path / "binary.csv").write_bytes(b"\xff\xfe\x00\x81")
+    with pytest.raises(InputError, match="cannot read it"):
+        read_path(tmp_path / "binary.csv")
+
+
+def test_comments_and_a_header_are_allowed(tmp_path):
+    path = tmp_path / "path.csv"
+    path.write_text("# from the device log\nt, x, y, z\n0,1,2,3  # start\n0.5,1,2,2.5\n")
+    times, tips = read_path(path)
+    np.testing.assert_array_equal(times, [0.0, 0.5])
+    np.testing.assert_array_equal(tips, [[1, 2, 3], [1, 2, 2.5]])
