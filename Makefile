@@ -27,7 +27,8 @@ export OMP_NUM_THREADS := 1
 
 DEFAULT_MESHES := meshes/cornea.msh meshes/beam.msh meshes/hemisphere.msh meshes/liver.msh
 
-.PHONY: help venv meshes test test-serial test-mpi test-slow demo bench lint clean docker-test
+.PHONY: help venv meshes test test-serial test-mpi test-slow demo bench lint clean docker-test \
+  capi capi-asan capi-bench
 
 venv: $(STAMP) ## create .venv and install hapticrom with the offline and test extras
 
@@ -51,7 +52,7 @@ meshes/%.msh: $(STAMP)
 
 meshes: $(DEFAULT_MESHES) ## generate the default meshes (cornea, beam, hemisphere, liver)
 
-test: lint test-serial test-mpi ## lint, then the tests serially and under mpirun -n NP (default 2)
+test: lint capi test-serial test-mpi ## lint, build the C ABI, then the tests serially and under mpirun -n NP (default 2)
 
 # Two workers (pytest-xdist) on the two cores; they share the JIT caches (tests/conftest.py).
 test-serial: venv ## the tests that run on one process, NP of them at a time
@@ -90,6 +91,36 @@ bench: $(DEMO_MODEL) | venv meshes/cornea.msh ## full-order, runtime and cutting
 	$(PY) bench/fullorder.py
 	$(PY) bench/online.py $(DEMO_MODEL)
 	$(PY) bench/cutting_accuracy.py
+
+# The C ABI (include/hapticrom.h, README "Embedding in C, C++, C#, SOFA"): libhapticrom.so
+# embeds this venv's CPython (python3.12-config --embed, next to the venv's base interpreter)
+# and finds the venv through the path of its python, baked in (HAPTICROM_PYTHON overrides it
+# at run time); examples/c/servo_loop.c is a haptic host on it. tests/test_capi.py builds
+# both (and the AddressSanitizer build, capi-asan) and runs them.
+CAPI_BUILD := build
+CAPI_CC ?= gcc
+CAPI_CFLAGS ?= -std=c11 -O2 -g -Wall -Wextra -pthread
+CAPI_SANITIZE := -fsanitize=address,undefined -fno-omit-frame-pointer
+PYTHON_CONFIG = $(shell $(PY) -c 'import os, sys; print(os.path.join(sys.base_prefix, "bin", "python3.12-config"))')
+HAPTICROM_VERSION = $(shell sed -n 's/^__version__ = "\(.*\)"/\1/p' src/hapticrom/__init__.py)
+
+capi: $(CAPI_BUILD)/libhapticrom.so $(CAPI_BUILD)/servo_loop ## the C ABI: build/libhapticrom.so and the example host build/servo_loop
+
+capi-asan: $(CAPI_BUILD)/asan/libhapticrom.so $(CAPI_BUILD)/asan/servo_loop ## the same under AddressSanitizer and UBSan, in build/asan
+
+capi-bench: capi $(DEMO_MODEL) ## C ABI latency over 1,000,000 steps of the demo model (p50/p99)
+	$(CAPI_BUILD)/servo_loop $(DEMO_MODEL) --bench 1000000 --bench-surfaces 2000
+
+$(CAPI_BUILD)/asan/libhapticrom.so $(CAPI_BUILD)/asan/servo_loop: CAPI_EXTRA := $(CAPI_SANITIZE)
+
+$(CAPI_BUILD)/libhapticrom.so $(CAPI_BUILD)/asan/libhapticrom.so: capi/hapticrom.c include/hapticrom.h src/hapticrom/__init__.py $(STAMP)
+	@mkdir -p $(@D)
+	$(CAPI_CC) $(CAPI_CFLAGS) $(CAPI_EXTRA) -fPIC -shared -Iinclude $$($(PYTHON_CONFIG) --includes) \
+	  -DHAPTICROM_DEFAULT_PYTHON='"$(CURDIR)/$(PY)"' -DHAPTICROM_PACKAGE_VERSION='"$(HAPTICROM_VERSION)"' \
+	  -o $@ capi/hapticrom.c $$($(PYTHON_CONFIG) --embed --ldflags)
+
+$(CAPI_BUILD)/servo_loop $(CAPI_BUILD)/asan/servo_loop: %/servo_loop: examples/c/servo_loop.c include/hapticrom.h %/libhapticrom.so
+	$(CAPI_CC) $(CAPI_CFLAGS) $(CAPI_EXTRA) -Iinclude -o $@ $< -L$(@D) -lhapticrom -Wl,-rpath,'$$ORIGIN' -lm
 
 # Static checks, seconds (part of `make test`): ruff lint and format, and hadolint on the
 # Dockerfiles (no Docker engine needed; rules in .hadolint.yaml).

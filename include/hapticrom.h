@@ -1,0 +1,232 @@
+/*
+ * hapticrom.h: the C ABI of the hapticrom online runtime (C99; usable from C++).
+ *
+ * A host (an OpenHaptics scheduler callback, a CHAI3D or Force Dimension haptic thread, a
+ * Unity native plugin, a SOFA component) loads a reduced-model artifact, then drives one
+ * tool contact on it from its servo thread:
+ *
+ *     hapticrom_simulator sim;
+ *     if (hapticrom_load("cornea.h5", NULL, &sim) != HAPTICROM_OK)
+ *         fprintf(stderr, "%s\n", hapticrom_last_error());
+ *     hapticrom_set_contact(sim, point);                 // mm, on or near the surface
+ *     hapticrom_step_displacement(sim, d, force);        // mm in, N out (force on the tool)
+ *     hapticrom_surface(sim, vertex_displacement, 3 * V, NULL);   // render thread, mm
+ *     hapticrom_free(sim);
+ *
+ * Units: lengths and displacements mm, forces N, stiffness N/mm.
+ *
+ * The library embeds CPython: hapticrom_load starts the interpreter at its first call (or
+ * uses the host's, if the host already runs one), imports hapticrom.online.cabi and takes
+ * the addresses of its numba-compiled entry points; the physics is the Python runtime's own
+ * kernels, compiled once. The servo and render calls below then call machine code only:
+ * they never take the GIL, never allocate, never lock (a busy flag, not a mutex: see
+ * "Threads").
+ *
+ * Finding Python: the interpreter is the environment of the executable named by the
+ * environment variable HAPTICROM_PYTHON (e.g. /path/to/.venv/bin/python; its venv's
+ * site-packages must hold hapticrom), else the one baked in at build time (the project's
+ * .venv/bin/python). NUMBA_CACHE_DIR, if set, is where the compiled kernels are cached.
+ *
+ * Threads (per simulator; different simulators are independent and may run in parallel):
+ *   - servo calls (set_contact, step_displacement, step_force, contact_stiffness,
+ *     error_estimate, get_state): one thread at a time. A call while another thread is
+ *     inside one returns HAPTICROM_E_BUSY at once (never waits, changes nothing).
+ *   - render calls (surface, get_info, surface_mesh, sample_points): one thread at a time,
+ *     concurrently with the servo calls. hapticrom_surface computes from a consistent
+ *     snapshot of the servo state (a sequence lock: the servo thread never waits for the
+ *     renderer; the renderer retries a copy that a servo write overlapped) and reports
+ *     which state it rendered (hapticrom_state.sequence).
+ *   - hapticrom_load and hapticrom_free may be called from any thread; they take the GIL
+ *     (and may wait for it). hapticrom_free waits for calls inside the simulator to end;
+ *     later calls with the freed handle return HAPTICROM_E_BAD_HANDLE.
+ *
+ * Errors: every function but the string ones returns a hapticrom_status; on an error
+ * nothing is changed and hapticrom_last_error() returns a message naming the call and
+ * the problem (a buffer of the calling thread, valid until its next failing call).
+ * Handles are checked on every call (a magic number, a slot and a generation): a freed,
+ * doubly freed or made-up handle is refused, never dereferenced.
+ *
+ * Not in this ABI yet: cutting (the scalpel), the Grassmann surface, step_position and the
+ * 3x3 stiffness of the proxy (to come: one entry point each), sharing one loaded model
+ * between several simulators (each hapticrom_load loads its own copy).
+ */
+#ifndef HAPTICROM_H
+#define HAPTICROM_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Bumped on any incompatible change; hapticrom_load refuses a Python package whose entry
+ * points are of another ABI version (HAPTICROM_E_PYTHON). */
+#define HAPTICROM_ABI_VERSION 1
+
+/* Simulators open at once, at most (HAPTICROM_E_TOO_MANY beyond). */
+#define HAPTICROM_MAX_SIMULATORS 256
+
+/* A simulator: an opaque value from hapticrom_load (0 is never valid). */
+typedef uint64_t hapticrom_simulator;
+
+/* What every call returns. */
+typedef enum hapticrom_status {
+    HAPTICROM_OK = 0,
+    HAPTICROM_E_NULL_ARGUMENT = 1,      /* a pointer argument is NULL */
+    HAPTICROM_E_NOT_FINITE = 2,         /* an input is NaN or infinite */
+    HAPTICROM_E_BEYOND_LIMIT = 3,       /* an input is longer than max_displacement/max_force */
+    HAPTICROM_E_DISPLACEMENT_LIMIT = 4, /* a force step would push past max_displacement */
+    HAPTICROM_E_WRONG_SIZE = 5,         /* a buffer's length argument is not what it must be */
+    HAPTICROM_E_NO_CONTACT = 6,         /* a step (or query) before any hapticrom_set_contact */
+    HAPTICROM_E_BUSY = 7,               /* another thread is inside this simulator */
+    HAPTICROM_E_BAD_HANDLE = 8,         /* not a live simulator: freed, or never loaded */
+    HAPTICROM_E_LOAD_FAILED = 9,        /* the artifact is missing, damaged or refused */
+    HAPTICROM_E_INVALID_OPTION = 10,    /* a hapticrom_options field is wrong */
+    HAPTICROM_E_TOO_MANY = 11,          /* HAPTICROM_MAX_SIMULATORS are open */
+    HAPTICROM_E_PYTHON = 12,            /* the interpreter or the package could not start */
+    HAPTICROM_E_INTERNAL = 13           /* a bug: please report it with the message */
+} hapticrom_status;
+
+/* hapticrom_state.flags: bits of the last step (and of the contact point). */
+enum hapticrom_flag {
+    HAPTICROM_FLAG_BEYOND_DEPTH = 1,   /* deeper than the trained range (extrapolated) */
+    HAPTICROM_FLAG_NO_CONTACT = 2,     /* the tool pulled away: zero force */
+    HAPTICROM_FLAG_OUTSIDE_REGION = 4  /* contact point outside the trained region (clamped) */
+};
+
+/* hapticrom_options.interpolation: how the rendered surface follows the tool. */
+enum hapticrom_interpolation {
+    HAPTICROM_INTERPOLATION_DEFAULT = 0,   /* transport where the model has a chart, else podi */
+    HAPTICROM_INTERPOLATION_TRANSPORT = 1, /* each neighbour's field carried to the contact */
+    HAPTICROM_INTERPOLATION_PODI = 2       /* the fields blended where each was trained */
+};
+
+/* hapticrom_options.response: where the force comes from. */
+enum hapticrom_response {
+    HAPTICROM_RESPONSE_DEFAULT = 0, /* the POD-ANM series if the artifact has them */
+    HAPTICROM_RESPONSE_ANM = 1,     /* the POD-ANM series */
+    HAPTICROM_RESPONSE_CURVES = 2   /* the stored full-order force curves */
+};
+
+/* Options of hapticrom_load: fill with hapticrom_options_init, then change fields. */
+typedef struct hapticrom_options {
+    uint32_t size;           /* sizeof(hapticrom_options) (set by hapticrom_options_init) */
+    int32_t interpolation;   /* enum hapticrom_interpolation */
+    int32_t response;        /* enum hapticrom_response */
+    int32_t isolate;         /* 1 (default): HDF5 parses the file in a child process first,
+                                so that a crafted file cannot crash the host; 0: in-process */
+    double max_displacement; /* mm, the longest step input/output; 0: the model's default */
+    double max_force;        /* N, the longest force step input; 0: the model's default */
+} hapticrom_options;
+
+/* What a loaded simulator is (hapticrom_get_info). */
+typedef struct hapticrom_info {
+    uint64_t vertex_count;   /* V: surface vertices (hapticrom_surface fills 3 V doubles) */
+    uint64_t triangle_count; /* T: surface triangles */
+    uint64_t sample_count;   /* P: trained tool positions */
+    uint64_t mode_count;     /* n: reduced modes per sample */
+    int32_t interpolation;   /* what HAPTICROM_INTERPOLATION_DEFAULT resolved to */
+    int32_t response;        /* what HAPTICROM_RESPONSE_DEFAULT resolved to */
+    double trained_depth;    /* mm, the largest trained indentation */
+    double trained_force;    /* N, the smallest of the samples' largest trained forces */
+    double max_displacement; /* mm, this simulator's limit */
+    double max_force;        /* N, this simulator's limit */
+} hapticrom_info;
+
+/* The contact state (hapticrom_get_state; hapticrom_surface's snapshot). */
+typedef struct hapticrom_state {
+    double normal[3];       /* outward unit surface normal at the contact */
+    double force[3];        /* N, on the tool: the last displacement step's output */
+    double displacement[3]; /* mm: the last force step's output */
+    double depth;           /* mm: the last step's indentation */
+    uint32_t flags;         /* enum hapticrom_flag bits */
+    uint32_t has_contact;   /* 1 once a contact point was set */
+    uint64_t sequence;      /* the state's number: writing calls (set_contact, steps;
+                               refused ones too) since load */
+} hapticrom_state;
+
+/* The package version this library was built with ("0.1.0"); *abi_version (if not NULL)
+ * receives HAPTICROM_ABI_VERSION. Needs no interpreter; any thread. */
+const char *hapticrom_version(uint32_t *abi_version);
+
+/* The message of this thread's last failing call ("" if none); any thread. */
+const char *hapticrom_last_error(void);
+
+/* A status's name ("HAPTICROM_E_BUSY"), "unknown status" for other values; any thread. */
+const char *hapticrom_status_name(int status);
+
+/* Fill *options with the defaults (size set; everything else the model's default, isolate 1). */
+void hapticrom_options_init(hapticrom_options *options);
+
+/* Load and verify the artifact at artifact_path (a file name, the file system's encoding)
+ * and create a simulator on it into *simulator (0 on failure). options may be NULL (the
+ * defaults). Seconds (the first call also starts Python and loads the compiled kernels).
+ * Errors: NULL_ARGUMENT, INVALID_OPTION, LOAD_FAILED (missing file, damaged or refused
+ * artifact: the message names the dataset), TOO_MANY, PYTHON. Any thread; takes the GIL. */
+int hapticrom_load(const char *artifact_path, const hapticrom_options *options,
+                   hapticrom_simulator *simulator);
+
+/* Free a simulator: waits for calls inside it to end, then releases its memory. The handle
+ * is dead afterwards (BAD_HANDLE, also for a second free). Any thread; takes the GIL. */
+int hapticrom_free(hapticrom_simulator simulator);
+
+/* --- servo calls (one thread at a time per simulator; no GIL, no allocation, no lock) --- */
+
+/* Put (or slide) the tool's contact at point[3] (mm, on or near the surface); outside the
+ * trained region it is clamped (HAPTICROM_FLAG_OUTSIDE_REGION). Microseconds; every tick is
+ * fine. Errors: NULL_ARGUMENT, NOT_FINITE, BUSY, BAD_HANDLE. */
+int hapticrom_set_contact(hapticrom_simulator simulator, const double point[3]);
+
+/* Tool displacement[3] (mm, from the contact point) in, reaction force[3] on the tool (N)
+ * out, along the outward normal (frictionless). Errors: NULL_ARGUMENT, NOT_FINITE,
+ * BEYOND_LIMIT (longer than max_displacement), NO_CONTACT, BUSY, BAD_HANDLE. */
+int hapticrom_step_displacement(hapticrom_simulator simulator, const double displacement[3],
+                                double force[3]);
+
+/* Force[3] the tool applies to the tissue (N) in, tool displacement[3] (mm) out. Errors:
+ * NULL_ARGUMENT, NOT_FINITE, BEYOND_LIMIT (longer than max_force), DISPLACEMENT_LIMIT (the
+ * tool would pass max_displacement), NO_CONTACT, BUSY, BAD_HANDLE. */
+int hapticrom_step_force(hapticrom_simulator simulator, const double force[3],
+                         double displacement[3]);
+
+/* d force / d depth (N/mm) at the last step's depth, for the haptic loop's stability.
+ * Errors: NULL_ARGUMENT, NO_CONTACT, BUSY, BAD_HANDLE. */
+int hapticrom_contact_stiffness(hapticrom_simulator simulator, double *stiffness);
+
+/* The error indicator at the contact (relative force error): the samples' leave-one-out
+ * errors blended with the contact's weights. Errors: NULL_ARGUMENT, NO_CONTACT, BUSY,
+ * BAD_HANDLE. */
+int hapticrom_error_estimate(hapticrom_simulator simulator, double *estimate);
+
+/* The current state (normal, force, displacement, depth, flags). Errors: NULL_ARGUMENT,
+ * BUSY, BAD_HANDLE. */
+int hapticrom_get_state(hapticrom_simulator simulator, hapticrom_state *state);
+
+/* --- render calls (one thread at a time per simulator, alongside the servo thread) --- */
+
+/* The surface vertices' displacement (mm) into displacement[length], length = 3 V (x, y, z
+ * per vertex, hapticrom_info.vertex_count vertices), at a consistent snapshot of the servo
+ * state; *state (if not NULL) receives that snapshot's state (its sequence says which).
+ * Allocates nothing. Errors: NULL_ARGUMENT, WRONG_SIZE, BUSY (another render call is
+ * inside, or the servo thread kept writing while a snapshot was taken), BAD_HANDLE. */
+int hapticrom_surface(hapticrom_simulator simulator, double *displacement, size_t length,
+                      hapticrom_state *state);
+
+/* Sizes, limits and the resolved options. Errors: NULL_ARGUMENT, BUSY, BAD_HANDLE. */
+int hapticrom_get_info(hapticrom_simulator simulator, hapticrom_info *info);
+
+/* The surface to render: vertices[3 V] (mm) and triangles[3 T] (vertex indices). Errors:
+ * NULL_ARGUMENT, WRONG_SIZE, BUSY, BAD_HANDLE. */
+int hapticrom_surface_mesh(hapticrom_simulator simulator, double *vertices,
+                           size_t vertices_length, uint32_t *triangles, size_t triangles_length);
+
+/* The trained tool positions points[3 P] (mm): where the model is valid. Errors:
+ * NULL_ARGUMENT, WRONG_SIZE, BUSY, BAD_HANDLE. */
+int hapticrom_sample_points(hapticrom_simulator simulator, double *points, size_t length);
+
+#ifdef __cplusplus
+} /* extern "C" */
+#endif
+
+#endif /* HAPTICROM_H */

@@ -1,0 +1,515 @@
+"""The C ABI's Python side: ``numba.cfunc`` entry points and the handles C keeps of them.
+
+``libhapticrom.so`` (``capi/hapticrom.c``, header ``include/hapticrom.h``) embeds CPython,
+imports this module once and then calls the entry points below through plain C function
+pointers (``cfunc.address``): a servo call never touches the interpreter or the GIL. There
+is one implementation of the physics: each entry point views the caller's raw pointers as
+arrays (``numba.carray``: no copy, no allocation) and calls the runtime's own ``@njit``
+kernels (:mod:`~hapticrom.online.kernels`, :mod:`~hapticrom.online.surface_kernels`) on the
+very state buffer and table a :class:`~hapticrom.online.simulator.Simulator` steps.
+
+Loading (:func:`open_simulator`, called by ``hapticrom_load`` under the GIL) builds a
+Simulator and returns the *handle*: one int64 array (its fields named by
+:data:`HANDLE_FIELDS`, which C looks up by name at start) of the entry points' addresses,
+the arrays' addresses and sizes and the model's sizes. The Python objects behind those
+addresses stay alive in a registry until :func:`free_simulator`.
+
+Every entry point returns an ABI status (``STATUS``, the header's ``hapticrom_status``): the
+kernels' status codes are translated here, so C knows nothing of the state buffer's layout.
+
+To add an entry point (``step_position``, the 3x3 ``stiffness``): one ``cfunc`` below, its
+address (and the addresses of the arrays it reads, e.g. the proxy's state) as new fields of
+:data:`HANDLE_FIELDS` and :func:`_handle` (bump :data:`ABI_VERSION`), and one C wrapper in
+``capi/hapticrom.c`` that calls it between ``enter`` and ``leave`` (inside ``write_begin`` /
+``write_end`` if it writes the state buffer, so that the renderer's snapshot stays whole).
+
+Cutting (the scalpel) and the Grassmann surface are not part of this ABI. A kernel that
+raised (a float division by zero: the artifact's checks and the load's sweep rule those out)
+would make numba's cfunc wrapper take the GIL to report it. Units: mm, N, N/mm.
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+from numba import carray, cfunc, njit, types
+
+from hapticrom.online import kernels as k
+from hapticrom.online import surface_kernels as sk
+from hapticrom.online.model import ReducedModel, load
+from hapticrom.online.simulator import Simulator
+from hapticrom.shared.errors import ArtifactError, HapticromError, InputError
+
+ABI_VERSION = 1  # the header's HAPTICROM_ABI_VERSION: bumped on any change of the handle
+
+# The ABI's status codes (include/hapticrom.h, enum hapticrom_status; a test compares them).
+STATUS = {
+    "OK": 0,
+    "NULL_ARGUMENT": 1,
+    "NOT_FINITE": 2,
+    "BEYOND_LIMIT": 3,
+    "DISPLACEMENT_LIMIT": 4,
+    "WRONG_SIZE": 5,
+    "NO_CONTACT": 6,
+    "BUSY": 7,
+    "BAD_HANDLE": 8,
+    "LOAD_FAILED": 9,
+    "INVALID_OPTION": 10,
+    "TOO_MANY": 11,
+    "PYTHON": 12,
+    "INTERNAL": 13,
+}
+OK = STATUS["OK"]
+_NOT_FINITE, _BEYOND, _DISPLACEMENT_LIMIT = (
+    STATUS["NOT_FINITE"], STATUS["BEYOND_LIMIT"], STATUS["DISPLACEMENT_LIMIT"],
+)  # fmt: skip
+_NO_CONTACT, _INTERNAL = STATUS["NO_CONTACT"], STATUS["INTERNAL"]
+
+# The options' enumerations (hapticrom_options): 0 is the model's default.
+INTERPOLATIONS = {0: None, 1: "transport", 2: "podi"}
+RESPONSES = {0: None, 1: "anm", 2: "curves"}
+
+STATE_SIZE = 12  # read_state's output: normal (3), force (3), displacement (3), depth, flags,
+# contacts prepared so far (0: no contact point yet)
+
+_f8p, _i8p = types.CPointer(types.float64), types.CPointer(types.int64)
+_pointers = types.CPointer(types.voidptr)
+_status = types.int32
+
+
+# -- statuses ----------------------------------------------------------------------------------
+@njit(inline="always")
+def _abi_status(kernel_status):
+    """A step kernel's status as an ABI status."""
+    if kernel_status == k.OK:
+        return OK
+    if kernel_status == k.NOT_FINITE:
+        return _NOT_FINITE
+    if kernel_status == k.BEYOND_LIMIT:
+        return _BEYOND
+    if kernel_status == k.DISPLACEMENT_LIMIT:
+        return _DISPLACEMENT_LIMIT
+    if kernel_status == k.NO_CONTACT_POINT:
+        return _NO_CONTACT
+    return _INTERNAL  # WRONG_SHAPE cannot happen: carray views are (3,)
+
+
+@njit(inline="always")
+def _copy3(buf, start, out):
+    out[0], out[1], out[2] = buf[start], buf[start + 1], buf[start + 2]
+
+
+# -- the servo thread's entry points -------------------------------------------------------------
+@cfunc(_status(_f8p, _f8p, types.int64, _f8p, types.int64), cache=True)
+def set_contact(point, table, table_size, buf, buf_size):
+    """``Simulator.set_contact``: the contact at point (3,) mm; NOT_FINITE if it is not."""
+    region = k.prepare_contact(carray(point, (3,)), carray(table, (table_size,)),
+                               carray(buf, (buf_size,)))  # fmt: skip
+    return OK if region >= k.NO_VERTEX else _NOT_FINITE
+
+
+@cfunc(_status(_f8p, _f8p, types.int64, _f8p), cache=True)
+def step_displacement_anm(d, buf, buf_size, force):
+    """``Simulator.step_displacement`` (POD-ANM): displacement (3,) mm in, force (3,) N out."""
+    state = carray(buf, (buf_size,))
+    status = k.step_displacement_anm(carray(d, (3,)), state)
+    if status == k.OK:
+        _copy3(state, k.FORCE, force)
+    return _abi_status(status)
+
+
+@cfunc(_status(_f8p, _f8p, types.int64, _f8p), cache=True)
+def step_displacement_curves(d, buf, buf_size, force):
+    """``Simulator.step_displacement`` (stored curves): displacement (3,) in, force (3,) out."""
+    state = carray(buf, (buf_size,))
+    status = k.step_displacement_curves(carray(d, (3,)), state)
+    if status == k.OK:
+        _copy3(state, k.FORCE, force)
+    return _abi_status(status)
+
+
+@cfunc(_status(_f8p, _f8p, types.int64, _f8p), cache=True)
+def step_force_anm(f, buf, buf_size, displacement):
+    """``Simulator.step_force`` (POD-ANM): force (3,) N in, tool displacement (3,) mm out."""
+    state = carray(buf, (buf_size,))
+    status = k.step_force_anm(carray(f, (3,)), state)
+    if status == k.OK:
+        _copy3(state, k.DISPLACEMENT, displacement)
+    return _abi_status(status)
+
+
+@cfunc(_status(_f8p, _f8p, types.int64, _f8p), cache=True)
+def step_force_curves(f, buf, buf_size, displacement):
+    """``Simulator.step_force`` (stored curves): force (3,) in, displacement (3,) out."""
+    state = carray(buf, (buf_size,))
+    status = k.step_force_curves(carray(f, (3,)), state)
+    if status == k.OK:
+        _copy3(state, k.DISPLACEMENT, displacement)
+    return _abi_status(status)
+
+
+@cfunc(_status(_f8p, types.int64, _f8p), cache=True)
+def contact_stiffness(buf, buf_size, out):
+    """``Simulator.contact_stiffness`` (N/mm) into out[0]; NO_CONTACT before a contact."""
+    state = carray(buf, (buf_size,))
+    if state[k.CONTACTS] == 0.0:
+        return _NO_CONTACT
+    out[0] = k.contact_stiffness(state)
+    return OK
+
+
+@cfunc(_status(_f8p, types.int64, _f8p, types.int64, _f8p), cache=True)
+def error_estimate(buf, buf_size, indicator, samples, out):
+    """``Simulator.error_estimate`` (relative force error) into out[0]: the samples'
+    leave-one-out errors blended with the contact's weights; NO_CONTACT before a contact."""
+    state = carray(buf, (buf_size,))
+    e = carray(indicator, (samples,))
+    if state[k.CONTACTS] == 0.0:
+        return _NO_CONTACT
+    w, s = k.WEIGHTS, k.SAMPLES
+    i0, i1, i2 = int(state[s]), int(state[s + 1]), int(state[s + 2])
+    if not (0 <= i0 < samples and 0 <= i1 < samples and 0 <= i2 < samples):
+        return _INTERNAL
+    out[0] = state[w] * e[i0] + state[w + 1] * e[i1] + state[w + 2] * e[i2]
+    return OK
+
+
+@cfunc(_status(_f8p, types.int64, _f8p), cache=True)
+def read_state(buf, buf_size, out):
+    """The state a caller may read (STATE_SIZE doubles): normal, force, displacement, depth,
+    flags, contacts so far."""
+    state = carray(buf, (buf_size,))
+    _copy3(state, k.NORMAL, out)
+    for c in range(3):
+        out[3 + c] = state[k.FORCE + c]
+        out[6 + c] = state[k.DISPLACEMENT + c]
+    out[9] = state[k.DEPTH]
+    out[10] = state[k.FLAGS]
+    out[11] = state[k.CONTACTS]
+    return OK
+
+
+# -- the rendered surface ------------------------------------------------------------------------
+# A surface reads many arrays: their addresses are packed into one array (``arrays``) and
+# their shapes into another (``dims``, DIMS per array), in the order of SURFACE_ARRAYS.
+SURFACE_ARRAYS = (
+    "coefficients_out",  # (3, n) float64 scratch: the neighbours' reduced coordinates
+    "coefficients",  # curves: (P, K, n) float64; POD-ANM: section offsets (P + 1,) int64
+    "series",  # POD-ANM: the series' coefficients (Z, N1, n) float64; curves: unused
+    "surface_basis_t",  # (P, n, 3V) float32
+    "node_basis",  # transport: the chart's (P, n, 3, N) float32 (the others too)
+    "sample_plan",  # (P, 2)
+    "sample_normals",  # (P, 3)
+    "chart_shape",  # (3,) int64
+    "read_rows",  # (2,) int64
+    "read_columns",  # (2,) int64
+    "spacing",  # (1,) float64
+    "halo",  # (1,) int64
+    "charted",  # (C,) int64
+    "charted_node",  # (C,) int64
+    "charted_frac",  # (C, 2)
+    "uncharted",  # (U,) int64
+    "fields",  # (3, 3, N) float32 scratch
+    "rectangles",  # (3, 5) int64 scratch
+    "shifts",  # (3, 12) float64 scratch
+)
+DIMS = 4
+(A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_SAMPLE_PLAN,
+ A_SAMPLE_NORMALS, A_SHAPE, A_ROWS, A_COLUMNS, A_SPACING, A_HALO, A_CHARTED, A_CHARTED_NODE,
+ A_CHARTED_FRAC, A_UNCHARTED, A_FIELDS, A_RECTANGLES,
+ A_SHIFTS) = range(len(SURFACE_ARRAYS))  # fmt: skip
+
+
+@njit(inline="always")
+def _view1(arrays, dims, i, dtype):
+    return carray(arrays[i], (dims[DIMS * i],), dtype)
+
+
+@njit(inline="always")
+def _view2(arrays, dims, i, dtype):
+    return carray(arrays[i], (dims[DIMS * i], dims[DIMS * i + 1]), dtype)
+
+
+@njit(inline="always")
+def _view3(arrays, dims, i, dtype):
+    d = DIMS * i
+    return carray(arrays[i], (dims[d], dims[d + 1], dims[d + 2]), dtype)
+
+
+@njit(inline="always")
+def _view4(arrays, dims, i, dtype):
+    d = DIMS * i
+    return carray(arrays[i], (dims[d], dims[d + 1], dims[d + 2], dims[d + 3]), dtype)
+
+
+@njit(inline="always")
+def _anm_coefficients(arrays, dims, buf):
+    c = _view2(arrays, dims, A_COEFFICIENTS_OUT, np.float64)
+    sk.anm_coefficients(buf, _view1(arrays, dims, A_COEFFICIENTS, np.int64),
+                        _view3(arrays, dims, A_SERIES, np.float64), c)  # fmt: skip
+    return c
+
+
+@njit(inline="always")
+def _curves_coefficients(arrays, dims, buf):
+    c = _view2(arrays, dims, A_COEFFICIENTS_OUT, np.float64)
+    sk.curves_coefficients(buf, _view3(arrays, dims, A_COEFFICIENTS, np.float64), c)
+    return c
+
+
+@njit(inline="always")
+def _transported(arrays, dims, buf, c, out):
+    """``surface_kernels.transported_surface`` on the packed arrays."""
+    sk.transported_surface(
+        buf, c, _view4(arrays, dims, A_NODE_BASIS, np.float32),
+        _view2(arrays, dims, A_SAMPLE_PLAN, np.float64),
+        _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
+        _view1(arrays, dims, A_SHAPE, np.int64), _view1(arrays, dims, A_ROWS, np.int64),
+        _view1(arrays, dims, A_COLUMNS, np.int64),
+        _view1(arrays, dims, A_SPACING, np.float64)[0], _view1(arrays, dims, A_HALO, np.int64)[0],
+        _view1(arrays, dims, A_CHARTED, np.int64), _view1(arrays, dims, A_CHARTED_NODE, np.int64),
+        _view2(arrays, dims, A_CHARTED_FRAC, np.float64),
+        _view1(arrays, dims, A_UNCHARTED, np.int64),
+        _view3(arrays, dims, A_BASIS_T, np.float32), _view3(arrays, dims, A_FIELDS, np.float32),
+        _view2(arrays, dims, A_RECTANGLES, np.int64), _view2(arrays, dims, A_SHIFTS, np.float64),
+        out,
+    )  # fmt: skip
+
+
+_surface_signature = _status(_pointers, _i8p, _f8p, types.int64, _f8p, types.int64)
+
+
+@cfunc(_surface_signature, cache=True)
+def surface_transport_anm(arrays, dims, buf, buf_size, out, vertices):
+    """``Simulator.surface_displacement`` ("transport", POD-ANM) of the state ``buf`` into
+    out (V, 3) mm."""
+    state = carray(buf, (buf_size,))
+    c = _anm_coefficients(arrays, dims, state)
+    _transported(arrays, dims, state, c, carray(out, (vertices, 3)))
+    return OK
+
+
+@cfunc(_surface_signature, cache=True)
+def surface_transport_curves(arrays, dims, buf, buf_size, out, vertices):
+    """As :func:`surface_transport_anm`, the stored curves' coefficients."""
+    state = carray(buf, (buf_size,))
+    c = _curves_coefficients(arrays, dims, state)
+    _transported(arrays, dims, state, c, carray(out, (vertices, 3)))
+    return OK
+
+
+@cfunc(_surface_signature, cache=True)
+def surface_podi_anm(arrays, dims, buf, buf_size, out, vertices):
+    """``Simulator.surface_displacement`` ("podi", POD-ANM) into out (V, 3) mm."""
+    state = carray(buf, (buf_size,))
+    c = _anm_coefficients(arrays, dims, state)
+    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32),
+                       carray(out, (vertices, 3)))  # fmt: skip
+    return OK
+
+
+@cfunc(_surface_signature, cache=True)
+def surface_podi_curves(arrays, dims, buf, buf_size, out, vertices):
+    """``Simulator.surface_displacement`` ("podi", stored curves) into out (V, 3) mm."""
+    state = carray(buf, (buf_size,))
+    c = _curves_coefficients(arrays, dims, state)
+    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32),
+                       carray(out, (vertices, 3)))  # fmt: skip
+    return OK
+
+
+SURFACES = {
+    ("transport", "anm"): surface_transport_anm,
+    ("transport", "curves"): surface_transport_curves,
+    ("podi", "anm"): surface_podi_anm,
+    ("podi", "curves"): surface_podi_curves,
+}
+
+# -- the handle: what C keeps of a simulator -------------------------------------------------------
+HANDLE_FIELDS = (
+    "abi",  # ABI_VERSION
+    "key",  # the registry's key (free_simulator)
+    # entry points (addresses of the cfuncs)
+    "set_contact", "step_displacement", "step_force", "contact_stiffness", "error_estimate",
+    "read_state", "surface",
+    # the state buffer, its render-side copy, the table, the model's arrays (addresses)
+    "buf", "buf_size", "snapshot", "table", "table_size", "indicator", "samples",
+    "surface_arrays", "surface_dims", "vertices", "vertex_count", "triangles", "triangle_count",
+    "sample_points", "modes",
+    # what the options resolved to: 1 transport / 2 podi, 1 anm / 2 curves
+    "interpolation", "response",
+    # float64 values, their bits: trained depth (mm), trained force (N), limits (mm, N)
+    "trained_depth", "trained_force", "max_displacement", "max_force",
+)  # fmt: skip
+H = {name: i for i, name in enumerate(HANDLE_FIELDS)}
+
+
+@dataclass
+class _Entry:
+    """One open simulator: everything the handle's addresses point into."""
+
+    model: ReducedModel
+    simulator: Simulator
+    arrays: list[np.ndarray]  # kept alive: the handle holds their addresses
+    handle: np.ndarray
+
+
+_REGISTRY: dict[int, _Entry] = {}
+_KEYS = itertools.count(1)
+
+
+def _address(a: np.ndarray) -> int:
+    if not a.flags.c_contiguous:
+        raise ValueError("internal: an array handed to C must be C-contiguous")
+    return a.ctypes.data
+
+
+def _bits(x: float) -> int:
+    """A float64's bits as an int64 (the handle is one int64 array)."""
+    return int(np.array(x, dtype=np.float64).view(np.int64))
+
+
+def _surface_arrays(sim: Simulator) -> dict[str, np.ndarray]:
+    """The arrays a surface of ``sim`` reads, by SURFACE_ARRAYS name; the scratch is the
+    render side's own (a surface never writes what the servo thread's calls write)."""
+    m = sim.model
+    n = m.num_modes
+    if sim.response == "anm":
+        arrays = {"coefficients": m.anm["offsets"], "series": m.anm["coefficients"]}
+    else:
+        arrays = {"coefficients": m.coefficients}
+    arrays["coefficients_out"] = np.zeros((3, n))
+    arrays["surface_basis_t"] = m.surface_basis_t
+    if sim.interpolation == "transport":
+        ch = m.chart
+        nodes = int(np.prod(ch.shape))
+        arrays |= {
+            "node_basis": ch.node_basis, "sample_plan": ch.sample_plan,
+            "sample_normals": m.sample_normals, "chart_shape": ch.shape,
+            "read_rows": ch.read_rows, "read_columns": ch.read_columns,
+            "spacing": np.array([ch.spacing], dtype=np.float64),
+            "halo": np.array([ch.halo], dtype=np.int64), "charted": ch.charted,
+            "charted_node": ch.charted_node, "charted_frac": ch.charted_frac,
+            "uncharted": ch.uncharted, "fields": np.zeros((3, 3, nodes), dtype=np.float32),
+            "rectangles": np.zeros((3, 5), dtype=np.int64), "shifts": np.zeros((3, 12)),
+        }  # fmt: skip
+    return arrays
+
+
+def _pack(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(addresses (A,) int64, shapes (A, DIMS) int64) in SURFACE_ARRAYS order; an array the
+    configuration does not read is a null address and a zero shape."""
+    addresses = np.zeros(len(SURFACE_ARRAYS), dtype=np.int64)
+    dims = np.zeros((len(SURFACE_ARRAYS), DIMS), dtype=np.int64)
+    for i, name in enumerate(SURFACE_ARRAYS):
+        a = arrays.get(name)
+        if a is None:
+            continue
+        addresses[i] = _address(a)
+        dims[i, : a.ndim] = a.shape
+    return addresses, dims
+
+
+def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The handle of ``sim`` and the arrays it points into."""
+    m = sim.model
+    arrays = _surface_arrays(sim)
+    addresses, dims = _pack(arrays)
+    snapshot = np.zeros_like(sim._buf)
+    points = np.ascontiguousarray(m.sample_points)
+    kept = [*arrays.values(), addresses, dims, snapshot, points]
+    anm = sim.response == "anm"
+    values = {
+        "abi": ABI_VERSION, "key": key,
+        "set_contact": set_contact.address,
+        "step_displacement": (step_displacement_anm if anm else step_displacement_curves).address,
+        "step_force": (step_force_anm if anm else step_force_curves).address,
+        "contact_stiffness": contact_stiffness.address, "error_estimate": error_estimate.address,
+        "read_state": read_state.address,
+        "surface": SURFACES[sim.interpolation, sim.response].address,
+        "buf": _address(sim._buf), "buf_size": sim._buf.size, "snapshot": _address(snapshot),
+        "table": _address(sim._table), "table_size": sim._table.size,
+        "indicator": _address(m.indicator), "samples": len(m.indicator),
+        "surface_arrays": _address(addresses), "surface_dims": _address(dims),
+        "vertices": _address(m.vertices), "vertex_count": len(m.vertices),
+        "triangles": _address(m.triangles), "triangle_count": len(m.triangles),
+        "sample_points": _address(points), "modes": m.num_modes,
+        "interpolation": 1 if sim.interpolation == "transport" else 2,
+        "response": 1 if anm else 2,
+        "trained_depth": _bits(m.trained_depth), "trained_force": _bits(m.trained_force),
+        "max_displacement": _bits(sim.max_displacement), "max_force": _bits(sim.max_force),
+    }  # fmt: skip
+    handle = np.array([values[name] for name in HANDLE_FIELDS], dtype=np.int64)
+    return handle, kept
+
+
+def _limit(value: float) -> float | None:
+    """A limit from C: 0 is the model's default (None); anything else is checked by the
+    Simulator (finite, positive)."""
+    return None if value == 0.0 else value
+
+
+def _options(interpolation: int, response: int) -> tuple[str | None, str | None]:
+    if interpolation not in INTERPOLATIONS:
+        raise InputError(
+            f"interpolation must be 0 (the model's default), 1 (transport) or 2 (podi); got "
+            f"{interpolation} (Grassmann and the scalpel are not in this ABI)"
+        )
+    if response not in RESPONSES:
+        raise InputError(
+            f"response must be 0 (the model's default), 1 (anm) or 2 (curves); got {response}"
+        )
+    return INTERPOLATIONS[interpolation], RESPONSES[response]
+
+
+def _check_isolation(isolate: bool) -> None:
+    """InputError if the HDF5 parse cannot go to a child process: it runs ``sys.executable``,
+    which in a host that embeds Python itself (runSofa, a game engine) is the host."""
+    exe = sys.executable or ""
+    if isolate and not (os.path.basename(exe).startswith("python") and os.access(exe, os.X_OK)):
+        raise InputError(
+            f"options.isolate = 1 parses the file in a child process of sys.executable, and "
+            f"{exe!r} is not a Python interpreter (a host that embeds Python): set isolate = 0"
+        )
+
+
+def open_simulator(path: str, interpolation: int, response: int, max_displacement: float,
+                   max_force: float, isolate: bool) -> tuple[int, str, bytes]:  # fmt: skip
+    """``hapticrom_load``: load the artifact at ``path`` and make a simulator on it.
+
+    Returns (status, message, handle bytes): OK, "" and the handle (int64, HANDLE_FIELDS);
+    or an ABI status and one line naming the problem (LOAD_FAILED: the artifact is missing,
+    damaged or refused; INVALID_OPTION: an option is wrong) and no handle. Never raises.
+    """
+    try:
+        interpolation_name, response_name = _options(interpolation, response)
+        _check_isolation(bool(isolate))
+        model = load(path, isolate=bool(isolate))
+        limits = {"max_displacement": _limit(max_displacement), "max_force": _limit(max_force)}
+        sim = Simulator(model, interpolation_name, response=response_name, **limits)
+        key = next(_KEYS)
+        handle, kept = _handle(key, sim)
+    except ArtifactError as exc:
+        return STATUS["LOAD_FAILED"], str(exc), b""
+    except InputError as exc:
+        return STATUS["INVALID_OPTION"], str(exc), b""
+    except HapticromError as exc:  # e.g. no process to isolate the HDF5 parse in
+        return STATUS["LOAD_FAILED"], str(exc), b""
+    except Exception as exc:  # noqa: BLE001 - C gets a status and a message, never a raise
+        return STATUS["INTERNAL"], f"{type(exc).__name__}: {exc}", b""
+    _REGISTRY[key] = _Entry(model, sim, kept, handle)
+    return OK, "", handle.tobytes()
+
+
+def free_simulator(key: int) -> bool:
+    """``hapticrom_free``: forget the simulator ``key`` (its arrays may go); False if unknown."""
+    return _REGISTRY.pop(key, None) is not None
+
+
+def open_count() -> int:
+    """How many simulators are open (what the registry keeps alive)."""
+    return len(_REGISTRY)

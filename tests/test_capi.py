@@ -1,0 +1,636 @@
+"""The C ABI (include/hapticrom.h, capi/hapticrom.c, online/cabi.py) against the Python runtime.
+
+Built with ``make capi`` (``make capi-asan`` for the sanitizer run). The example host
+(examples/c/servo_loop.c: a servo thread at 1 kHz, a render thread at 60 Hz, CPython embedded)
+runs as a subprocess; the ABI's calls one by one go through ctypes, in this process (the
+library then uses this interpreter, as in a host that runs Python already).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import fcntl
+import functools
+import os
+import re
+import shutil
+import subprocess
+import sysconfig
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import hapticrom
+import hapticrom.online as online
+from hapticrom.online import kernels
+from hapticrom.shared.envelope import USERBLOCK
+
+pytestmark = pytest.mark.serial
+ROOT = Path(__file__).resolve().parents[1]
+BUILD = ROOT / "build"
+
+
+@functools.cache
+def abi_module():
+    """hapticrom.online.cabi, imported when a test needs it (not at collection: its entry
+    points compile on a cold numba cache)."""
+    from hapticrom.online import cabi
+
+    return cabi
+
+
+class _Statuses:
+    """The ABI's status codes by name (cabi.STATUS, read when used)."""
+
+    def __getitem__(self, name: str) -> int:
+        return abi_module().STATUS[name]
+
+
+S = _Statuses()
+c_double3 = ctypes.c_double * 3
+
+
+# -- building --------------------------------------------------------------------------------
+def make(target: str) -> None:
+    """``make target`` in the project (one at a time: pytest-xdist workers share build/)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL")}
+    BUILD.mkdir(exist_ok=True)
+    with open(BUILD / ".make.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        result = subprocess.run(["make", "-C", str(ROOT), target], env=env, capture_output=True,
+                                text=True, timeout=900)  # fmt: skip
+    assert result.returncode == 0, f"make {target} failed:\n{result.stdout}\n{result.stderr}"
+
+
+@pytest.fixture(scope="module")
+def built() -> Path:
+    if shutil.which("gcc") is None or shutil.which("make") is None:
+        pytest.skip("the C ABI needs gcc and make")
+    if not sysconfig.get_config_var("Py_ENABLE_SHARED"):
+        pytest.skip("embedding needs a Python built with --enable-shared (libpython3.12.so)")
+    make("capi")
+    return BUILD
+
+
+# -- the ABI through ctypes ----------------------------------------------------------------------
+class Options(ctypes.Structure):
+    _fields_ = [("size", ctypes.c_uint32), ("interpolation", ctypes.c_int32),
+                ("response", ctypes.c_int32), ("isolate", ctypes.c_int32),
+                ("max_displacement", ctypes.c_double), ("max_force", ctypes.c_double)]  # fmt: skip
+
+
+class Info(ctypes.Structure):
+    _fields_ = [("vertex_count", ctypes.c_uint64), ("triangle_count", ctypes.c_uint64),
+                ("sample_count", ctypes.c_uint64), ("mode_count", ctypes.c_uint64),
+                ("interpolation", ctypes.c_int32), ("response", ctypes.c_int32),
+                ("trained_depth", ctypes.c_double), ("trained_force", ctypes.c_double),
+                ("max_displacement", ctypes.c_double), ("max_force", ctypes.c_double)]  # fmt: skip
+
+
+class State(ctypes.Structure):
+    _fields_ = [("normal", c_double3), ("force", c_double3), ("displacement", c_double3),
+                ("depth", ctypes.c_double), ("flags", ctypes.c_uint32),
+                ("has_contact", ctypes.c_uint32), ("sequence", ctypes.c_uint64)]  # fmt: skip
+
+
+_SIM, _P, _SIZE = ctypes.c_uint64, ctypes.c_void_p, ctypes.c_size_t
+PROTOTYPES = {
+    "hapticrom_version": (ctypes.c_char_p, [ctypes.POINTER(ctypes.c_uint32)]),
+    "hapticrom_last_error": (ctypes.c_char_p, []),
+    "hapticrom_status_name": (ctypes.c_char_p, [ctypes.c_int]),
+    "hapticrom_options_init": (None, [_P]),
+    "hapticrom_load": (ctypes.c_int, [ctypes.c_char_p, _P, _P]),
+    "hapticrom_free": (ctypes.c_int, [_SIM]),
+    "hapticrom_set_contact": (ctypes.c_int, [_SIM, _P]),
+    "hapticrom_step_displacement": (ctypes.c_int, [_SIM, _P, _P]),
+    "hapticrom_step_force": (ctypes.c_int, [_SIM, _P, _P]),
+    "hapticrom_contact_stiffness": (ctypes.c_int, [_SIM, _P]),
+    "hapticrom_error_estimate": (ctypes.c_int, [_SIM, _P]),
+    "hapticrom_get_state": (ctypes.c_int, [_SIM, _P]),
+    "hapticrom_surface": (ctypes.c_int, [_SIM, _P, _SIZE, _P]),
+    "hapticrom_get_info": (ctypes.c_int, [_SIM, _P]),
+    "hapticrom_surface_mesh": (ctypes.c_int, [_SIM, _P, _SIZE, _P, _SIZE]),
+    "hapticrom_sample_points": (ctypes.c_int, [_SIM, _P, _SIZE]),
+}
+
+
+@pytest.fixture(scope="module")
+def lib(built):
+    library = ctypes.CDLL(str(built / "libhapticrom.so"))
+    for name, (restype, argtypes) in PROTOTYPES.items():
+        function = getattr(library, name)
+        function.restype, function.argtypes = restype, argtypes
+    return library
+
+
+def ptr(a: np.ndarray):
+    return a.ctypes.data
+
+
+def last_error(lib) -> str:
+    return lib.hapticrom_last_error().decode()
+
+
+def options(lib, **fields) -> Options:
+    o = Options()
+    lib.hapticrom_options_init(ctypes.byref(o))
+    o.isolate = 0  # the child-process parse is tested once, with its own load
+    for key, value in fields.items():
+        setattr(o, key, value)
+    return o
+
+
+def load(lib, path, **fields) -> int:
+    sim = ctypes.c_uint64(12345)
+    status = lib.hapticrom_load(str(path).encode(), ctypes.byref(options(lib, **fields)),
+                                ctypes.byref(sim))  # fmt: skip
+    assert status == S["OK"], last_error(lib)
+    return sim.value
+
+
+def state(lib, sim) -> State:
+    s = State()
+    assert lib.hapticrom_get_state(sim, ctypes.byref(s)) == S["OK"], last_error(lib)
+    return s
+
+
+def info(lib, sim) -> Info:
+    i = Info()
+    assert lib.hapticrom_get_info(sim, ctypes.byref(i)) == S["OK"], last_error(lib)
+    return i
+
+
+def refused(lib, status: int, expected: str, *words: str) -> None:
+    """``status`` is the ABI's ``expected`` and the thread's message names the words."""
+    message = last_error(lib)
+    assert status == S[expected], f"{status} ({message}), expected {expected}"
+    for word in words:
+        assert word in message, message
+
+
+@pytest.fixture(scope="module")
+def model(small_artifact):
+    return online.load(small_artifact)
+
+
+def path_of(model, ticks: int = 40):
+    """Contact points and depths across the trained region (press, slide, release)."""
+    from hapticrom.online.play import tool_path
+
+    return tool_path(model, ticks)
+
+
+# -- the header against the Python side ---------------------------------------------------------
+def header_values(prefix: str) -> dict[str, int]:
+    text = (ROOT / "include" / "hapticrom.h").read_text()
+    return {m[1]: int(m[2]) for m in re.finditer(rf"\b{prefix}([A-Z_]+) = (\d+)", text)}
+
+
+def test_the_header_declares_what_the_python_side_returns(lib):
+    cabi = abi_module()
+    assert header_values("HAPTICROM_E_") | {"OK": header_values("HAPTICROM_")["OK"]} == cabi.STATUS
+    flags = header_values("HAPTICROM_FLAG_")
+    assert flags == {"BEYOND_DEPTH": kernels.FLAG_BEYOND_DEPTH,
+                     "NO_CONTACT": kernels.FLAG_NO_CONTACT,
+                     "OUTSIDE_REGION": kernels.FLAG_OUTSIDE_REGION}  # fmt: skip
+    names = {"transport": "TRANSPORT", "podi": "PODI", "anm": "ANM", "curves": "CURVES"}
+    interpolations = header_values("HAPTICROM_INTERPOLATION_")
+    responses = header_values("HAPTICROM_RESPONSE_")
+    for code, name in cabi.INTERPOLATIONS.items():
+        assert interpolations[names.get(name, "DEFAULT")] == code
+    for code, name in cabi.RESPONSES.items():
+        assert responses[names.get(name, "DEFAULT")] == code
+    abi = ctypes.c_uint32()
+    version = lib.hapticrom_version(ctypes.byref(abi)).decode()
+    assert (abi.value, version) == (cabi.ABI_VERSION, hapticrom.__version__)
+    text = (ROOT / "include" / "hapticrom.h").read_text()
+    assert f"#define HAPTICROM_ABI_VERSION {cabi.ABI_VERSION}\n" in text
+    for name, code in cabi.STATUS.items():
+        expected = "HAPTICROM_OK" if name == "OK" else f"HAPTICROM_E_{name}"
+        assert lib.hapticrom_status_name(code).decode() == expected
+    assert lib.hapticrom_status_name(99).decode() == "unknown status"
+
+
+# -- the same numbers as the Python runtime -------------------------------------------------------
+def combinations(model) -> list[tuple[str, str]]:
+    interpolations = ["transport", "podi"] if model.chart is not None else ["podi"]
+    responses = ["anm", "curves"] if model.anm is not None else ["curves"]
+    return [(i, r) for i in interpolations for r in responses]
+
+
+CODES = {"transport": 1, "podi": 2, "anm": 1, "curves": 2}
+
+
+def test_every_call_gives_the_python_runtimes_numbers(lib, model, small_artifact):
+    """set_contact, both steps, stiffness, error estimate, state and surface, for every
+    interpolation and response the model has, along a path: the Python simulator's values."""
+    points, depths = path_of(model)
+    for interpolation, response in combinations(model):
+        sim = load(lib, small_artifact, interpolation=CODES[interpolation],
+                   response=CODES[response])  # fmt: skip
+        py = model.simulator(interpolation, response)
+        i = info(lib, sim)
+        assert (i.interpolation, i.response) == (CODES[interpolation], CODES[response])
+        assert (i.vertex_count, i.sample_count) == (len(model.vertices), len(model.indicator))
+        assert (i.max_displacement, i.max_force) == (py.max_displacement, py.max_force)
+        surface, expected = np.zeros_like(model.vertices), np.zeros_like(model.vertices)
+        force, x, value = c_double3(), c_double3(), ctypes.c_double()
+        peak = 0.0
+        for k, (p, depth) in enumerate(zip(points, depths, strict=True)):
+            p = np.ascontiguousarray(p)
+            assert lib.hapticrom_set_contact(sim, ptr(p)) == S["OK"], last_error(lib)
+            py.set_contact(p)
+            d = np.multiply(py.contact_normal, -depth)
+            assert lib.hapticrom_step_displacement(sim, ptr(d), force) == S["OK"]
+            np.testing.assert_array_equal(list(force), py.step_displacement(d))
+            s = state(lib, sim)
+            np.testing.assert_array_equal(list(s.normal), py.contact_normal)
+            assert (s.depth, s.has_contact, s.sequence) == (py.depth, 1, 3 * k + 2)
+            assert bool(s.flags & 4) == py.outside_trained_region
+            assert lib.hapticrom_contact_stiffness(sim, ctypes.byref(value)) == S["OK"]
+            assert value.value == py.contact_stiffness
+            assert lib.hapticrom_error_estimate(sim, ctypes.byref(value)) == S["OK"]
+            assert value.value == py.error_estimate
+            assert lib.hapticrom_surface(sim, ptr(surface), surface.size, None) == S["OK"]
+            np.testing.assert_array_equal(surface, py.surface_displacement(expected))
+            peak = max(peak, np.abs(surface).max())
+            push = np.multiply(py.contact_normal, -0.4 * model.trained_force * (k % 3))
+            assert lib.hapticrom_step_force(sim, ptr(push), x) == S["OK"], last_error(lib)
+            np.testing.assert_array_equal(list(x), py.step_force(push))
+        assert peak > 0.1 * model.trained_depth  # the path pressed: a test that can fail
+        assert lib.hapticrom_free(sim) == S["OK"]
+
+
+def test_the_surface_mesh_and_samples_are_the_models(lib, model, small_artifact):
+    sim = load(lib, small_artifact)
+    vertices = np.zeros_like(model.vertices)
+    triangles = np.zeros(model.triangles.shape, dtype=np.uint32)
+    points = np.zeros_like(model.sample_points)
+    assert lib.hapticrom_surface_mesh(sim, ptr(vertices), vertices.size, ptr(triangles),
+                                      triangles.size) == S["OK"]  # fmt: skip
+    assert lib.hapticrom_sample_points(sim, ptr(points), points.size) == S["OK"]
+    np.testing.assert_array_equal(vertices, model.vertices)
+    np.testing.assert_array_equal(triangles, model.triangles)
+    np.testing.assert_array_equal(points, model.sample_points)
+    assert lib.hapticrom_free(sim) == S["OK"]
+
+
+# -- bad input across the ABI --------------------------------------------------------------------
+def test_loading_refuses_bad_paths_artifacts_and_options(lib, small_artifact, tmp_path):
+    sim = ctypes.c_uint64(7)
+    path = str(small_artifact).encode()
+    refused(lib, lib.hapticrom_load(None, None, ctypes.byref(sim)), "NULL_ARGUMENT",
+            "hapticrom_load", "artifact_path")  # fmt: skip
+    assert sim.value == 0  # the out handle is cleared on failure
+    refused(lib, lib.hapticrom_load(path, None, None), "NULL_ARGUMENT", "simulator")
+    missing = str(tmp_path / "missing.h5").encode()
+    refused(lib, lib.hapticrom_load(missing, None, ctypes.byref(sim)), "LOAD_FAILED",
+            "missing.h5", "not found")  # fmt: skip
+    damaged = bytearray(small_artifact.read_bytes())
+    damaged[USERBLOCK + (len(damaged) - USERBLOCK) // 2] ^= 0x5A
+    (tmp_path / "damaged.h5").write_bytes(bytes(damaged))
+    corrupt = str(tmp_path / "damaged.h5").encode()
+    refused(lib, lib.hapticrom_load(corrupt, None, ctypes.byref(sim)), "LOAD_FAILED",
+            "damaged.h5", "checksum")  # fmt: skip
+    assert sim.value == 0
+    bad_options = [({"size": 8}, "options.size"), ({"isolate": 2}, "isolate"),
+                   ({"interpolation": 3}, "interpolation"), ({"response": -1}, "response"),
+                   ({"max_force": -1.0}, "max_force"),
+                   ({"max_displacement": float("nan")}, "max_displacement")]  # fmt: skip
+    for fields, word in bad_options:
+        o = options(lib, **fields)
+        refused(lib, lib.hapticrom_load(path, ctypes.byref(o), ctypes.byref(sim)),
+                "INVALID_OPTION", word)  # fmt: skip
+    assert abi_module().open_count() == 0  # nothing kept of a refused load
+
+
+def test_the_default_load_parses_in_a_child_process(lib, small_artifact):
+    sim = ctypes.c_uint64()
+    assert lib.hapticrom_load(str(small_artifact).encode(), None, ctypes.byref(sim)) == S["OK"]
+    assert lib.hapticrom_free(sim.value) == S["OK"]
+
+
+def test_null_pointers_are_refused_by_every_call(lib, small_artifact):
+    sim = load(lib, small_artifact)
+    v = np.zeros(3)
+    calls = {
+        "hapticrom_set_contact": lambda: lib.hapticrom_set_contact(sim, None),
+        "hapticrom_step_displacement": lambda: lib.hapticrom_step_displacement(sim, None, ptr(v)),
+        "hapticrom_step_force": lambda: lib.hapticrom_step_force(sim, ptr(v), None),
+        "hapticrom_contact_stiffness": lambda: lib.hapticrom_contact_stiffness(sim, None),
+        "hapticrom_error_estimate": lambda: lib.hapticrom_error_estimate(sim, None),
+        "hapticrom_get_state": lambda: lib.hapticrom_get_state(sim, None),
+        "hapticrom_surface": lambda: lib.hapticrom_surface(sim, None, 3, None),
+        "hapticrom_get_info": lambda: lib.hapticrom_get_info(sim, None),
+        "hapticrom_surface_mesh": lambda: lib.hapticrom_surface_mesh(sim, ptr(v), 3, None, 3),
+        "hapticrom_sample_points": lambda: lib.hapticrom_sample_points(sim, None, 3),
+    }
+    for name, call in calls.items():
+        refused(lib, call(), "NULL_ARGUMENT", name, "NULL")
+    assert state(lib, sim).sequence == 0  # nothing was written
+    assert lib.hapticrom_free(sim) == S["OK"]
+
+
+def test_bad_numbers_are_refused_and_the_state_kept(lib, model, small_artifact):
+    sim = load(lib, small_artifact, max_displacement=0.5 * model.trained_depth)
+    out, value = c_double3(), ctypes.c_double()
+    d = np.array([0.0, 0.0, -0.1 * model.trained_depth])
+    refused(lib, lib.hapticrom_step_displacement(sim, ptr(d), out), "NO_CONTACT",
+            "hapticrom_set_contact first")  # fmt: skip
+    refused(lib, lib.hapticrom_step_force(sim, ptr(d), out), "NO_CONTACT")
+    refused(lib, lib.hapticrom_contact_stiffness(sim, ctypes.byref(value)), "NO_CONTACT")
+    refused(lib, lib.hapticrom_error_estimate(sim, ctypes.byref(value)), "NO_CONTACT")
+    assert not state(lib, sim).has_contact
+    p = np.ascontiguousarray(model.sample_points[0])
+    assert lib.hapticrom_set_contact(sim, ptr(p)) == S["OK"]
+    n = np.array(state(lib, sim).normal)
+    assert lib.hapticrom_step_displacement(sim, ptr(-0.2 * model.trained_depth * n), out) == 0
+    before = state(lib, sim)
+    for bad in (np.nan, np.inf, -np.inf):
+        x = np.array([0.0, bad, 0.0])
+        refused(lib, lib.hapticrom_set_contact(sim, ptr(x)), "NOT_FINITE", "contact point")
+        refused(lib, lib.hapticrom_step_displacement(sim, ptr(x), out), "NOT_FINITE",
+                "displacement")  # fmt: skip
+        refused(lib, lib.hapticrom_step_force(sim, ptr(x), out), "NOT_FINITE", "force")
+    refused(lib, lib.hapticrom_step_displacement(sim, ptr(-model.trained_depth * n), out),
+            "BEYOND_LIMIT", "limit")  # fmt: skip
+    huge = -2 * model.force[:, -1].max() * n
+    refused(lib, lib.hapticrom_step_force(sim, ptr(huge), out), "DISPLACEMENT_LIMIT",
+            "max_displacement")  # fmt: skip
+    after = state(lib, sim)
+    for field in ("normal", "force", "displacement"):
+        assert list(getattr(after, field)) == list(getattr(before, field))
+    assert (after.depth, after.flags) == (before.depth, before.flags)
+    assert lib.hapticrom_free(sim) == S["OK"]
+
+
+def test_wrong_buffer_sizes_are_refused(lib, model, small_artifact):
+    sim = load(lib, small_artifact)
+    V, T, P = len(model.vertices), len(model.triangles), len(model.indicator)
+    big = np.zeros(3 * max(V, T, P) + 3)
+    triangles = np.zeros(3 * T + 3, dtype=np.uint32)
+    for length in (0, 3 * V - 1, 3 * V + 3, V):
+        refused(lib, lib.hapticrom_surface(sim, ptr(big), length, None), "WRONG_SIZE",
+                f"3 x {V} vertices")  # fmt: skip
+    refused(lib, lib.hapticrom_surface_mesh(sim, ptr(big), 3 * V, ptr(triangles), 3 * T + 3),
+            "WRONG_SIZE", "triangles_length")  # fmt: skip
+    refused(lib, lib.hapticrom_surface_mesh(sim, ptr(big), 3 * V - 3, ptr(triangles), 3 * T),
+            "WRONG_SIZE", "vertices_length")  # fmt: skip
+    refused(lib, lib.hapticrom_sample_points(sim, ptr(big), 3 * P + 3), "WRONG_SIZE", str(P))
+    assert lib.hapticrom_free(sim) == S["OK"]
+
+
+def test_calls_after_free_and_made_up_handles_are_refused(lib, model, small_artifact):
+    sim = load(lib, small_artifact)
+    assert abi_module().open_count() == 1
+    assert lib.hapticrom_free(sim) == S["OK"]
+    assert abi_module().open_count() == 0  # the Python side let go of the arrays
+    v, out = np.zeros(3), np.zeros(3 * len(model.vertices))
+    s, i, value = State(), Info(), ctypes.c_double()
+    triangles = np.zeros(3 * len(model.triangles), dtype=np.uint32)
+    reused = load(lib, small_artifact)  # likely the freed slot, a new generation
+    magic = sim & ~((1 << 48) - 1)
+    for handle in (sim, 0, 1, 2**64 - 1, magic, magic | (1 << 48) - 1, sim ^ (1 << 20)):
+        if handle == reused:
+            continue
+        calls = [
+            lib.hapticrom_set_contact(handle, ptr(v)),
+            lib.hapticrom_step_displacement(handle, ptr(v), ptr(v)),
+            lib.hapticrom_step_force(handle, ptr(v), ptr(v)),
+            lib.hapticrom_contact_stiffness(handle, ctypes.byref(value)),
+            lib.hapticrom_error_estimate(handle, ctypes.byref(value)),
+            lib.hapticrom_get_state(handle, ctypes.byref(s)),
+            lib.hapticrom_surface(handle, ptr(out), out.size, None),
+            lib.hapticrom_get_info(handle, ctypes.byref(i)),
+            lib.hapticrom_surface_mesh(
+                handle, ptr(out), out.size, ptr(triangles), triangles.size
+            ),  # fmt: skip
+            lib.hapticrom_sample_points(handle, ptr(out), 3),
+            lib.hapticrom_free(handle),
+        ]
+        assert calls == [S["BAD_HANDLE"]] * len(calls), (hex(handle), calls)
+    refused(lib, lib.hapticrom_free(sim), "BAD_HANDLE", "hapticrom_free")
+    assert state(lib, reused).sequence == 0  # the live one is untouched
+    assert lib.hapticrom_free(reused) == S["OK"]
+    refused(lib, lib.hapticrom_free(reused), "BAD_HANDLE", "freed already")
+
+
+# -- threads ---------------------------------------------------------------------------------------
+def busy_seen(lib, sim, inside, probe, seconds: float = 20.0) -> tuple[int, dict]:
+    """Run ``inside`` in a loop on a thread while this one calls ``probe``: the probe's
+    statuses until it saw BUSY (or ``seconds`` passed)."""
+    stop = threading.Event()
+    worker_statuses: dict[int, int] = {}
+
+    def work():
+        while not stop.is_set():
+            status = inside()
+            worker_statuses[status] = worker_statuses.get(status, 0) + 1
+
+    thread = threading.Thread(target=work)
+    thread.start()
+    seen: dict[int, int] = {}
+    deadline = time.monotonic() + seconds
+    try:
+        while S["BUSY"] not in seen and time.monotonic() < deadline:
+            status = probe()
+            seen[status] = seen.get(status, 0) + 1
+            if status == S["BUSY"]:
+                message = last_error(lib)
+    finally:
+        stop.set()
+        thread.join()
+    assert S["BUSY"] in seen, f"no BUSY in {seconds} s: {seen}"
+    assert "another thread" in message, message
+    return seen, worker_statuses
+
+
+def test_a_second_thread_inside_a_simulator_gets_busy(lib, model, small_artifact):
+    """The servo calls are one thread's, the render calls another's: a second thread in either
+    gets BUSY at once (the first thread's calls all succeed)."""
+    sim = load(lib, small_artifact)
+    p = np.ascontiguousarray(model.sample_points[0])
+    s, i = State(), Info()
+    out = np.zeros(3 * len(model.vertices))
+    assert lib.hapticrom_set_contact(sim, ptr(p)) == S["OK"]
+    for inside, probe in [
+        (lambda: lib.hapticrom_set_contact(sim, ptr(p)),
+         lambda: lib.hapticrom_get_state(sim, ctypes.byref(s))),
+        (lambda: lib.hapticrom_surface(sim, ptr(out), out.size, None),
+         lambda: lib.hapticrom_get_info(sim, ctypes.byref(i))),
+    ]:  # fmt: skip
+        seen, worker = busy_seen(lib, sim, inside, probe)
+        assert set(seen) <= {S["OK"], S["BUSY"]} and set(worker) == {S["OK"]}, (seen, worker)
+    assert lib.hapticrom_free(sim) == S["OK"]
+
+
+def test_free_while_another_thread_steps_never_crashes(lib, model, small_artifact):
+    sim = load(lib, small_artifact)
+    p = np.ascontiguousarray(model.sample_points[0])
+    d = np.array([0.0, 0.0, 0.0])
+    out = c_double3()
+    statuses: list[int] = []
+    started = threading.Event()
+
+    def servo():
+        while True:
+            status = lib.hapticrom_set_contact(sim, ptr(p))
+            if status == S["OK"]:
+                status = lib.hapticrom_step_displacement(sim, ptr(d), out)
+            statuses.append(status)
+            started.set()
+            if status != S["OK"]:
+                return
+
+    thread = threading.Thread(target=servo)
+    thread.start()
+    started.wait(10)
+    assert lib.hapticrom_free(sim) == S["OK"]
+    thread.join(10)
+    assert not thread.is_alive()
+    assert set(statuses[:-1]) == {S["OK"]} and statuses[-1] == S["BAD_HANDLE"]
+
+
+# -- the example host: C with CPython embedded ---------------------------------------------------
+def run_example(binary: Path, model_path: Path, tmp: Path, *args: str, env=None):
+    """Run the example host; (its stdout, the forces CSV rows, the rendered frames)."""
+    forces, surfaces = tmp / "forces.csv", tmp / "surfaces.bin"
+    result = subprocess.run(
+        [str(binary), str(model_path), "--forces", str(forces), "--surfaces", str(surfaces),
+         *args], capture_output=True, text=True, timeout=600, env=env or os.environ.copy(),
+    )  # fmt: skip
+    assert result.returncode == 0, result.stdout + result.stderr
+    rows = np.loadtxt(forces, delimiter=",", skiprows=1)
+    raw = np.fromfile(surfaces, dtype=np.uint8)
+    V = int(raw[:8].view(np.uint64)[0])
+    frames = raw[8:].reshape(-1, 8 + 24 * V)
+    sequences = frames[:, :8].copy().view(np.uint64).ravel().astype(np.int64)
+    fields = frames[:, 8:].copy().view(np.float64).reshape(len(frames), V, 3)
+    return result, rows, sequences, fields
+
+
+@pytest.fixture(scope="module")
+def paced(built, small_artifact, tmp_path_factory):
+    """The example as a haptic host runs it: 1 kHz servo, 60 Hz render, 2 s."""
+    return run_example(built / "servo_loop", small_artifact, tmp_path_factory.mktemp("paced"))
+
+
+def python_forces(model, rows) -> np.ndarray:
+    """The Python runtime along the example's contact points and depths."""
+    sim = model.simulator()
+    forces = np.zeros((len(rows), 3))
+    for k, row in enumerate(rows):
+        sim.set_contact(np.ascontiguousarray(row[1:4]))
+        forces[k] = sim.step_displacement(np.multiply(sim.contact_normal, -row[4]))
+    return forces
+
+
+def test_forces_from_c_equal_the_python_runtimes(model, paced):
+    result, rows, _, _ = paced
+    assert "2000 ticks" in result.stdout
+    assert np.all(rows[:, 8] == 0)  # every tick's status
+    forces, expected = rows[:, 5:8], python_forces(model, rows)
+    scale = np.abs(expected).max()
+    assert scale > 0.1 * model.trained_force  # the path pressed
+    assert np.abs(forces - expected).max() <= 1e-12 * scale
+
+
+def python_surfaces(model, rows, wanted: set[int]) -> dict[int, np.ndarray]:
+    """The Python simulator's surface at each wanted state of the example's path: replaying
+    its ticks, the state numbered rows[k, 9] after tick k's set_contact, one more after its
+    step (the example's only writes)."""
+    sim = model.simulator()
+    out, surfaces = np.zeros_like(model.vertices), {}
+    for row in rows:
+        after_contact = int(row[9])
+        if after_contact > max(wanted):
+            break
+        sim.set_contact(np.ascontiguousarray(row[1:4]))
+        if after_contact in wanted:
+            surfaces[after_contact] = sim.surface_displacement(out).copy()
+        sim.step_displacement(np.multiply(sim.contact_normal, -row[4]))
+        if after_contact + 1 in wanted:
+            surfaces[after_contact + 1] = sim.surface_displacement(out).copy()
+    return surfaces
+
+
+def assert_untorn(model, rows, sequences, fields) -> None:
+    """Every rendered frame is the Python surface of the state its sequence names."""
+    assert np.all(np.diff(rows[:, 9]) == 2)  # set_contact and the step: two writes per tick
+    expected = python_surfaces(model, rows, set(sequences.tolist()))
+    assert set(expected) == set(sequences.tolist())  # every frame is of a state of the path
+    scale = max(np.abs(s).max() for s in expected.values())
+    assert scale > 0
+    for sequence, field in zip(sequences, fields, strict=True):
+        assert np.abs(field - expected[sequence]).max() <= 1e-12 * scale, sequence
+
+
+def test_the_render_thread_reads_whole_states_at_60_hz(model, paced):
+    _, rows, sequences, fields = paced
+    # ~120 frames at 60 Hz over 2 s (fewer on a loaded machine), from start to end of the path
+    assert len(sequences) >= 30 and np.all(np.diff(sequences) >= 0)
+    assert sequences[0] < 0.2 * rows[-1, 9] and sequences[-1] > 0.8 * rows[-1, 9]
+    assert_untorn(model, rows, sequences, fields)
+
+
+def test_a_free_running_servo_never_tears_the_rendered_surface(built, model, small_artifact,
+                                                                tmp_path):  # fmt: skip
+    """The servo thread as fast as it goes (50,000 ticks, writing nearly all the time), the
+    renderer at 1 kHz: each surface is one state's, whichever the snapshot caught (a renderer
+    that found no pause between the writes gets BUSY: the example skips that frame)."""
+    result, rows, sequences, fields = run_example(
+        built / "servo_loop", small_artifact, tmp_path, "--seconds", "0.05", "--rate", "1e6",
+        "--render-rate", "1000",
+    )  # fmt: skip
+    assert len(rows) == 50000 and np.all(rows[:, 8] == 0)
+    assert len(np.unique(sequences)) > 50, result.stdout  # many states caught in flight
+    assert_untorn(model, rows, sequences, fields)
+
+
+def test_a_host_without_its_python_gets_an_error_not_a_crash(built, small_artifact):
+    """HAPTICROM_PYTHON naming no interpreter: the load fails with PYTHON and a message."""
+    env = {**os.environ, "HAPTICROM_PYTHON": "/nonexistent/python"}
+    result = subprocess.run([str(built / "servo_loop"), str(small_artifact)], env=env,
+                            capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert result.returncode == 1, result.stdout + result.stderr
+    assert "no Python executable at '/nonexistent/python'" in result.stderr
+    assert "HAPTICROM_E_PYTHON" in result.stderr
+
+
+# -- sanitizers ------------------------------------------------------------------------------------
+def sanitizer_available() -> str | None:
+    """None if gcc builds and runs with AddressSanitizer here, else why not."""
+    if shutil.which("gcc") is None:
+        return "no gcc"
+    probe = BUILD / "asan-probe"
+    BUILD.mkdir(exist_ok=True)
+    compiled = subprocess.run(["gcc", "-fsanitize=address", "-x", "c", "-", "-o", str(probe)],
+                              input="int main(void) { return 0; }\n", capture_output=True,
+                              text=True)  # fmt: skip
+    if compiled.returncode != 0:
+        return f"gcc cannot build with -fsanitize=address (libasan missing?): {compiled.stderr}"
+    return None
+
+
+def test_the_example_runs_clean_under_address_sanitizer(built, small_artifact, tmp_path):
+    """AddressSanitizer and UBSan over the library and the example (the embedded interpreter
+    and numpy/numba are not instrumented: LeakSanitizer ignores what they allocate, see
+    capi/lsan.supp; a leak of the library or the example is reported)."""
+    reason = sanitizer_available()
+    if reason:
+        pytest.skip(reason)
+    make("capi-asan")
+    env = os.environ.copy()
+    env["ASAN_OPTIONS"] = "detect_leaks=1:abort_on_error=0:exitcode=99"
+    env["UBSAN_OPTIONS"] = "print_stacktrace=1:halt_on_error=1:exitcode=98"
+    env["LSAN_OPTIONS"] = f"suppressions={ROOT / 'capi' / 'lsan.supp'}:print_suppressions=0"
+    env.pop("LD_PRELOAD", None)
+    result, rows, sequences, _ = run_example(
+        BUILD / "asan" / "servo_loop", small_artifact, tmp_path, "--seconds", "0.5",
+        "--render-rate", "200", env=env,
+    )  # fmt: skip
+    assert "Sanitizer" not in result.stderr and "runtime error" not in result.stderr, result.stderr
+    assert len(rows) == 500 and len(sequences) > 10
