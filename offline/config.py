@@ -52,7 +52,7 @@ from hapticrom.offline.tables import (
 )
 from hapticrom.shared.errors import InputError
 
-LOAD_MODES = ("force", "displacement", "traction")
+LOAD_MODES = ("force", "displacement", "traction", "sphere")
 LINEAR_SOLVERS = ("direct", "iterative")
 PREDICTORS = ("secant", "none")
 NEWTON_STRATEGIES = ("full", "modified")
@@ -96,13 +96,18 @@ class LoadConfig:
       reaction force on the tool comes from the residual (the haptic case).
     - ``traction``: a uniform dead traction ``traction`` (MPa) on the whole
       surface group ``surface`` (the beam benchmark).
+    - ``sphere``: a rigid frictionless sphere of radius ``contact_radius`` that touches
+      the surface at ``contact_point`` and moves by ``sphere`` (mm); contact by a penalty
+      ``penalty`` (N/mm^4: contact pressure per overlap squared, :mod:`.fe.sphere`).
     """
 
     mode: str
     force: tuple[float, float, float] | None = None
     displacement: tuple[float, float, float] | None = None
     traction: tuple[float, float, float] | None = None
+    sphere: tuple[float, float, float] | None = None
     contact_point: tuple[float, float, float] | None = None
+    penalty: float = 1e4
     contact_radius: float = 0.5
     surface: str = "loadable"
     steps: int = 10
@@ -111,7 +116,7 @@ class LoadConfig:
 
     @property
     def vector(self) -> tuple[float, float, float]:
-        """The load at factor 1: N (force), mm (displacement) or MPa (traction)."""
+        """The load at factor 1: N (force), mm (displacement, sphere) or MPa (traction)."""
         return getattr(self, self.mode)
 
 
@@ -313,14 +318,26 @@ LOAD_COMMON_KEYS = tuple(LoadCommon.model_fields)
 class LoadTable(LoadCommon):
     """``[load]`` of a solve: the mode and its vector at load factor 1 (see :class:`LoadConfig`)."""
 
-    missing = {"mode": 'mode = "force" | "displacement" | "traction"'}
-    mode: LoadMode = Field(description="force (N) | displacement (mm) | traction (MPa)")
+    missing = {"mode": 'mode = "force" | "displacement" | "traction" | "sphere"'}
+    mode: LoadMode = Field(
+        description="force (N) | displacement (mm) | traction (MPa) | sphere (mm)"
+    )
     force: Vector | None = Field(None, description="N at load factor 1 (mode = force)")
     displacement: Vector | None = Field(
         None, description="mm at load factor 1 (mode = displacement)"
     )
     traction: Vector | None = Field(
         None, description="MPa at load factor 1 on the whole surface (mode = traction)"
+    )
+    sphere: Vector | None = Field(
+        None,
+        description="mm: the rigid sphere's move at load factor 1, from touching the surface "
+        "at contact_point (mode = sphere; its radius is contact_radius)",
+    )
+    penalty: Positive | None = Field(
+        None,
+        description="N/mm^4: the sphere's contact pressure per overlap squared (mode = sphere; "
+        "default 1e4)",
     )
     contact_point: Vector | None = Field(
         None, description="mm; default: the mesh's default contact point"
@@ -335,13 +352,16 @@ class LoadTable(LoadCommon):
                 raise invalid(f"missing {mode} = [x, y, z]")
             if mode != self.mode and given:
                 raise invalid(f"{mode} is given but mode is {self.mode!r}")
+        if self.penalty is not None and self.mode != "sphere":
+            raise invalid(f"penalty is given but mode is {self.mode!r} (it is the sphere's)")
         return self
 
     def config(self) -> LoadConfig:
         """The load of the solve."""
         vectors = {mode: getattr(self, mode) for mode in LOAD_MODES}
+        penalty = {} if self.penalty is None else {"penalty": self.penalty}
         return LoadConfig(
-            mode=self.mode, contact_point=self.contact_point, **self.common(), **vectors
+            mode=self.mode, contact_point=self.contact_point, **self.common(), **vectors, **penalty
         )
 
 

@@ -124,7 +124,8 @@ SCHEMA: tuple[Group, ...] = (
         (),
         attrs=(
             Attr("name", "str", "campaign name", True),
-            Attr("mode", "str", "control of the training", True, ("choice:displacement,force",)),
+            Attr("mode", "str", "control of the training", True,
+                 ("choice:displacement,force,sphere",)),  # fmt: skip
             Attr("contact_radius", "float", "tool tip radius (mm)", True, ("positive",)),
             Attr("surface_group", "str", "surface group the tool touches", True),
             Attr("material", "json", "law and parameters (MPa)", True),

@@ -21,7 +21,14 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
-from pydantic import Field, PlainValidator, ValidationInfo, WithJsonSchema, field_validator
+from pydantic import (
+    Field,
+    PlainValidator,
+    ValidationInfo,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
 
 from hapticrom.offline.campaign.positions import PositionsSpec, PositionsTable, ToolPosition
 from hapticrom.offline.config import (
@@ -52,7 +59,7 @@ from hapticrom.offline.tables import (
 )
 from hapticrom.shared.checksum import file_digest
 
-CONTROL_MODES = ("displacement", "force")
+CONTROL_MODES = ("displacement", "force", "sphere")
 INNER_PRODUCTS = ("euclidean", "volume")
 POD_METHODS = ("snapshots", "svd")
 ANM_ORDERS = (1, 15)
@@ -62,9 +69,12 @@ ANM_ORDERS = (1, 15)
 class CampaignLoad:
     """The tool load of every position, scaled by a load factor from 0 to 1.
 
-    ``magnitude``: mm (displacement control) or N (force control) at load factor 1;
-    ``direction``: "normal" (into the surface, along its inward normal at the
-    position) or a fixed vector (normalised).
+    ``magnitude``: mm (displacement control, a rigid sphere's move) or N (force
+    control) at load factor 1; ``direction``: "normal" (into the surface, along its
+    inward normal at the position) or a fixed vector (normalised). ``sphere``: a rigid
+    frictionless sphere of radius ``contact_radius`` touching the surface at the
+    position and moving ``magnitude`` along the direction (contact by the penalty
+    ``penalty``, N/mm^4): the tool of ``Simulator.step_position``.
     """
 
     mode: str
@@ -75,6 +85,7 @@ class CampaignLoad:
     steps: int = 10
     max_step_cuts: int = 8
     predictor: str = "secant"
+    penalty: float = 1e4
 
     def unit_direction(self, position: ToolPosition) -> np.ndarray:
         """The unit vector the tool pushes along at ``position``."""
@@ -94,6 +105,7 @@ class CampaignLoad:
             steps=self.steps,
             max_step_cuts=self.max_step_cuts,
             predictor=self.predictor,
+            **({"penalty": self.penalty} if self.mode == "sphere" else {}),
             **{self.mode: vector},
         )
 
@@ -215,18 +227,36 @@ Direction = Annotated[
 class CampaignLoadTable(LoadCommon):
     """``[load]`` of a campaign: one load for every position (see :class:`CampaignLoad`)."""
 
-    missing = {"mode": 'mode = "displacement" | "force"', "magnitude": "magnitude (mm or N)"}
-    mode: ControlMode = Field(description="displacement (mm) | force (N) control")
+    missing = {
+        "mode": 'mode = "displacement" | "force" | "sphere"',
+        "magnitude": "magnitude (mm or N)",
+    }
+    mode: ControlMode = Field(
+        description="displacement (mm) | force (N) control | sphere (mm: a rigid sphere)"
+    )
     magnitude: Positive = Field(description="mm or N at load factor 1")
     direction: Direction = Field(
         "normal", description='"normal" (into the surface at each position) or [x, y, z]'
     )
+    penalty: Positive | None = Field(
+        None,
+        description="N/mm^4: the sphere's contact pressure per overlap squared (mode = sphere; "
+        "default 1e4)",
+    )
+
+    @model_validator(mode="after")
+    def _penalty_is_the_sphere_s(self) -> CampaignLoadTable:
+        if self.penalty is not None and self.mode != "sphere":
+            raise invalid(f"penalty is given but mode is {self.mode!r} (it is the sphere's)")
+        return self
 
     def config(self) -> CampaignLoad:
         """The campaign's load."""
+        penalty = {} if self.penalty is None else {"penalty": self.penalty}
         return CampaignLoad(
-            mode=self.mode, magnitude=self.magnitude, direction=self.direction, **self.common()
-        )
+            mode=self.mode, magnitude=self.magnitude, direction=self.direction,
+            **self.common(), **penalty,
+        )  # fmt: skip
 
 
 class PODTable(Table):
@@ -300,7 +330,13 @@ class CampaignFile(Table):
     @classmethod
     def _anm_needs_an_analytic_energy(cls, anm: ANMTable, info: ValidationInfo) -> ANMTable:
         """The series differentiate the energy: no switched-off fibres."""
-        material = info.data.get("material")
+        material, load = info.data.get("material"), info.data.get("load")
+        if anm.enabled and load is not None and load.mode == "sphere":
+            raise invalid(
+                "the POD-ANM series need an analytic energy and the sphere's penalty contact "
+                "switches on and off with the overlap: set [anm] enabled = false (the runtime "
+                "then uses the stored full-order curves)"
+            )
         if anm.enabled and material is not None:
             if material.params.get("fibre_tension_only") is True:
                 raise invalid(

@@ -502,7 +502,7 @@ def _campaign_line(config, plan, comm, groups: _Groups, ranks_per_solve) -> str:
         f"campaign '{config.name}': {len(plan.positions)} tool positions "
         f"({len(plan.done)} already stored{', resuming' if plan.resumed else ''}), "
         f"{load.mode} control, {load.magnitude} "
-        f"{'mm' if load.mode == 'displacement' else 'N'} in {load.steps} steps; "
+        f"{'N' if load.mode == 'force' else 'mm'} in {load.steps} steps; "
         f"{comm.size} rank(s) in {groups.count} group(s) of {ranks_per_solve}"
     )
 

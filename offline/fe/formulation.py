@@ -146,6 +146,7 @@ class HyperelasticModel:
             "dx", domain=mesh, metadata={"quadrature_degree": self.quadrature_degree}
         )
         self.set_load_region(np.empty(0, dtype=np.int32), self.load_weight)
+        self.contact_energies = []  # e.g. a rigid sphere's penalty (:mod:`.sphere`)
 
     # -- loads -----------------------------------------------------------------
     def set_load_region(self, facets: np.ndarray, weight) -> None:
@@ -187,8 +188,11 @@ class HyperelasticModel:
         return ufl.dot(self.traction, self.u) * self.load_weight * self.ds(self.LOAD_TAG)
 
     def potential_energy(self):
-        """Total potential energy Pi = internal energy - external work (mJ)."""
-        return self.internal_energy() - self.external_work()
+        """Total potential energy Pi = internal energy - external work (+ contact) (mJ)."""
+        energy = self.internal_energy() - self.external_work()
+        for contact in self.contact_energies:
+            energy = energy + contact
+        return energy
 
     def residual_forms(self, include_load: bool = True) -> list:
         """[dPi/du . v, dPi/dp . q] (or the first alone): N, and mm^3 for the pressure rows."""

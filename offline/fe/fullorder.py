@@ -25,6 +25,7 @@ from hapticrom.offline.fe.organ import OrganMesh, load_organ
 from hapticrom.offline.fe.output import CurveWriter, FieldWriter
 from hapticrom.offline.fe.sanity import SanityMonitor, SanityReport, write_json
 from hapticrom.offline.fe.solver import IncrementalLoading, NewtonSolver, StepRecord
+from hapticrom.offline.fe.sphere import SphereIndenter
 from hapticrom.offline.mpi import print0
 from hapticrom.shared.errors import SolverError
 
@@ -84,7 +85,9 @@ class FullOrderModel:
             jacobians=jacobians,
         )
         self.reaction = None
-        if config.load.mode == "displacement":
+        if config.load.mode == "sphere":
+            self.patch_displacement = self.sphere_advance
+        elif config.load.mode == "displacement":
             residual_u = self.newton.problem.F
             residual_u = residual_u[0] if len(residuals) > 1 else residual_u
             self.reaction = ReactionForce(residual_u, self.model.V, self.patch_blocks)
@@ -101,6 +104,10 @@ class FullOrderModel:
     # -- load ------------------------------------------------------------------
     def _setup_load(self) -> None:
         load, organ, model = self.config.load, self.organ, self.model
+        self.sphere = None
+        if load.mode == "sphere":
+            self._setup_sphere()
+            return
         if load.mode == "traction":
             self.patch = ContactPatch.whole_group(organ, load.surface)
         else:
@@ -123,10 +130,38 @@ class FullOrderModel:
             self.bcs.append(fem.dirichletbc(self.tool_bc_value, blocks, model.V))
             self.patch_blocks = blocks
 
+    def _setup_sphere(self) -> None:
+        """A rigid sphere touching the surface at the contact point, moving along the load
+        vector (:mod:`.sphere`); the supports are the only Dirichlet conditions."""
+        load, organ = self.config.load, self.organ
+        point = load.contact_point
+        if point is None:
+            point = organ.default_contact_point()
+        self.patch = ContactPatch.around_point(organ, point, load.contact_radius, load.surface)
+        self.load_vector = np.asarray(load.vector, dtype=float)
+        length = float(np.linalg.norm(self.load_vector))
+        if not length > 0:
+            raise SolverError("sphere = [0, 0, 0]: the sphere must move")
+        start = np.asarray(point, dtype=float) - load.contact_radius * self.load_vector / length
+        self.sphere = SphereIndenter(self.model, load.contact_radius, start, load.penalty,
+                                     load.surface)  # fmt: skip
+        self.model.contact_energies.append(self.sphere.energy)
+        self.bcs = organ.supports(self.model.V)
+        self.patch_blocks = self.patch.blocks(self.model.V)
+        self.tool_bc_value = None
+        self._load_factor = 0.0
+
+    def sphere_advance(self) -> np.ndarray:
+        """How far the sphere has moved from touching the surface (mm): the 'depth' vector."""
+        return self._load_factor * self.load_vector
+
     def set_load(self, load_factor: float) -> None:
         """Apply the load at ``load_factor`` (prescribed displacement or traction)."""
         mode = self.config.load.mode
-        if mode == "displacement":
+        if mode == "sphere":
+            self._load_factor = float(load_factor)
+            self.sphere.move(self.sphere.start + load_factor * self.load_vector)
+        elif mode == "displacement":
             self.tool_bc_value.value[:] = load_factor * self.load_vector
         elif mode == "force":
             # Dead traction load_factor * F * w(X) / int w dA: sums to load_factor * F.
@@ -140,6 +175,8 @@ class FullOrderModel:
         mode = self.config.load.mode
         if mode == "displacement":
             return self.reaction()
+        if mode == "sphere":
+            return self.sphere.force()
         if mode == "force":
             return load_factor * self.load_vector
         return load_factor * self.load_vector * self.patch_displacement.integral
@@ -154,7 +191,7 @@ class FullOrderModel:
         """One line: mesh, element, DOFs, law and load."""
         dofs = self.model.num_dofs()
         load = self.config.load
-        units = {"force": "N", "displacement": "mm", "traction": "MPa"}[load.mode]
+        units = {"force": "N", "displacement": "mm", "traction": "MPa", "sphere": "mm"}[load.mode]
         return (
             f"{self.organ.path.name}: {self.organ.cell_type}, element {self.element.name}, "
             f"{dofs['displacement']} displacement + {dofs['pressure']} pressure DOFs on "
@@ -164,6 +201,12 @@ class FullOrderModel:
         )
 
     def _patch_summary(self) -> str:
+        if self.config.load.mode == "sphere":
+            load = self.config.load
+            return (
+                f"(rigid sphere of radius {load.contact_radius} mm, "
+                f"penalty {load.penalty:g} N/mm^4)"
+            )
         if self.config.load.mode == "displacement":
             return f"on {self.patch_displacement.count} node(s) within {self.patch.radius} mm"
         where = (
