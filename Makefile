@@ -108,8 +108,14 @@ capi: $(CAPI_BUILD)/libhapticrom.so $(CAPI_BUILD)/servo_loop ## the C ABI: build
 
 capi-asan: $(CAPI_BUILD)/asan/libhapticrom.so $(CAPI_BUILD)/asan/servo_loop ## the same under AddressSanitizer and UBSan, in build/asan
 
-capi-bench: capi $(DEMO_MODEL) ## C ABI latency over 1,000,000 steps of the demo model (p50/p99)
+capi-bench: capi $(DEMO_MODEL) $(CAPI_BUILD)/tips.csv ## C ABI latency over 1,000,000 steps of the demo model, contact and position in (p50/p99)
 	$(CAPI_BUILD)/servo_loop $(DEMO_MODEL) --bench 1000000 --bench-surfaces 2000
+	$(CAPI_BUILD)/servo_loop $(DEMO_MODEL) --tips $(CAPI_BUILD)/tips.csv --bench 1000000 --bench-surfaces 0
+
+# play's scripted path (approach, press at 30 degrees, slide, lift) as tips for servo_loop --tips
+$(CAPI_BUILD)/tips.csv: $(DEMO_MODEL) examples/c/scripted_tips.py $(STAMP)
+	@mkdir -p $(@D)
+	$(PY) examples/c/scripted_tips.py $(DEMO_MODEL) $@ --ticks 3000
 
 $(CAPI_BUILD)/asan/libhapticrom.so $(CAPI_BUILD)/asan/servo_loop: CAPI_EXTRA := $(CAPI_SANITIZE)
 

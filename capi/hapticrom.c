@@ -7,9 +7,14 @@
  * (a busy flag and a sequence lock around a call through a function pointer); the render
  * calls (a snapshot of the servo state, then the surface from it).
  *
+ * The servo state a snapshot copies is two arrays of doubles this file treats as opaque:
+ * the state buffer (all a surface reads) and the head of step_position's proxy state (the
+ * proxy and its contact point, for hapticrom_state); only cabi.read_state knows their
+ * layouts.
+ *
  * Memory orders: a slot's handle is published with release and read with acquire; the busy
  * flags are taken with an acquiring compare-exchange and given back with a release store;
- * the sequence lock is Boehm's (odd while the servo thread writes its state buffer; the
+ * the sequence lock is Boehm's (odd while the servo thread writes its state arrays; the
  * renderer copies with relaxed atomic loads and checks the sequence again after an acquire
  * fence). The servo side's writes are the compiled kernels' plain stores: they sit between
  * the release fence and the release store of the sequence in this thread's program order,
@@ -39,6 +44,11 @@ typedef int32_t (*set_contact_fn)(const double *point, const double *table, int6
                                   double *buf, int64_t buf_size);
 typedef int32_t (*step_fn)(const double *input, double *buf, int64_t buf_size, double *output);
 typedef int32_t (*read_fn)(const double *buf, int64_t buf_size, double *out);
+typedef int32_t (*state_fn)(const double *buf, int64_t buf_size, const double *proxy,
+                            int64_t proxy_size, double *out);
+typedef int32_t (*position_fn)(const double *tip, const double *sheet, int64_t sheet_size,
+                               double *proxy, int64_t proxy_size, const double *table,
+                               int64_t table_size, double *buf, int64_t buf_size, double *force);
 typedef int32_t (*estimate_fn)(const double *buf, int64_t buf_size, const double *indicator,
                                int64_t samples, double *out);
 typedef int32_t (*surface_fn)(void *const *arrays, const int64_t *dims, const double *buf,
@@ -47,19 +57,22 @@ typedef int32_t (*surface_fn)(void *const *arrays, const int64_t *dims, const do
 /* The handle fields this file reads, by name (cabi.HANDLE_FIELDS gives their positions). */
 enum field {
     F_ABI, F_KEY, F_SET_CONTACT, F_STEP_DISPLACEMENT, F_STEP_FORCE, F_CONTACT_STIFFNESS,
-    F_ERROR_ESTIMATE, F_READ_STATE, F_SURFACE, F_BUF, F_BUF_SIZE, F_SNAPSHOT, F_TABLE,
-    F_TABLE_SIZE, F_INDICATOR, F_SAMPLES, F_SURFACE_ARRAYS, F_SURFACE_DIMS, F_VERTICES,
+    F_ERROR_ESTIMATE, F_READ_STATE, F_SURFACE, F_STEP_POSITION, F_STIFFNESS, F_BUF, F_BUF_SIZE,
+    F_SNAPSHOT, F_TABLE, F_TABLE_SIZE, F_INDICATOR, F_SAMPLES, F_SHEET, F_SHEET_SIZE, F_PROXY,
+    F_PROXY_SIZE, F_PROXY_HEAD, F_PROXY_SNAPSHOT, F_SURFACE_ARRAYS, F_SURFACE_DIMS, F_VERTICES,
     F_VERTEX_COUNT, F_TRIANGLES, F_TRIANGLE_COUNT, F_SAMPLE_POINTS, F_MODES, F_INTERPOLATION,
-    F_RESPONSE, F_TRAINED_DEPTH, F_TRAINED_FORCE, F_MAX_DISPLACEMENT, F_MAX_FORCE, F_COUNT
+    F_RESPONSE, F_TRAINED_DEPTH, F_TRAINED_FORCE, F_MAX_DISPLACEMENT, F_MAX_FORCE, F_TOOL_RADIUS,
+    F_COUNT
 };
 static const char *const FIELD_NAMES[F_COUNT] = {
     "abi", "key", "set_contact", "step_displacement", "step_force", "contact_stiffness",
-    "error_estimate", "read_state", "surface", "buf", "buf_size", "snapshot", "table",
-    "table_size", "indicator", "samples", "surface_arrays", "surface_dims", "vertices",
+    "error_estimate", "read_state", "surface", "step_position", "stiffness", "buf", "buf_size",
+    "snapshot", "table", "table_size", "indicator", "samples", "sheet", "sheet_size", "proxy",
+    "proxy_size", "proxy_head", "proxy_snapshot", "surface_arrays", "surface_dims", "vertices",
     "vertex_count", "triangles", "triangle_count", "sample_points", "modes", "interpolation",
-    "response", "trained_depth", "trained_force", "max_displacement", "max_force",
+    "response", "trained_depth", "trained_force", "max_displacement", "max_force", "tool_radius",
 };
-#define STATE_SIZE 12 /* cabi.STATE_SIZE: read_state's doubles */
+#define STATE_SIZE 20 /* cabi.STATE_SIZE: read_state's doubles */
 
 /* --- slots and handles ---------------------------------------------------------------- */
 /* A handle: MAGIC (16 bits) | generation (28 bits) | slot index (20 bits). The slots are a
@@ -75,14 +88,16 @@ struct simulator_data {
     int64_t key; /* the Python registry's key */
     set_contact_fn set_contact;
     step_fn step_displacement, step_force;
-    read_fn contact_stiffness, read_state;
+    position_fn step_position;
+    read_fn contact_stiffness, stiffness;
+    state_fn read_state;
     estimate_fn error_estimate;
     surface_fn surface;
-    double *buf, *snapshot;
-    const double *table, *indicator, *vertices, *sample_points;
+    double *buf, *snapshot, *proxy, *proxy_snapshot;
+    const double *table, *sheet, *indicator, *vertices, *sample_points;
     const int64_t *triangles, *surface_dims;
     void *const *surface_arrays;
-    int64_t buf_size, table_size, samples;
+    int64_t buf_size, table_size, sheet_size, proxy_size, proxy_head, samples;
     hapticrom_info info;
 };
 
@@ -329,13 +344,21 @@ static void fill_slot(struct simulator_data *s, const int64_t *h) {
     s->step_force = ENTRY(step_fn, F_STEP_FORCE);
     s->contact_stiffness = ENTRY(read_fn, F_CONTACT_STIFFNESS);
     s->error_estimate = ENTRY(estimate_fn, F_ERROR_ESTIMATE);
-    s->read_state = ENTRY(read_fn, F_READ_STATE);
+    s->read_state = ENTRY(state_fn, F_READ_STATE);
     s->surface = ENTRY(surface_fn, F_SURFACE);
+    s->step_position = ENTRY(position_fn, F_STEP_POSITION);
+    s->stiffness = ENTRY(read_fn, F_STIFFNESS);
     s->buf = POINTER(F_BUF);
     s->buf_size = FIELD(F_BUF_SIZE);
     s->snapshot = POINTER(F_SNAPSHOT);
     s->table = POINTER(F_TABLE);
     s->table_size = FIELD(F_TABLE_SIZE);
+    s->sheet = POINTER(F_SHEET);
+    s->sheet_size = FIELD(F_SHEET_SIZE);
+    s->proxy = POINTER(F_PROXY);
+    s->proxy_size = FIELD(F_PROXY_SIZE);
+    s->proxy_head = FIELD(F_PROXY_HEAD);
+    s->proxy_snapshot = POINTER(F_PROXY_SNAPSHOT);
     s->indicator = POINTER(F_INDICATOR);
     s->samples = FIELD(F_SAMPLES);
     s->surface_arrays = POINTER(F_SURFACE_ARRAYS);
@@ -354,6 +377,7 @@ static void fill_slot(struct simulator_data *s, const int64_t *h) {
         .trained_force = bits_to_double(FIELD(F_TRAINED_FORCE)),
         .max_displacement = bits_to_double(FIELD(F_MAX_DISPLACEMENT)),
         .max_force = bits_to_double(FIELD(F_MAX_FORCE)),
+        .tool_radius = bits_to_double(FIELD(F_TOOL_RADIUS)),
     };
 #undef FIELD
 #undef POINTER
@@ -373,10 +397,10 @@ static int open_in_python(const char *path, const hapticrom_options *o, int64_t 
     PyGILState_STATE gil = PyGILState_Ensure();
     int status = HAPTICROM_E_INTERNAL;
     PyObject *name = PyUnicode_DecodeFSDefault(path);
-    PyObject *result = name ? PyObject_CallFunction(open_function, "Oiiddi", name,
+    PyObject *result = name ? PyObject_CallFunction(open_function, "Oiiddid", name,
                                                      o->interpolation, o->response,
                                                      o->max_displacement, o->max_force,
-                                                     o->isolate)
+                                                     o->isolate, o->tool_radius)
                             : NULL;
     Py_XDECREF(name);
     int code = 0;
@@ -558,6 +582,34 @@ int hapticrom_step_force(hapticrom_simulator simulator, const double force[3],
     return step(simulator, 1, force, displacement, "hapticrom_step_force", "the force (N)");
 }
 
+int hapticrom_step_position(hapticrom_simulator simulator, const double tip[3],
+                            double force[3]) {
+    static const char call[] = "hapticrom_step_position";
+    if (!tip) return fail(HAPTICROM_E_NULL_ARGUMENT, "%s: tip is NULL", call);
+    if (!force) return fail(HAPTICROM_E_NULL_ARGUMENT, "%s: force is NULL", call);
+    struct slot *s;
+    int status = enter(simulator, 0, &s, call);
+    if (status) return status;
+    struct simulator_data *d = &s->d;
+    write_begin(s); /* the proxy's state too: the snapshot copies its head */
+    status = d->step_position(tip, d->sheet, d->sheet_size, d->proxy, d->proxy_size, d->table,
+                              d->table_size, d->buf, d->buf_size, force);
+    write_end(s);
+    leave(&s->servo_busy);
+    return status ? fail_status(status, call, "the tool tip (mm)") : HAPTICROM_OK;
+}
+
+int hapticrom_stiffness(hapticrom_simulator simulator, double stiffness[9]) {
+    static const char call[] = "hapticrom_stiffness";
+    if (!stiffness) return fail(HAPTICROM_E_NULL_ARGUMENT, "%s: stiffness is NULL", call);
+    struct slot *s;
+    int status = enter(simulator, 0, &s, call);
+    if (status) return status;
+    status = s->d.stiffness(s->d.buf, s->d.buf_size, stiffness);
+    leave(&s->servo_busy);
+    return status ? fail_status(status, call, "") : HAPTICROM_OK;
+}
+
 int hapticrom_contact_stiffness(hapticrom_simulator simulator, double *stiffness) {
     static const char call[] = "hapticrom_contact_stiffness";
     if (!stiffness) return fail(HAPTICROM_E_NULL_ARGUMENT, "%s: stiffness is NULL", call);
@@ -580,7 +632,7 @@ int hapticrom_error_estimate(hapticrom_simulator simulator, double *estimate) {
     return status ? fail_status(status, call, "") : HAPTICROM_OK;
 }
 
-/* A state from read_state's doubles. */
+/* A state from read_state's doubles (cabi.STATE_SIZE: their order). */
 static void state_of(const double *values, uint64_t sequence, hapticrom_state *state) {
     memcpy(state->normal, values, 3 * sizeof(double));
     memcpy(state->force, values + 3, 3 * sizeof(double));
@@ -589,6 +641,10 @@ static void state_of(const double *values, uint64_t sequence, hapticrom_state *s
     state->flags = (uint32_t)values[10];
     state->has_contact = values[11] > 0.0;
     state->sequence = sequence;
+    state->in_contact = values[12] > 0.0;
+    memcpy(state->proxy, values + 13, 3 * sizeof(double));
+    memcpy(state->contact_point, values + 16, 3 * sizeof(double));
+    state->saturated = values[19] > 0.0;
 }
 
 int hapticrom_get_state(hapticrom_simulator simulator, hapticrom_state *state) {
@@ -598,7 +654,7 @@ int hapticrom_get_state(hapticrom_simulator simulator, hapticrom_state *state) {
     int status = enter(simulator, 0, &s, call);
     if (status) return status;
     double values[STATE_SIZE];
-    status = s->d.read_state(s->d.buf, s->d.buf_size, values);
+    status = s->d.read_state(s->d.buf, s->d.buf_size, s->d.proxy, s->d.proxy_size, values);
     uint64_t sequence = __atomic_load_n(&s->sequence, __ATOMIC_RELAXED) / 2;
     leave(&s->servo_busy);
     if (status) return fail_status(status, call, "");
@@ -617,7 +673,14 @@ static inline void relax(void) {
 #endif
 }
 
-/* Copy the servo state into s->d.snapshot unless a servo write overlaps; its sequence / 2. */
+/* n doubles from the servo thread's array into the renderer's copy (relaxed atomic loads:
+ * the values may be torn mid-write; the sequence check throws such a copy away). */
+static inline void copy_relaxed(const double *from, double *to, int64_t n) {
+    for (int64_t i = 0; i < n; i++) __atomic_load(&from[i], &to[i], __ATOMIC_RELAXED);
+}
+
+/* Copy the servo state (the state buffer and the proxy state's head) into the snapshot
+ * unless a servo write overlaps; its sequence / 2. */
 static int take_snapshot(struct slot *s, uint64_t *sequence) {
     for (int attempt = 0; attempt < SNAPSHOT_ATTEMPTS; attempt++) {
         uint64_t before = __atomic_load_n(&s->sequence, __ATOMIC_ACQUIRE);
@@ -626,8 +689,8 @@ static int take_snapshot(struct slot *s, uint64_t *sequence) {
             relax();
             continue;
         }
-        for (int64_t i = 0; i < s->d.buf_size; i++)
-            __atomic_load(&s->d.buf[i], &s->d.snapshot[i], __ATOMIC_RELAXED);
+        copy_relaxed(s->d.buf, s->d.snapshot, s->d.buf_size);
+        copy_relaxed(s->d.proxy, s->d.proxy_snapshot, s->d.proxy_head);
         __atomic_thread_fence(__ATOMIC_ACQUIRE);
         if (__atomic_load_n(&s->sequence, __ATOMIC_RELAXED) == before) {
             *sequence = before / 2;
@@ -657,7 +720,9 @@ int hapticrom_surface(hapticrom_simulator simulator, double *displacement, size_
         status = s->d.surface(s->d.surface_arrays, s->d.surface_dims, s->d.snapshot, s->d.buf_size,
                             displacement, (int64_t)vertices);
     double values[STATE_SIZE];
-    if (!status && state) status = s->d.read_state(s->d.snapshot, s->d.buf_size, values);
+    if (!status && state)
+        status = s->d.read_state(s->d.snapshot, s->d.buf_size, s->d.proxy_snapshot,
+                                 s->d.proxy_head, values);
     leave(&s->render_busy);
     if (status == HAPTICROM_E_BUSY) return status;
     if (status) return fail_status(status, call, "");

@@ -3,15 +3,20 @@
  *
  * A host (an OpenHaptics scheduler callback, a CHAI3D or Force Dimension haptic thread, a
  * Unity native plugin, a SOFA component) loads a reduced-model artifact, then drives one
- * tool contact on it from its servo thread:
+ * tool on it from its servo thread, position in, force out:
  *
  *     hapticrom_simulator sim;
  *     if (hapticrom_load("cornea.h5", NULL, &sim) != HAPTICROM_OK)
  *         fprintf(stderr, "%s\n", hapticrom_last_error());
+ *     hapticrom_step_position(sim, tip, force);          // tip centre mm in, N out, every tick
+ *     hapticrom_surface(sim, vertex_displacement, 3 * V, &state);  // render thread, mm;
+ *                                                        // draw the tool at state.proxy
+ *     hapticrom_free(sim);
+ *
+ * or, with the host's own collision detection, contact point and displacement in:
+ *
  *     hapticrom_set_contact(sim, point);                 // mm, on or near the surface
  *     hapticrom_step_displacement(sim, d, force);        // mm in, N out (force on the tool)
- *     hapticrom_surface(sim, vertex_displacement, 3 * V, NULL);   // render thread, mm
- *     hapticrom_free(sim);
  *
  * Units: lengths and displacements mm, forces N, stiffness N/mm.
  *
@@ -28,8 +33,8 @@
  * .venv/bin/python). NUMBA_CACHE_DIR, if set, is where the compiled kernels are cached.
  *
  * Threads (per simulator; different simulators are independent and may run in parallel):
- *   - servo calls (set_contact, step_displacement, step_force, contact_stiffness,
- *     error_estimate, get_state): one thread at a time. A call while another thread is
+ *   - servo calls (step_position, stiffness, set_contact, step_displacement, step_force,
+ *     contact_stiffness, error_estimate, get_state): one thread at a time. A call while another thread is
  *     inside one returns HAPTICROM_E_BUSY at once (never waits, changes nothing).
  *   - render calls (surface, get_info, surface_mesh, sample_points): one thread at a time,
  *     concurrently with the servo calls. hapticrom_surface computes from a consistent
@@ -46,9 +51,8 @@
  * Handles are checked on every call (a magic number, a slot and a generation): a freed,
  * doubly freed or made-up handle is refused, never dereferenced.
  *
- * Not in this ABI yet: cutting (the scalpel), the Grassmann surface, step_position and the
- * 3x3 stiffness of the proxy (to come: one entry point each), sharing one loaded model
- * between several simulators (each hapticrom_load loads its own copy).
+ * Not in this ABI yet: cutting (the scalpel), the Grassmann surface, sharing one loaded
+ * model between several simulators (each hapticrom_load loads its own copy).
  */
 #ifndef HAPTICROM_H
 #define HAPTICROM_H
@@ -62,7 +66,7 @@ extern "C" {
 
 /* Bumped on any incompatible change; hapticrom_load refuses a Python package whose entry
  * points are of another ABI version (HAPTICROM_E_PYTHON). */
-#define HAPTICROM_ABI_VERSION 1
+#define HAPTICROM_ABI_VERSION 2
 
 /* Simulators open at once, at most (HAPTICROM_E_TOO_MANY beyond). */
 #define HAPTICROM_MAX_SIMULATORS 256
@@ -118,6 +122,8 @@ typedef struct hapticrom_options {
                                 so that a crafted file cannot crash the host; 0: in-process */
     double max_displacement; /* mm, the longest step input/output; 0: the model's default */
     double max_force;        /* N, the longest force step input; 0: the model's default */
+    double tool_radius;      /* mm, step_position's spherical tip; 0: the artifact's training
+                                radius (hapticrom_info.tool_radius says which) */
 } hapticrom_options;
 
 /* What a loaded simulator is (hapticrom_get_info). */
@@ -132,18 +138,29 @@ typedef struct hapticrom_info {
     double trained_force;    /* N, the smallest of the samples' largest trained forces */
     double max_displacement; /* mm, this simulator's limit */
     double max_force;        /* N, this simulator's limit */
+    double tool_radius;      /* mm, step_position's spherical tip */
 } hapticrom_info;
 
-/* The contact state (hapticrom_get_state; hapticrom_surface's snapshot). */
+/* The contact state (hapticrom_get_state; hapticrom_surface's snapshot: all its fields are
+ * of the state the surface was computed from). */
 typedef struct hapticrom_state {
-    double normal[3];       /* outward unit surface normal at the contact */
-    double force[3];        /* N, on the tool: the last displacement step's output */
-    double displacement[3]; /* mm: the last force step's output */
-    double depth;           /* mm: the last step's indentation */
-    uint32_t flags;         /* enum hapticrom_flag bits */
-    uint32_t has_contact;   /* 1 once a contact point was set */
-    uint64_t sequence;      /* the state's number: writing calls (set_contact, steps;
-                               refused ones too) since load */
+    double normal[3];        /* outward unit surface normal at the contact */
+    double force[3];         /* N, on the tool: the last displacement or position step's */
+    double displacement[3];  /* mm: the last force step's output */
+    double depth;            /* mm: the last step's indentation */
+    uint32_t flags;          /* enum hapticrom_flag bits */
+    uint32_t has_contact;    /* 1 once a contact point was set (by set_contact or by a
+                                step_position that touched) */
+    uint64_t sequence;       /* the state's number: writing calls (set_contact, steps;
+                                refused ones too) since load */
+    /* Since ABI 2; step_position's, zeros before the first one: */
+    double proxy[3];         /* mm: where the tool tip's centre would be if the tissue did not
+                                yield (on the surface offset by the tool radius in contact, the
+                                tip itself when free): draw the tool here */
+    double contact_point[3]; /* mm: where the tool touches the undeformed surface (the proxy's
+                                foot: the point the contact model is evaluated at) */
+    uint32_t in_contact;     /* 1 if the last step pressed the tissue (a force), 0 if free */
+    uint32_t saturated;      /* 1 if the last step_position held the depth at max_displacement */
 } hapticrom_state;
 
 /* The package version this library was built with ("0.1.0"); *abi_version (if not NULL)
@@ -178,6 +195,25 @@ int hapticrom_free(hapticrom_simulator simulator);
  * fine. Errors: NULL_ARGUMENT, NOT_FINITE, BUSY, BAD_HANDLE. */
 int hapticrom_set_contact(hapticrom_simulator simulator, const double point[3]);
 
+/* Position in, force out: the tool tip's centre tip[3] (mm; a sphere of
+ * hapticrom_info.tool_radius) in, the reaction force[3] on the tool (N) out; zero when the
+ * tool is free. The proxy finds the contact (however fast the tip moves), slides it over the
+ * surface, releases it when the tip leaves and never lets it pass through the organ;
+ * hapticrom_get_state then gives in_contact, the proxy, the contact point and whether the
+ * depth was held at max_displacement (saturated: a finite tip is never refused, a servo loop
+ * gets a force every tick). It sets the contact itself (at the proxy's contact point): a
+ * host that uses it calls no set_contact. Microseconds; every tick. Errors: NULL_ARGUMENT,
+ * NOT_FINITE (nothing changed), BUSY, BAD_HANDLE. */
+int hapticrom_step_position(hapticrom_simulator simulator, const double tip[3],
+                            double force[3]);
+
+/* The 3x3 contact stiffness K (N/mm, row-major: stiffness[3 i + j] = K[i][j]) of the last
+ * step into stiffness[9]: near the tip x, the force on the tool is F(x + dx) ~ F - K dx (for
+ * a host that steps the physics slower than its device loop and extrapolates, or tunes its
+ * coupling). Frictionless: K = k n n^T, k = d force / d depth, n the contact normal; zero
+ * when not in contact (also before any step). Errors: NULL_ARGUMENT, BUSY, BAD_HANDLE. */
+int hapticrom_stiffness(hapticrom_simulator simulator, double stiffness[9]);
+
 /* Tool displacement[3] (mm, from the contact point) in, reaction force[3] on the tool (N)
  * out, along the outward normal (frictionless). Errors: NULL_ARGUMENT, NOT_FINITE,
  * BEYOND_LIMIT (longer than max_displacement), NO_CONTACT, BUSY, BAD_HANDLE. */
@@ -199,8 +235,8 @@ int hapticrom_contact_stiffness(hapticrom_simulator simulator, double *stiffness
  * BAD_HANDLE. */
 int hapticrom_error_estimate(hapticrom_simulator simulator, double *estimate);
 
-/* The current state (normal, force, displacement, depth, flags). Errors: NULL_ARGUMENT,
- * BUSY, BAD_HANDLE. */
+/* The current state (normal, force, displacement, depth, flags; step_position's proxy,
+ * contact point, in_contact and saturated). Errors: NULL_ARGUMENT, BUSY, BAD_HANDLE. */
 int hapticrom_get_state(hapticrom_simulator simulator, hapticrom_state *state);
 
 /* --- render calls (one thread at a time per simulator, alongside the servo thread) --- */

@@ -5,8 +5,9 @@ imports this module once and then calls the entry points below through plain C f
 pointers (``cfunc.address``): a servo call never touches the interpreter or the GIL. There
 is one implementation of the physics: each entry point views the caller's raw pointers as
 arrays (``numba.carray``: no copy, no allocation) and calls the runtime's own ``@njit``
-kernels (:mod:`~hapticrom.online.kernels`, :mod:`~hapticrom.online.surface_kernels`) on the
-very state buffer and table a :class:`~hapticrom.online.simulator.Simulator` steps.
+kernels (:mod:`~hapticrom.online.kernels`, :mod:`~hapticrom.online.proxy`,
+:mod:`~hapticrom.online.surface_kernels`) on the very state buffer, proxy state and tables a
+:class:`~hapticrom.online.simulator.Simulator` steps.
 
 Loading (:func:`open_simulator`, called by ``hapticrom_load`` under the GIL) builds a
 Simulator and returns the *handle*: one int64 array (its fields named by
@@ -17,11 +18,16 @@ addresses stay alive in a registry until :func:`free_simulator`.
 Every entry point returns an ABI status (``STATUS``, the header's ``hapticrom_status``): the
 kernels' status codes are translated here, so C knows nothing of the state buffer's layout.
 
-To add an entry point (``step_position``, the 3x3 ``stiffness``): one ``cfunc`` below, its
-address (and the addresses of the arrays it reads, e.g. the proxy's state) as new fields of
-:data:`HANDLE_FIELDS` and :func:`_handle` (bump :data:`ABI_VERSION`), and one C wrapper in
-``capi/hapticrom.c`` that calls it between ``enter`` and ``leave`` (inside ``write_begin`` /
-``write_end`` if it writes the state buffer, so that the renderer's snapshot stays whole).
+To add an entry point: one ``cfunc`` below, its address (and the addresses of the arrays it
+reads) as new fields of :data:`HANDLE_FIELDS` and :func:`_handle` (bump :data:`ABI_VERSION`),
+and one C wrapper in ``capi/hapticrom.c`` that calls it between ``enter`` and ``leave``
+(inside ``write_begin`` / ``write_end`` if it writes the state buffer or the proxy's state,
+so that the renderer's snapshot stays whole).
+
+The renderer's snapshot is the state buffer (all a surface reads) and the head of the
+proxy's state (:data:`PROXY_HEAD` doubles: the proxy and its contact point, so that a host
+draws the tool where the surface it renders was dented; the stamps after it are the proxy's
+scratch). C copies both as opaque doubles: only :func:`read_state` knows their layouts.
 
 Cutting (the scalpel) and the Grassmann surface are not part of this ABI. A kernel that
 raised (a float division by zero: the artifact's checks and the load's sweep rule those out)
@@ -39,12 +45,13 @@ import numpy as np
 from numba import carray, cfunc, njit, types
 
 from hapticrom.online import kernels as k
+from hapticrom.online import proxy as px
 from hapticrom.online import surface_kernels as sk
 from hapticrom.online.model import ReducedModel, load
 from hapticrom.online.simulator import Simulator
 from hapticrom.shared.errors import ArtifactError, HapticromError, InputError
 
-ABI_VERSION = 1  # the header's HAPTICROM_ABI_VERSION: bumped on any change of the handle
+ABI_VERSION = 2  # the header's HAPTICROM_ABI_VERSION: bumped on any change of the handle
 
 # The ABI's status codes (include/hapticrom.h, enum hapticrom_status; a test compares them).
 STATUS = {
@@ -73,8 +80,11 @@ _NO_CONTACT, _INTERNAL = STATUS["NO_CONTACT"], STATUS["INTERNAL"]
 INTERPOLATIONS = {0: None, 1: "transport", 2: "podi"}
 RESPONSES = {0: None, 1: "anm", 2: "curves"}
 
-STATE_SIZE = 12  # read_state's output: normal (3), force (3), displacement (3), depth, flags,
-# contacts prepared so far (0: no contact point yet)
+# read_state's output: normal (3), force (3), displacement (3), depth, flags, contacts prepared
+# so far (0: no contact point yet), in contact (1/0), step_position's proxy (3), its contact
+# point (3), saturated (1/0)
+STATE_SIZE = 20
+PROXY_HEAD = px.STATE_STAMPS  # the proxy state's doubles a snapshot copies (all but scratch)
 
 _f8p, _i8p = types.CPointer(types.float64), types.CPointer(types.int64)
 _pointers = types.CPointer(types.voidptr)
@@ -178,18 +188,54 @@ def error_estimate(buf, buf_size, indicator, samples, out):
     return OK
 
 
-@cfunc(_status(_f8p, types.int64, _f8p), cache=True)
-def read_state(buf, buf_size, out):
-    """The state a caller may read (STATE_SIZE doubles): normal, force, displacement, depth,
-    flags, contacts so far."""
+@cfunc(_status(_f8p, _f8p, types.int64, _f8p, types.int64, _f8p, types.int64, _f8p, types.int64,
+               _f8p), cache=True)  # fmt: skip
+def step_position(tip, sheet, sheet_size, proxy, proxy_size, table, table_size, buf, buf_size,
+                  force):  # fmt: skip
+    """``Simulator.step_position``: the tool tip's centre (3,) mm in, force (3,) N out (zero
+    when free). A finite tip is never refused (a displacement past the limit is held at it:
+    saturated); NOT_FINITE (nothing written) otherwise."""
     state = carray(buf, (buf_size,))
+    region = px.step_position(carray(tip, (3,)), carray(sheet, (sheet_size,)),
+                              carray(proxy, (proxy_size,)), carray(table, (table_size,)),
+                              state)  # fmt: skip
+    if region >= k.NO_VERTEX:
+        _copy3(state, k.FORCE, force)
+        return OK
+    return _NOT_FINITE if region == -k.POSITION_NOT_FINITE else _INTERNAL
+
+
+@cfunc(_status(_f8p, types.int64, _f8p), cache=True)
+def stiffness(buf, buf_size, out):
+    """``Simulator.stiffness``: the 3x3 contact stiffness K (N/mm, row-major) of the last
+    step into out (9): F(tip + dx) ~ F - K dx; zero out of contact."""
+    status = px.stiffness(carray(buf, (buf_size,)), carray(out, (3, 3)))
+    return OK if status == k.OK else _INTERNAL  # WRONG_SHAPE cannot happen: out is (3, 3)
+
+
+@njit(inline="always")
+def _touching(state):
+    """Whether the last step pressed the tissue: a contact point and no FLAG_NO_CONTACT."""
+    return state[k.CONTACTS] > 0.0 and not (int(state[k.FLAGS]) & k.FLAG_NO_CONTACT)
+
+
+@cfunc(_status(_f8p, types.int64, _f8p, types.int64, _f8p), cache=True)
+def read_state(buf, buf_size, proxy, proxy_size, out):
+    """The state a caller may read (STATE_SIZE doubles, see there) of the state buffer and
+    the proxy's state (its first PROXY_HEAD doubles at least)."""
+    state = carray(buf, (buf_size,))
+    p = carray(proxy, (proxy_size,))
     _copy3(state, k.NORMAL, out)
     for c in range(3):
         out[3 + c] = state[k.FORCE + c]
         out[6 + c] = state[k.DISPLACEMENT + c]
+        out[13 + c] = p[px.STATE_PROXY + c]
+        out[16 + c] = p[px.STATE_FOOT + c]
     out[9] = state[k.DEPTH]
     out[10] = state[k.FLAGS]
     out[11] = state[k.CONTACTS]
+    out[12] = 1.0 if _touching(state) else 0.0
+    out[19] = p[px.STATE_SATURATED]
     return OK
 
 
@@ -335,15 +381,18 @@ HANDLE_FIELDS = (
     "key",  # the registry's key (free_simulator)
     # entry points (addresses of the cfuncs)
     "set_contact", "step_displacement", "step_force", "contact_stiffness", "error_estimate",
-    "read_state", "surface",
+    "read_state", "surface", "step_position", "stiffness",
     # the state buffer, its render-side copy, the table, the model's arrays (addresses)
     "buf", "buf_size", "snapshot", "table", "table_size", "indicator", "samples",
+    # step_position's sheet (read only), the proxy's state, the head a snapshot copies (its
+    # length in doubles) and the render side's copy of it
+    "sheet", "sheet_size", "proxy", "proxy_size", "proxy_head", "proxy_snapshot",
     "surface_arrays", "surface_dims", "vertices", "vertex_count", "triangles", "triangle_count",
     "sample_points", "modes",
     # what the options resolved to: 1 transport / 2 podi, 1 anm / 2 curves
     "interpolation", "response",
     # float64 values, their bits: trained depth (mm), trained force (N), limits (mm, N)
-    "trained_depth", "trained_force", "max_displacement", "max_force",
+    "trained_depth", "trained_force", "max_displacement", "max_force", "tool_radius",
 )  # fmt: skip
 H = {name: i for i, name in enumerate(HANDLE_FIELDS)}
 
@@ -420,8 +469,9 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
     arrays = _surface_arrays(sim)
     addresses, dims = _pack(arrays)
     snapshot = np.zeros_like(sim._buf)
+    proxy_snapshot = np.zeros(PROXY_HEAD)
     points = np.ascontiguousarray(m.sample_points)
-    kept = [*arrays.values(), addresses, dims, snapshot, points]
+    kept = [*arrays.values(), addresses, dims, snapshot, proxy_snapshot, points]
     anm = sim.response == "anm"
     values = {
         "abi": ABI_VERSION, "key": key,
@@ -431,8 +481,12 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
         "contact_stiffness": contact_stiffness.address, "error_estimate": error_estimate.address,
         "read_state": read_state.address,
         "surface": SURFACES[sim.interpolation, sim.response].address,
+        "step_position": step_position.address, "stiffness": stiffness.address,
         "buf": _address(sim._buf), "buf_size": sim._buf.size, "snapshot": _address(snapshot),
         "table": _address(sim._table), "table_size": sim._table.size,
+        "sheet": _address(sim._sheet), "sheet_size": sim._sheet.size,
+        "proxy": _address(sim._proxy), "proxy_size": sim._proxy.size, "proxy_head": PROXY_HEAD,
+        "proxy_snapshot": _address(proxy_snapshot),
         "indicator": _address(m.indicator), "samples": len(m.indicator),
         "surface_arrays": _address(addresses), "surface_dims": _address(dims),
         "vertices": _address(m.vertices), "vertex_count": len(m.vertices),
@@ -442,14 +496,15 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
         "response": 1 if anm else 2,
         "trained_depth": _bits(m.trained_depth), "trained_force": _bits(m.trained_force),
         "max_displacement": _bits(sim.max_displacement), "max_force": _bits(sim.max_force),
+        "tool_radius": _bits(sim.tool_radius),
     }  # fmt: skip
     handle = np.array([values[name] for name in HANDLE_FIELDS], dtype=np.int64)
     return handle, kept
 
 
 def _limit(value: float) -> float | None:
-    """A limit from C: 0 is the model's default (None); anything else is checked by the
-    Simulator (finite, positive)."""
+    """A limit (or the tool radius) from C: 0 is the model's default (None); anything else
+    is checked by the Simulator (finite, positive; the radius also at most MAX_LENGTH)."""
     return None if value == 0.0 else value
 
 
@@ -478,8 +533,10 @@ def _check_isolation(isolate: bool) -> None:
 
 
 def open_simulator(path: str, interpolation: int, response: int, max_displacement: float,
-                   max_force: float, isolate: bool) -> tuple[int, str, bytes]:  # fmt: skip
-    """``hapticrom_load``: load the artifact at ``path`` and make a simulator on it.
+                   max_force: float, isolate: bool,
+                   tool_radius: float = 0.0) -> tuple[int, str, bytes]:  # fmt: skip
+    """``hapticrom_load``: load the artifact at ``path`` and make a simulator on it
+    (``tool_radius``: step_position's sphere, mm; 0 the artifact's training radius).
 
     Returns (status, message, handle bytes): OK, "" and the handle (int64, HANDLE_FIELDS);
     or an ABI status and one line naming the problem (LOAD_FAILED: the artifact is missing,
@@ -489,7 +546,8 @@ def open_simulator(path: str, interpolation: int, response: int, max_displacemen
         interpolation_name, response_name = _options(interpolation, response)
         _check_isolation(bool(isolate))
         model = load(path, isolate=bool(isolate))
-        limits = {"max_displacement": _limit(max_displacement), "max_force": _limit(max_force)}
+        limits = {"max_displacement": _limit(max_displacement), "max_force": _limit(max_force),
+                  "tool_radius": _limit(tool_radius)}  # fmt: skip
         sim = Simulator(model, interpolation_name, response=response_name, **limits)
         key = next(_KEYS)
         handle, kept = _handle(key, sim)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,12 +11,15 @@ import numpy as np
 from hapticrom.online.proxy import contact_surface
 from hapticrom.online.surface_chart import surface_chart
 from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
+from hapticrom.shared.artifact_rules import MAX_LENGTH
+from hapticrom.shared.errors import InputError
 from hapticrom.shared.geometry import plan_view
 
 # "transport" (the default): each neighbour's field carried to the contact before the blend
 # (online/surface_chart.py); "podi": blended where each was trained; "grassmann": the bases.
 INTERPOLATIONS = ("transport", "podi", "grassmann")
 RESPONSES = ("anm", "curves")
+MAX_SHEETS = 8  # contact sheets (tool radii) a model keeps for new simulators
 
 
 def _f8(a) -> np.ndarray:
@@ -146,14 +150,32 @@ class ReducedModel:
 
     def contact_sheet(self, radius: float) -> np.ndarray:
         """The loadable surface offset by a tool tip's ``radius`` (mm), as the proxy's table
-        (:func:`~hapticrom.online.proxy.contact_surface`); built once per radius."""
+        (:func:`~hapticrom.online.proxy.contact_surface`); built once per radius, and the
+        last MAX_SHEETS radii kept (the training's always). InputError for a radius that
+        is not a number in (0, MAX_LENGTH] mm, ArtifactError for a surface that makes no
+        sheet."""
+        if isinstance(radius, bool) or not isinstance(radius, numbers.Real):
+            raise InputError(f"tool radius must be a number (mm), got {radius!r}")
+        radius = float(radius)
+        if not 0.0 < radius <= MAX_LENGTH:  # NaN fails too: a NaN key would never be found
+            if radius == self.contact_radius:
+                raise ArtifactError(
+                    f"{self.path}: attribute contact_radius of model ({radius!r} mm) is beyond "
+                    f"{MAX_LENGTH:g} mm"
+                )
+            raise InputError(f"tool radius must lie in (0, {MAX_LENGTH:g}] mm, got {radius!r}")
         sheet = self._sheets.get(radius)
         if sheet is None:
             groups = np.asarray(self.artifact["surface"]["groups"])
             try:
                 sheet = contact_surface(self.vertices, self.triangles, groups, radius)
             except ValueError as exc:
-                raise ArtifactError(f"{self.path}: surface/groups: {exc}") from None
+                raise ArtifactError(f"{self.path}: {exc}") from None
+            # A host that makes simulators of ever new radii must not grow the shared model
+            # (each simulator holds its own sheet: dropping one here frees it with them).
+            others = [r for r in list(self._sheets) if r != self.contact_radius]
+            for old in others[: max(0, len(others) - (MAX_SHEETS - 2))]:
+                self._sheets.pop(old, None)
             self._sheets[radius] = sheet
         return sheet
 

@@ -12,7 +12,10 @@ depth, contact) can be written as CSV and drawn.
 from __future__ import annotations
 
 import math
+import os
+import stat
 import time
+from array import array
 from collections.abc import Callable
 from pathlib import Path
 
@@ -23,6 +26,9 @@ from hapticrom.online.model import load
 from hapticrom.shared.errors import InputError
 
 MAX_PATH_ROWS = 3_600_000  # an hour at 1 kHz
+MAX_PATH_SECONDS = 3600.0  # an hour: a longer path would pace a real-time loop for longer
+MAX_LINE = 4096  # characters in one line of a tool path, comment included
+MAX_PATH_BYTES = 100 * MAX_PATH_ROWS  # 360 MB: an hour of rows of 100 characters
 MAX_COORDINATE = 1e4  # mm: a tip 10 m away is a unit mistake, not a path
 HISTORY_COLUMNS = ("t_s", "x_mm", "y_mm", "z_mm", "fx_n", "fy_n", "fz_n", "depth_mm", "contact")
 
@@ -95,26 +101,21 @@ def scripted_tips(model, ticks: int, radius: float | None = None, depth_fraction
 
 def read_path(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(times (N,) s, tip centres (N, 3) mm) of a CSV file with columns t, x, y, z (a
-    header line ``t,x,y,z`` optional; ``#`` comments). Refused with one InputError naming
-    the line: not 4 numbers, not finite, times not increasing from >= 0, a coordinate
-    beyond 10 m, more than an hour of rows at 1 kHz, an empty file."""
+    header line ``t,x,y,z`` optional; ``#`` comments; UTF-8 with or without a byte-order
+    mark; any line ends). Refused with one InputError naming the line: not 4 plain (ASCII)
+    numbers, not finite, times not increasing from >= 0, a coordinate beyond 10 m, a line
+    longer than MAX_LINE characters; or naming the file: not a regular file, larger than
+    MAX_PATH_BYTES, more than an hour of rows at 1 kHz or longer than an hour, empty. The
+    file is read line by line into one array (about 40 bytes a row)."""
     path = Path(path)
+    _check_path_file(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        with open(path, encoding="utf-8-sig", newline=None) as f:  # universal newlines only
+            data, lines = _path_rows(path, f)
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"tool path {path}: cannot read it ({exc})") from None
-    rows, lines = [], []
-    for number, line in enumerate(text.splitlines(), start=1):
-        line = line.split("#", 1)[0].strip()
-        if not line or (not rows and line.replace(" ", "").lower() == "t,x,y,z"):
-            continue
-        if len(rows) >= MAX_PATH_ROWS:
-            raise InputError(f"tool path {path}: more than {MAX_PATH_ROWS:,} rows")
-        rows.append(_path_row(path, number, line))
-        lines.append(number)
-    if not rows:
+    if len(data) == 0:
         raise InputError(f"tool path {path}: no rows (columns t, x, y, z)")
-    data = np.array(rows)
     steps = np.diff(data[:, 0])
     if data[0, 0] < 0 or np.any(steps <= 0):
         bad = 0 if data[0, 0] < 0 else int(np.argmax(steps <= 0)) + 1
@@ -122,13 +123,57 @@ def read_path(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             f"tool path {path}, line {lines[bad]}: times must increase from 0 or later "
             f"(t = {data[bad, 0]:g} s)"
         )
-    return data[:, 0], np.ascontiguousarray(data[:, 1:])
+    if data[-1, 0] - data[0, 0] > MAX_PATH_SECONDS:
+        bad = int(np.argmax(data[:, 0] - data[0, 0] > MAX_PATH_SECONDS))
+        raise InputError(
+            f"tool path {path}, line {lines[bad]}: t = {data[bad, 0]:g} s is more than "
+            f"{MAX_PATH_SECONDS:g} s after the first row (a path of at most an hour)"
+        )
+    return data[:, 0].copy(), np.ascontiguousarray(data[:, 1:])
+
+
+def _check_path_file(path: Path) -> None:
+    """InputError unless ``path`` is a regular file of at most MAX_PATH_BYTES: a FIFO or a
+    device (/dev/zero) would block or never end."""
+    try:
+        info = path.stat()
+    except OSError as exc:
+        raise InputError(f"tool path {path}: cannot read it ({exc.strerror or exc})") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise InputError(f"tool path {path}: cannot read it (not a regular file)")
+    if info.st_size > MAX_PATH_BYTES:
+        raise InputError(
+            f"tool path {path}: {info.st_size:,} bytes, more than {MAX_PATH_BYTES:,} (an hour "
+            "of rows at 1 kHz)"
+        )
+
+
+def _path_rows(path: Path, f) -> tuple[np.ndarray, array]:
+    """The rows (N, 4) of an open tool path and the line number of each."""
+    values, lines = array("d"), array("q")
+    number, size = 0, 0
+    while line := f.readline(MAX_LINE + 1):
+        number, size = number + 1, size + len(line)
+        if len(line) > MAX_LINE or size > MAX_PATH_BYTES:  # (the file grew while read)
+            raise InputError(
+                f"tool path {path}, line {number}: longer than {MAX_LINE} characters"
+                if len(line) > MAX_LINE
+                else f"tool path {path}: more than {MAX_PATH_BYTES:,} bytes"
+            )
+        line = line.split("#", 1)[0].strip()
+        if not line or (not lines and line.replace(" ", "").lower() == "t,x,y,z"):
+            continue
+        if len(lines) >= MAX_PATH_ROWS:
+            raise InputError(f"tool path {path}: more than {MAX_PATH_ROWS:,} rows")
+        values.extend(_path_row(path, number, line))
+        lines.append(number)
+    return np.frombuffer(values, dtype=np.float64).reshape(-1, 4), lines
 
 
 def _path_row(path: Path, number: int, line: str) -> list[float]:
     fields = line.split(",")
-    try:
-        values = [float(f) for f in fields]
+    try:  # plain numbers only: float() also takes "1_000" and other scripts' digits
+        values = [float(f) for f in fields] if line.isascii() and "_" not in line else []
     except ValueError:
         values = []
     if len(values) != 4 or not all(math.isfinite(v) for v in values):
@@ -158,16 +203,27 @@ def play(
     ``step_position`` of a simulator of the artifact at ``path``, as a servo loop would
     (paced in real time, or as fast as possible), reporting through ``say``. With ``out``
     (a path prefix) the history goes to OUT.csv and, with matplotlib, OUT.png. Returns
-    the achieved rate, the physics' latencies and the peak force."""
-    model = load(path)
-    sim = model.simulator(interpolation)
+    the achieved rate, the physics' latencies and the peak force. InputError (before
+    anything runs or is written) for a bad ``out``, ``tip_path``, ``rate`` or ``seconds``,
+    or a model the scripted path cannot be placed on."""
+    if out is not None:
+        history_paths(out)  # refused now, not after an hour of servo loop
     if tip_path is None:
-        ticks = int(rate * seconds)
-        times, tips = np.arange(ticks) / rate, scripted_tips(model, ticks)
-        what = "approach, press at 30 deg, slide 2 mm across the centre, lift"
+        ticks = _scripted_ticks(rate, seconds)
     else:
         times, tips = read_path(tip_path)
         what = f"{tip_path}: {len(times)} positions over {times[-1]:.3g} s"
+    model = load(path)
+    sim = model.simulator(interpolation)
+    if tip_path is None:
+        try:
+            times, tips = np.arange(ticks) / rate, scripted_tips(model, ticks)
+        except ValueError as exc:  # the model's loadable surface is not under its centre
+            raise InputError(
+                f"{path}: the scripted path cannot be placed on this model ({exc}); give a "
+                "tool path instead (--path)"
+            ) from None
+        what = "approach, press at 30 deg, slide 2 mm across the centre, lift"
     say(f"playing {model.describe()}")
     source = "the POD-ANM series" if sim.response == "anm" else "the stored full-order curves"
     pacing = "real time" if realtime else "free running"
@@ -194,6 +250,17 @@ def play(
         for written in write_history(history, out):
             say(f"wrote {written}")
     return summary
+
+
+def _scripted_ticks(rate: float, seconds: float) -> int:
+    """The scripted path's ticks: ``rate`` (Hz) x ``seconds``, 1 to MAX_PATH_ROWS."""
+    ticks = rate * seconds if 0 < rate < math.inf and 0 < seconds < math.inf else 0.0
+    if not 1 <= ticks <= MAX_PATH_ROWS:
+        raise InputError(
+            f"play: rate {rate!r} Hz x seconds {seconds!r} s must make 1 to {MAX_PATH_ROWS:,} "
+            "servo ticks"
+        )
+    return int(ticks)
 
 
 def _servo_loop(sim, times, tips, realtime: bool, say) -> tuple:
@@ -223,11 +290,29 @@ def _servo_loop(sim, times, tips, realtime: bool, say) -> tuple:
     return history, physics_ns, clock() - start
 
 
+def history_paths(out: str | Path) -> tuple[Path, Path]:
+    """(OUT.csv, OUT.png) of the prefix ``out``, exactly as ``play --out`` names them; an
+    InputError if the prefix names no file (empty, or ending in a separator: a directory),
+    one of them is a directory, or their directory does not exist."""
+    prefix = os.fspath(out)
+    if not prefix or prefix.endswith(("/", os.sep)) or Path(prefix).name in ("", ".", ".."):
+        raise InputError(
+            f"play --out {prefix!r}: give a path prefix such as out/play (for out/play.csv "
+            "and out/play.png)"
+        )
+    csv, png = Path(prefix + ".csv"), Path(prefix + ".png")
+    for written in (csv, png):
+        if written.is_dir():
+            raise InputError(f"play --out {prefix}: {written} is a directory")
+    if not csv.parent.is_dir():
+        raise InputError(f"play --out {prefix}: directory {csv.parent} does not exist")
+    return csv, png
+
+
 def write_history(history: np.ndarray, out: str | Path) -> list[Path]:
     """OUT.csv (the columns of HISTORY_COLUMNS) and, if matplotlib is installed, OUT.png
-    (force and depth over time)."""
-    out = Path(out)
-    csv = out.with_name(out.name + ".csv")
+    (force and depth over time); the names as :func:`history_paths` gives them."""
+    csv, png = history_paths(out)
     np.savetxt(csv, history, delimiter=",", header=",".join(HISTORY_COLUMNS), comments="",
                fmt="%.9g")  # fmt: skip
     written = [csv]
@@ -248,7 +333,6 @@ def write_history(history: np.ndarray, out: str | Path) -> list[Path]:
     bottom.set_ylabel("depth (mm)")
     bottom.set_xlabel("time (s)")
     fig.tight_layout()
-    png = out.with_name(out.name + ".png")
     fig.savefig(png, dpi=110)
     plt.close(fig)
     return [*written, png]

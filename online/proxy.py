@@ -23,7 +23,9 @@ undeformed triangle), and the depth is the tip's distance behind the sheet along
 sheet's normal at the proxy (the normals of the triangles' corners, blended), so that it
 is zero exactly where the tool leaves the sheet: no force jump at release. The reduced
 model takes it from there as it does for ``set_contact`` and ``step_displacement``: the
-force along the model's normal at the contact (frictionless). A tip that started inside
+force along the model's normal at the contact (frictionless), where that normal is within
+60 degrees of the sheet's (fading out to 90 degrees: a surface facing away from the trained
+normals, e.g. inverted triangles, would otherwise pull the tool in). A tip that started inside
 the organ (or entered it from the side, below the sheet) feels nothing until it leaves
 and enters again from outside: no force jumps from nowhere.
 
@@ -45,6 +47,7 @@ import numpy as np
 from numba import njit
 
 from hapticrom.online import kernels as k
+from hapticrom.shared.artifact_rules import MAX_LENGTH
 from hapticrom.shared.geometry import vertex_normals
 
 # -- the sheet table: one read-only float64 array ------------------------------------------
@@ -69,6 +72,12 @@ STATE_FOOT = 17  # (3) the contact point: the proxy's foot on the undeformed sur
 STATE_STAMPS = 20  # (T) the last query that tested each triangle
 NEVER, FREE, TOUCHING = 0.0, 1.0, 2.0
 MAX_WALK = 512  # triangles a proxy crosses in one step (a faster move goes on at the next)
+# The trained response pushes along the model's normal at the contact: where the sheet faces
+# more than 60 degrees away from it (the artifact rules' tolerance between sample triangles
+# and their normals) the contact fades out, and beyond 90 degrees, where that force would
+# pull the tool into the sheet instead of out of it (energy into the device), it is free.
+MIN_ALIGNMENT = 0.5  # cos 60 degrees
+FOLDED = 1e-6  # |sum of a vertex's area vectors| / sum of their lengths: the sheet folds there
 
 
 def state_size(table: np.ndarray) -> int:
@@ -78,15 +87,24 @@ def state_size(table: np.ndarray) -> int:
 
 def contact_surface(vertices, triangles, groups, radius: float, max_cells: int = 200_000):
     """The offset sheet of the loadable triangles (``groups`` == 1) for a tip of ``radius``
-    (mm), packed into one read-only table (layout above). ValueError if there is no
-    loadable triangle."""
+    (mm), packed into one read-only table (layout above). ValueError (naming the dataset)
+    if there is no loadable triangle, a loadable vertex lies beyond ``MAX_LENGTH``, or the
+    loadable surface folds onto itself (a vertex whose triangles' normals cancel: the sheet
+    has no outward side there); ValueError too for a radius that is not in (0, MAX_LENGTH]."""
+    if not 0.0 < radius <= MAX_LENGTH:  # (NaN fails too) the offset must stay finite
+        raise ValueError(f"the tool radius must lie in (0, {MAX_LENGTH:g}] mm, got {radius!r}")
     vertices = np.asarray(vertices, dtype=np.float64)
     loadable = np.asarray(triangles, dtype=np.int64)[np.asarray(groups) == 1]
     if len(loadable) == 0:
-        raise ValueError("the surface has no loadable triangle: nothing for a tool to touch")
+        raise ValueError(
+            "surface/groups: the surface has no loadable triangle: nothing for a tool to touch"
+        )
     used, local = np.unique(loadable, return_inverse=True)
     tri = local.reshape(-1, 3)
     x = vertices[used]
+    if not np.all(np.abs(x) <= MAX_LENGTH):  # the kernels square distances: no overflow
+        raise ValueError(f"surface/vertices: a loadable vertex lies beyond {MAX_LENGTH:g} mm")
+    _refuse_folds(x, tri, used)
     normals = vertex_normals(x, tri)
     offset = x + radius * normals
     face = np.cross(offset[tri[:, 1]] - offset[tri[:, 0]], offset[tri[:, 2]] - offset[tri[:, 0]])
@@ -102,6 +120,23 @@ def contact_surface(vertices, triangles, groups, radius: float, max_cells: int =
     table = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in parts])
     table.flags.writeable = False
     return table
+
+
+def _refuse_folds(x: np.ndarray, tri: np.ndarray, used: np.ndarray) -> None:
+    """ValueError naming the first vertex where the loadable triangles' area vectors cancel
+    (a triangle and its reverse, a sheet folded flat): no outward normal, no offset."""
+    area = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])
+    sums, lengths = np.zeros_like(x), np.zeros(len(x))
+    for corner in range(3):
+        np.add.at(sums, tri[:, corner], area)
+        np.add.at(lengths, tri[:, corner], np.linalg.norm(area, axis=1))
+    folded = np.flatnonzero(np.linalg.norm(sums, axis=1) <= FOLDED * lengths)
+    if len(folded):
+        i = int(used[folded[0]])
+        raise ValueError(
+            f"surface/triangles: the loadable surface folds onto itself at vertex {i} "
+            f"({np.round(x[folded[0]], 3).tolist()} mm): its triangles' normals cancel"
+        )
 
 
 def _neighbours(tri: np.ndarray) -> np.ndarray:
@@ -133,7 +168,10 @@ def _triangle_grid(points: np.ndarray, tri: np.ndarray, max_cells: int,
     """A uniform grid over the triangles' boxes: (origin, cell, dims, starts, ids); each
     triangle listed in every cell its bounding box meets. The cell starts at twice the
     mean edge and doubles while the grid would need more than ``max_cells`` cells or list
-    more than ``max_entries`` triangles (a few huge triangles among small ones)."""
+    more than ``max_entries`` triangles (a few huge triangles among small ones), or than
+    the triangles themselves where they are more (each is listed once at least: a bound
+    below that would never be met)."""
+    max_entries = max(max_entries, len(tri))
     corners = points[tri]
     lo, hi = corners.min(axis=1), corners.max(axis=1)
     origin, extent = points.min(axis=0), np.maximum(np.ptp(points, axis=0), 1e-9)
@@ -189,8 +227,14 @@ def closest_on_triangle(p, a, b, c):
     d3, d4 = k.dot(ab, bp), k.dot(ac, bp)
     if d3 >= 0.0 and d4 <= d3:
         return _result(p, a, b, c, 0.0, 1.0, 0.0)
+    # The divisions below are by sums of terms of one sign: zero only on a degenerate
+    # triangle (corners that coincide, or in a line: an offset sheet can fold them so),
+    # where numba would raise ZeroDivisionError into the servo loop. Such a triangle is
+    # the union of its edges: the nearest point of those instead.
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        if not d1 > d3:
+            return _nearest_on_edges(p, a, b, c)
         v = d1 / (d1 - d3)
         return _result(p, a, b, c, 1.0 - v, v, 0.0)
     cp = k.minus(p, c)
@@ -199,15 +243,45 @@ def closest_on_triangle(p, a, b, c):
         return _result(p, a, b, c, 0.0, 0.0, 1.0)
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        if not d2 > d6:
+            return _nearest_on_edges(p, a, b, c)
         w = d2 / (d2 - d6)
         return _result(p, a, b, c, 1.0 - w, 0.0, w)
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        span = (d4 - d3) + (d5 - d6)
+        if not span > 0.0:
+            return _nearest_on_edges(p, a, b, c)
+        w = (d4 - d3) / span
         return _result(p, a, b, c, 0.0, 1.0 - w, w)
-    denom = 1.0 / (va + vb + vc)
-    v, w = vb * denom, vc * denom
+    total = va + vb + vc  # |ab x ac|^2 up to rounding
+    if not total > 0.0:  # a degenerate triangle (or NaN from an overflow)
+        return _nearest_on_edges(p, a, b, c)
+    v, w = vb / total, vc / total
     return _result(p, a, b, c, 1.0 - v - w, v, w)
+
+
+@njit(cache=True, nogil=True)
+def _nearest_on_edges(p, a, b, c):
+    """The point of the edges ab, bc, ca nearest p: (barycentric u, v, w, distance^2), for
+    a degenerate triangle (which is the union of its edges)."""
+    best, u, v, w = math.inf, 1.0, 0.0, 0.0
+    for edge in range(3):
+        s, e = (a, b) if edge == 0 else ((b, c) if edge == 1 else (c, a))
+        d = k.minus(e, s)
+        length2 = k.dot(d, d)
+        t = min(1.0, max(0.0, k.dot(k.minus(p, s), d) / length2)) if length2 > 0.0 else 0.0
+        r = k.minus(p, (s[0] + t * d[0], s[1] + t * d[1], s[2] + t * d[2]))
+        distance2 = k.dot(r, r)
+        if distance2 < best:
+            best = distance2
+            if edge == 0:
+                u, v, w = 1.0 - t, t, 0.0
+            elif edge == 1:
+                u, v, w = 0.0, 1.0 - t, t
+            else:
+                u, v, w = t, 0.0, 1.0 - t
+    return u, v, w, best
 
 
 @njit(inline="always")
@@ -356,7 +430,8 @@ def proxy_frame(sheet, t, u, v, w):
     q = _blend(k.vertex(points, a), k.vertex(points, b), k.vertex(points, c), u, v, w)
     n = _blend(k.vertex(normals, a), k.vertex(normals, b), k.vertex(normals, c), u, v, w)
     norm = math.sqrt(k.dot(n, n))
-    return x, q, (n[0] / norm, n[1] / norm, n[2] / norm)
+    scale = 1.0 / norm if norm > 0.0 else math.nan  # normals that cancel: NaN, the tool free
+    return x, q, (n[0] * scale, n[1] * scale, n[2] * scale)
 
 
 @njit(inline="always")
@@ -380,6 +455,14 @@ def release(p, state, buf):
     d = state[STATE_D : STATE_D + 3]
     d[0], d[1], d[2] = 0.0, 0.0, 0.0
     respond(d, buf)
+
+
+@njit(inline="always")
+def aligned(n, buf):
+    """1 where the sheet's normal n is within 60 degrees of the model's at the contact (the
+    force's direction), fading to 0 at 90 degrees and beyond (see MIN_ALIGNMENT)."""
+    c = n[0] * buf[k.NORMAL] + n[1] * buf[k.NORMAL + 1] + n[2] * buf[k.NORMAL + 2]
+    return min(1.0, max(0.0, c / MIN_ALIGNMENT))
 
 
 @njit(inline="always")
@@ -443,6 +526,10 @@ def step_position(tip, sheet, state, table, buf):
     foot = state[STATE_FOOT : STATE_FOOT + 3]
     foot[0], foot[1], foot[2] = q
     region = k.prepare_contact(foot, table, buf)
+    fade *= aligned(n, buf)
+    if fade <= 0.0:  # the trained force would pull the tool into the sheet: no contact here
+        release(p, state, buf)
+        return k.NO_VERTEX
     # The depth along the sheet's normal at the proxy (so that it reaches 0 exactly where
     # the tool leaves the sheet: no force jump), held at the limit; the force along the
     # model's normal at the contact, as a displacement step gives it.

@@ -46,7 +46,7 @@ wrong ``out`` array ``OutputArrayError``: every error a call raises is a
 about inputs are ``ValueError`` too, the others ``RuntimeError``).
 
 Threads: a simulator is driven by one thread at a time. Calls from a second
-thread while one is inside a step, ``set_contact``, ``scalpel`` or
+thread while one is inside a step, ``set_contact``, ``scalpel``, ``stiffness`` or
 ``surface_displacement`` raise :class:`SimulatorBusyError` (they are not queued:
 a servo loop must not wait). Simulators on one shared :class:`ReducedModel` may
 run on as many threads as you like, in parallel: the model is only read (the
@@ -94,6 +94,18 @@ def _as_vector(value, out: np.ndarray, what: str, error: type[Exception]) -> np.
         raise error(f"{what} must be 3 numbers, shape (3,); got shape {a.shape}; {_KEPT}")
     out[:] = a
     return out
+
+
+_STIFFNESS_OUT = "a writeable, C-contiguous float64 numpy array of shape (3, 3)"
+
+
+def _described(out) -> str:
+    """What is wrong with an ``out`` array, for its error: type, dtype, shape and flags."""
+    if not isinstance(out, np.ndarray):
+        return type(out).__name__
+    flags = [] if out.flags.writeable else ["read-only"]
+    flags += [] if out.flags.c_contiguous else ["not C-contiguous"]
+    return f"{out.dtype} {out.shape}" + (f" ({', '.join(flags)})" if flags else "")
 
 
 def _limit(value, default: float, name: str, unit: str) -> float:
@@ -373,7 +385,9 @@ class Simulator:
         False). A displacement beyond ``max_displacement`` is held at it (``saturated``),
         not refused: a servo loop must get a force every tick. A tip that is not 3
         finite numbers raises StepInputError (the state unchanged). The returned array
-        (read only) is reused by the next call.
+        (read only) is reused by the next call. A placed scalpel stays armed while the
+        proxy is at the cut region's vertex it was placed at (``scalpel(sim.contact_point,
+        blade)`` each tick follows the tool), and cuts as under a displacement step.
         """
         if self._inside:
             self._busy("step_position")
@@ -389,8 +403,13 @@ class Simulator:
                 self._refuse(status, "tool tip (mm)", tip, math.inf)
             self._controlled = "displacement"
             if self.cutting is not None and self._proxy[proxy.STATE_MODE] == proxy.TOUCHING:
-                self.cutting.moved(region)
-                self.cutting.displacement_stepped(self._force)
+                cutting = self.cutting
+                # The proxy slides every tick: the blade stays armed while it is on the region
+                # vertex the scalpel was placed at (as a displacement step after scalpel()),
+                # and is disarmed once it leaves it (as set_contact elsewhere does).
+                if not (cutting.armed and region >= 0 and region == cutting.vertex):
+                    cutting.moved(region)
+                cutting.displacement_stepped(self._force)
             return self._force_out
         finally:
             self._inside = False
@@ -399,17 +418,23 @@ class Simulator:
         """The 3x3 contact stiffness K (N/mm) of the last step into ``out`` (a C-contiguous
         float64 (3, 3) array): the force on the tool near the tip x is F(x + dx) ~ F - K dx,
         for hosts that step the physics slower than the device loop and extrapolate.
-        Frictionless: K = dF/ddepth n n^T; zero out of contact."""
+        Frictionless: K = dF/ddepth n n^T (softened by the cuts at the contact, as the force
+        is); zero out of contact. SimulatorBusyError while another thread is inside a call."""
+        if self._inside:  # a step half done: the slope of one contact, the normal of another
+            self._busy("stiffness")
+        self._inside = True
         try:
-            status = _stiffness(self._buf, out)
-        except TypeError:
-            status = kernels.WRONG_SHAPE
-        if status:
-            raise OutputArrayError(
-                f"out must be a C-contiguous float64 array of shape (3, 3), got "
-                f"{getattr(out, 'dtype', type(out).__name__)} {np.shape(out)}"
-            )
-        return out
+            try:
+                status = _stiffness(self._buf, out)
+            except TypeError:
+                status = kernels.WRONG_SHAPE
+            if status:
+                raise OutputArrayError(f"out must be {_STIFFNESS_OUT}; got {_described(out)}")
+            if self.cutting is not None:
+                out *= self.cutting.ratio
+            return out
+        finally:
+            self._inside = False
 
     @property
     def proxy(self) -> np.ndarray:

@@ -15,6 +15,7 @@ import os
 import re
 import shutil
 import subprocess
+import sys
 import sysconfig
 import threading
 import time
@@ -79,7 +80,8 @@ def built() -> Path:
 class Options(ctypes.Structure):
     _fields_ = [("size", ctypes.c_uint32), ("interpolation", ctypes.c_int32),
                 ("response", ctypes.c_int32), ("isolate", ctypes.c_int32),
-                ("max_displacement", ctypes.c_double), ("max_force", ctypes.c_double)]  # fmt: skip
+                ("max_displacement", ctypes.c_double), ("max_force", ctypes.c_double),
+                ("tool_radius", ctypes.c_double)]  # fmt: skip
 
 
 class Info(ctypes.Structure):
@@ -87,15 +89,41 @@ class Info(ctypes.Structure):
                 ("sample_count", ctypes.c_uint64), ("mode_count", ctypes.c_uint64),
                 ("interpolation", ctypes.c_int32), ("response", ctypes.c_int32),
                 ("trained_depth", ctypes.c_double), ("trained_force", ctypes.c_double),
-                ("max_displacement", ctypes.c_double), ("max_force", ctypes.c_double)]  # fmt: skip
+                ("max_displacement", ctypes.c_double), ("max_force", ctypes.c_double),
+                ("tool_radius", ctypes.c_double)]  # fmt: skip
 
 
 class State(ctypes.Structure):
     _fields_ = [("normal", c_double3), ("force", c_double3), ("displacement", c_double3),
                 ("depth", ctypes.c_double), ("flags", ctypes.c_uint32),
-                ("has_contact", ctypes.c_uint32), ("sequence", ctypes.c_uint64)]  # fmt: skip
+                ("has_contact", ctypes.c_uint32), ("sequence", ctypes.c_uint64),
+                ("proxy", c_double3), ("contact_point", c_double3),
+                ("in_contact", ctypes.c_uint32), ("saturated", ctypes.c_uint32)]  # fmt: skip
 
 
+def test_the_structs_here_are_the_headers():
+    """The ctypes mirrors above have the header's layout (a field added there, not here, would
+    make the other tests read garbage): every field's offset and each size, as gcc lays them."""
+    if shutil.which("gcc") is None:
+        pytest.skip("no gcc")
+    lines = [f'    printf("%zu\\n", sizeof({name}));' for name in STRUCTS]
+    lines += [f'    printf("%zu\\n", offsetof({name}, {field}));'
+              for name, mirror in STRUCTS.items() for field, _ in mirror._fields_]  # fmt: skip
+    source = "\n".join(["#include <stddef.h>", "#include <stdio.h>", '#include "hapticrom.h"',
+                        "int main(void) {", *lines, "    return 0;", "}", ""])  # fmt: skip
+    BUILD.mkdir(exist_ok=True)
+    binary = BUILD / "struct-layout"
+    command = ["gcc", "-std=c99", f"-I{ROOT / 'include'}", "-x", "c", "-", "-o", str(binary)]
+    compiled = subprocess.run(command, input=source, capture_output=True, text=True)
+    assert compiled.returncode == 0, compiled.stderr
+    measured = subprocess.run([str(binary)], capture_output=True, text=True, check=True)
+    expected = [ctypes.sizeof(mirror) for mirror in STRUCTS.values()]
+    expected += [getattr(mirror, field).offset for mirror in STRUCTS.values()
+                 for field, _ in mirror._fields_]  # fmt: skip
+    assert [int(x) for x in measured.stdout.split()] == expected
+
+
+STRUCTS = {"hapticrom_options": Options, "hapticrom_info": Info, "hapticrom_state": State}
 _SIM, _P, _SIZE = ctypes.c_uint64, ctypes.c_void_p, ctypes.c_size_t
 PROTOTYPES = {
     "hapticrom_version": (ctypes.c_char_p, [ctypes.POINTER(ctypes.c_uint32)]),
@@ -107,6 +135,8 @@ PROTOTYPES = {
     "hapticrom_set_contact": (ctypes.c_int, [_SIM, _P]),
     "hapticrom_step_displacement": (ctypes.c_int, [_SIM, _P, _P]),
     "hapticrom_step_force": (ctypes.c_int, [_SIM, _P, _P]),
+    "hapticrom_step_position": (ctypes.c_int, [_SIM, _P, _P]),
+    "hapticrom_stiffness": (ctypes.c_int, [_SIM, _P]),
     "hapticrom_contact_stiffness": (ctypes.c_int, [_SIM, _P]),
     "hapticrom_error_estimate": (ctypes.c_int, [_SIM, _P]),
     "hapticrom_get_state": (ctypes.c_int, [_SIM, _P]),
@@ -278,6 +308,120 @@ def test_the_surface_mesh_and_samples_are_the_models(lib, model, small_artifact)
     assert lib.hapticrom_free(sim) == S["OK"]
 
 
+# -- position in, force out ------------------------------------------------------------------------
+def scripted(model, ticks: int, radius: float | None = None) -> np.ndarray:
+    """Tips (ticks, 3) mm of play's scripted path: approach, press at 30 degrees, slide, lift."""
+    from hapticrom.online.play import scripted_tips
+
+    return np.ascontiguousarray(scripted_tips(model, ticks, radius=radius))
+
+
+def position_configurations(model) -> list[dict]:
+    """Each response with the training's radius, a larger radius, a depth limit the path
+    passes (saturated): (load options, the Python simulator's arguments)."""
+    responses = ["anm", "curves"] if model.anm is not None else ["curves"]
+    limit = 0.3 * model.trained_depth
+    return [{"response": r} for r in responses] + [
+        {"response": responses[0], "tool_radius": 1.5 * model.contact_radius},
+        {"response": responses[-1], "max_displacement": limit},
+    ]
+
+
+def assert_close(actual, expected, scale: float, what: str) -> None:
+    """``actual`` equals ``expected`` to 1e-12 of ``scale`` (> 0)."""
+    actual, expected = np.asarray(actual, dtype=float), np.asarray(expected, dtype=float)
+    assert scale > 0 and np.abs(actual - expected).max() <= 1e-12 * scale, (what, actual, expected)
+
+
+def test_step_position_gives_the_python_runtimes_forces_stiffness_and_state(
+    lib, model, small_artifact
+):
+    """Position in, force out along play's scripted path (each response; a larger tool
+    radius; a depth limit the path passes): the forces, the 3x3 stiffness and the state (in
+    contact, proxy, contact point, depth, saturated) from C equal the Python simulator's;
+    the rendered surface's state is the proxy of the step it was rendered at."""
+    K, Kpy = np.zeros(9), np.zeros((3, 3))
+    surface, expected = np.zeros_like(model.vertices), np.zeros_like(model.vertices)
+    force, rendered = c_double3(), State()
+    span = np.abs(model.vertices).max()  # positions are compared to 1e-12 of the organ's size
+    for config in position_configurations(model):
+        codes = {key: CODES.get(value, value) for key, value in config.items()}
+        sim = load(lib, small_artifact, **codes)
+        py = model.simulator(**config)
+        assert info(lib, sim).tool_radius == py.tool_radius
+        tips = scripted(model, 150, py.tool_radius)
+        forces, expected_forces, touching, saturated, stiff = [], [], 0, 0, 0.0
+        for k, tip in enumerate(tips):
+            assert lib.hapticrom_step_position(sim, ptr(tip), force) == S["OK"], last_error(lib)
+            forces.append(list(force))
+            expected_forces.append(py.step_position(tip).copy())
+            assert lib.hapticrom_stiffness(sim, ptr(K)) == S["OK"], last_error(lib)
+            py.stiffness(Kpy)
+            s = state(lib, sim)
+            assert (s.in_contact, s.saturated, s.sequence) == (py.in_contact, py.saturated, k + 1)
+            assert_close(s.proxy, py.proxy, span, "proxy")
+            assert_close(s.contact_point, py.contact_point, span, "contact point")
+            assert_close(s.depth, py.depth, model.trained_depth, "depth")
+            assert_close(K, Kpy.ravel(), max(np.abs(Kpy).max(), 1e-300), "stiffness")
+            touching, saturated = touching + py.in_contact, saturated + py.saturated
+            stiff = max(stiff, np.abs(Kpy).max())
+            if k % 10 == 5:  # the render call's state is the step's, proxy included
+                assert lib.hapticrom_surface(sim, ptr(surface), surface.size,
+                                             ctypes.byref(rendered)) == S["OK"]  # fmt: skip
+                assert_close(surface, py.surface_displacement(expected), model.trained_depth,
+                             "surface")  # fmt: skip
+                assert (rendered.sequence, rendered.in_contact) == (k + 1, py.in_contact)
+                assert_close(rendered.proxy, py.proxy, span, "rendered proxy")
+        peak = np.abs(expected_forces).max()
+        assert peak > 0.1 * model.trained_force and stiff > 0  # the path pressed
+        assert 0 < touching < len(tips)  # and it was free too (approach, lift)
+        assert (saturated > 0) == ("max_displacement" in config), (config, saturated)
+        assert_close(forces, expected_forces, peak, "forces")
+        assert lib.hapticrom_free(sim) == S["OK"]
+
+
+def test_step_position_refuses_null_and_non_finite_tips_and_keeps_the_state(
+    lib, model, small_artifact
+):
+    """NULL and NaN/infinite tips are refused (the state and the proxy untouched: the path
+    goes on as if they had never come); a finite tip however far is never refused."""
+    sim, py = load(lib, small_artifact), model.simulator()
+    tips = scripted(model, 100)
+    force, K = c_double3(), np.zeros(9)
+    for tip in tips[:50]:  # into the slide: in contact
+        assert lib.hapticrom_step_position(sim, ptr(tip), force) == S["OK"]
+        py.step_position(tip)
+    before = state(lib, sim)
+    assert before.in_contact
+    refused(lib, lib.hapticrom_step_position(sim, None, force), "NULL_ARGUMENT",
+            "hapticrom_step_position", "tip is NULL")  # fmt: skip
+    refused(lib, lib.hapticrom_step_position(sim, ptr(tips[50]), None), "NULL_ARGUMENT",
+            "force is NULL")  # fmt: skip
+    refused(lib, lib.hapticrom_stiffness(sim, None), "NULL_ARGUMENT", "hapticrom_stiffness")
+    bad_tips = 0
+    for bad in (np.nan, np.inf, -np.inf):
+        for c in range(3):
+            x = tips[50].copy()
+            x[c] = bad
+            refused(lib, lib.hapticrom_step_position(sim, ptr(x), force), "NOT_FINITE",
+                    "hapticrom_step_position", "tool tip")  # fmt: skip
+            bad_tips += 1
+    after = state(lib, sim)
+    assert after.sequence == before.sequence + bad_tips  # refused writing calls count
+    for field, _ in State._fields_:
+        if field != "sequence":
+            assert np.array_equal(np.ravel(getattr(after, field)),
+                                  np.ravel(getattr(before, field))), field  # fmt: skip
+    far = [np.array([1e6, -1e6, 1e6]), tips[60] - 5 * model.trained_depth * py.contact_normal]
+    for tip in [*tips[50:], *far, tips[0]]:  # on, then far away, deep inside, back out
+        tip = np.ascontiguousarray(tip)
+        assert lib.hapticrom_step_position(sim, ptr(tip), force) == S["OK"], last_error(lib)
+        expected = py.step_position(tip)
+        assert_close(list(force), expected, model.trained_force, "force after refusals")
+        assert lib.hapticrom_stiffness(sim, ptr(K)) == S["OK"]
+    assert lib.hapticrom_free(sim) == S["OK"]
+
+
 # -- bad input across the ABI --------------------------------------------------------------------
 def test_loading_refuses_bad_paths_artifacts_and_options(lib, small_artifact, tmp_path):
     sim = ctypes.c_uint64(7)
@@ -299,7 +443,10 @@ def test_loading_refuses_bad_paths_artifacts_and_options(lib, small_artifact, tm
     bad_options = [({"size": 8}, "options.size"), ({"isolate": 2}, "isolate"),
                    ({"interpolation": 3}, "interpolation"), ({"response": -1}, "response"),
                    ({"max_force": -1.0}, "max_force"),
-                   ({"max_displacement": float("nan")}, "max_displacement")]  # fmt: skip
+                   ({"max_displacement": float("nan")}, "max_displacement"),
+                   ({"tool_radius": -1.0}, "tool_radius"),
+                   ({"tool_radius": float("inf")}, "tool_radius"),
+                   ({"tool_radius": 1e9}, "tool radius")]  # fmt: skip
     for fields, word in bad_options:
         o = options(lib, **fields)
         refused(lib, lib.hapticrom_load(path, ctypes.byref(o), ctypes.byref(sim)),
@@ -320,6 +467,8 @@ def test_null_pointers_are_refused_by_every_call(lib, small_artifact):
         "hapticrom_set_contact": lambda: lib.hapticrom_set_contact(sim, None),
         "hapticrom_step_displacement": lambda: lib.hapticrom_step_displacement(sim, None, ptr(v)),
         "hapticrom_step_force": lambda: lib.hapticrom_step_force(sim, ptr(v), None),
+        "hapticrom_step_position": lambda: lib.hapticrom_step_position(sim, None, ptr(v)),
+        "hapticrom_stiffness": lambda: lib.hapticrom_stiffness(sim, None),
         "hapticrom_contact_stiffness": lambda: lib.hapticrom_contact_stiffness(sim, None),
         "hapticrom_error_estimate": lambda: lib.hapticrom_error_estimate(sim, None),
         "hapticrom_get_state": lambda: lib.hapticrom_get_state(sim, None),
@@ -400,6 +549,8 @@ def test_calls_after_free_and_made_up_handles_are_refused(lib, model, small_arti
             lib.hapticrom_set_contact(handle, ptr(v)),
             lib.hapticrom_step_displacement(handle, ptr(v), ptr(v)),
             lib.hapticrom_step_force(handle, ptr(v), ptr(v)),
+            lib.hapticrom_step_position(handle, ptr(v), ptr(v)),
+            lib.hapticrom_stiffness(handle, ptr(out)),
             lib.hapticrom_contact_stiffness(handle, ctypes.byref(value)),
             lib.hapticrom_error_estimate(handle, ctypes.byref(value)),
             lib.hapticrom_get_state(handle, ctypes.byref(s)),
@@ -456,9 +607,12 @@ def test_a_second_thread_inside_a_simulator_gets_busy(lib, model, small_artifact
     s, i = State(), Info()
     out = np.zeros(3 * len(model.vertices))
     assert lib.hapticrom_set_contact(sim, ptr(p)) == S["OK"]
+    K, F = np.zeros(9), np.zeros(3)
     for inside, probe in [
         (lambda: lib.hapticrom_set_contact(sim, ptr(p)),
          lambda: lib.hapticrom_get_state(sim, ctypes.byref(s))),
+        (lambda: lib.hapticrom_step_position(sim, ptr(p), ptr(F)),
+         lambda: lib.hapticrom_stiffness(sim, ptr(K))),
         (lambda: lib.hapticrom_surface(sim, ptr(out), out.size, None),
          lambda: lib.hapticrom_get_info(sim, ctypes.byref(i))),
     ]:  # fmt: skip
@@ -538,29 +692,37 @@ def test_forces_from_c_equal_the_python_runtimes(model, paced):
     assert np.abs(forces - expected).max() <= 1e-12 * scale
 
 
-def python_surfaces(model, rows, wanted: set[int]) -> dict[int, np.ndarray]:
-    """The Python simulator's surface at each wanted state of the example's path: replaying
-    its ticks, the state numbered rows[k, 9] after tick k's set_contact, one more after its
-    step (the example's only writes)."""
+def replayed_writes(model, rows, position: bool):
+    """The Python simulator replaying the example's ticks: (the state's number, the
+    simulator) after each of the example's writes. A tick is set_contact (numbered rows[k,
+    9]) and its step (one more), or with tips one step_position (numbered rows[k, 9])."""
     sim = model.simulator()
-    out, surfaces = np.zeros_like(model.vertices), {}
     for row in rows:
-        after_contact = int(row[9])
-        if after_contact > max(wanted):
-            break
+        if position:
+            sim.step_position(np.ascontiguousarray(row[1:4]))
+            yield int(row[9]), sim
+            continue
         sim.set_contact(np.ascontiguousarray(row[1:4]))
-        if after_contact in wanted:
-            surfaces[after_contact] = sim.surface_displacement(out).copy()
+        yield int(row[9]), sim
         sim.step_displacement(np.multiply(sim.contact_normal, -row[4]))
-        if after_contact + 1 in wanted:
-            surfaces[after_contact + 1] = sim.surface_displacement(out).copy()
+        yield int(row[9]) + 1, sim
+
+
+def python_surfaces(model, rows, wanted: set[int], position: bool) -> dict[int, np.ndarray]:
+    """The Python simulator's surface at each wanted state of the example's path."""
+    out, surfaces = np.zeros_like(model.vertices), {}
+    for sequence, sim in replayed_writes(model, rows, position):
+        if sequence > max(wanted):
+            break
+        if sequence in wanted:
+            surfaces[sequence] = sim.surface_displacement(out).copy()
     return surfaces
 
 
-def assert_untorn(model, rows, sequences, fields) -> None:
+def assert_untorn(model, rows, sequences, fields, position: bool = False) -> None:
     """Every rendered frame is the Python surface of the state its sequence names."""
-    assert np.all(np.diff(rows[:, 9]) == 2)  # set_contact and the step: two writes per tick
-    expected = python_surfaces(model, rows, set(sequences.tolist()))
+    assert np.all(np.diff(rows[:, 9]) == (1 if position else 2))  # the example's writes a tick
+    expected = python_surfaces(model, rows, set(sequences.tolist()), position)
     assert set(expected) == set(sequences.tolist())  # every frame is of a state of the path
     scale = max(np.abs(s).max() for s in expected.values())
     assert scale > 0
@@ -588,6 +750,140 @@ def test_a_free_running_servo_never_tears_the_rendered_surface(built, model, sma
     assert len(rows) == 50000 and np.all(rows[:, 8] == 0)
     assert len(np.unique(sequences)) > 50, result.stdout  # many states caught in flight
     assert_untorn(model, rows, sequences, fields)
+
+
+def write_tips(path: Path, tips: np.ndarray, rate: float = 1000.0) -> Path:
+    """The tip file of ``tips`` (rows t, x, y, z) through examples/c/scripted_tips.py's writer."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("scripted_tips", SCRIPTED_TIPS)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.write_tips(path, tips, rate)
+    return path
+
+
+SCRIPTED_TIPS = ROOT / "examples" / "c" / "scripted_tips.py"
+
+
+@pytest.fixture(scope="module")
+def paced_position(built, model, small_artifact, tmp_path_factory):
+    """The example position in, force out: play's scripted path written by
+    examples/c/scripted_tips.py (2,000 tips), 1 kHz servo, 60 Hz render; and the tips."""
+    tmp = tmp_path_factory.mktemp("paced-position")
+    written = subprocess.run(
+        [sys.executable, str(SCRIPTED_TIPS), str(small_artifact),
+         str(tmp / "tips.csv"), "--ticks", "2000"], capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert written.returncode == 0, written.stderr
+    run = run_example(built / "servo_loop", small_artifact, tmp, "--tips", str(tmp / "tips.csv"))
+    return (*run, scripted(model, 2000))
+
+
+def python_positions(model, rows) -> dict[str, np.ndarray]:
+    """The Python runtime's step_position along the example's tips: forces, in contact,
+    saturated, proxy."""
+    sim = model.simulator()
+    out = {"forces": np.zeros((len(rows), 3)), "proxy": np.zeros((len(rows), 3)),
+           "in_contact": np.zeros(len(rows)), "saturated": np.zeros(len(rows))}  # fmt: skip
+    for k, row in enumerate(rows):
+        out["forces"][k] = sim.step_position(np.ascontiguousarray(row[1:4]))
+        out["proxy"][k], out["in_contact"][k] = sim.proxy, sim.in_contact
+        out["saturated"][k] = sim.saturated
+    return out
+
+
+def test_forces_from_cs_step_position_equal_the_python_runtimes(model, paced_position):
+    """The example's servo thread, position in, force out, along play's scripted path: the
+    tips it read are the path's, its forces, proxies and contact flags the Python
+    simulator's."""
+    result, rows, _, _, tips = paced_position
+    assert "2000 ticks" in result.stdout and "position in, force out" in result.stdout
+    np.testing.assert_array_equal(rows[:, 1:4], tips)  # 17 digits: the doubles round-trip
+    assert np.all(rows[:, 8] == 0)  # every tick's status
+    expected = python_positions(model, rows)
+    scale = np.abs(expected["forces"]).max()
+    assert scale > 0.1 * model.trained_force  # the path pressed
+    assert 0 < expected["in_contact"].sum() < len(rows)  # and was free too
+    assert_close(rows[:, 5:8], expected["forces"], scale, "forces")
+    np.testing.assert_array_equal(rows[:, 10], expected["in_contact"])
+    np.testing.assert_array_equal(rows[:, 11], expected["saturated"])
+    assert_close(rows[:, 12:15], expected["proxy"], np.abs(model.vertices).max(), "proxy")
+
+
+def test_the_render_thread_reads_whole_states_of_step_position(model, paced_position):
+    _, rows, sequences, fields, _ = paced_position
+    assert len(sequences) >= 30 and np.all(np.diff(sequences) >= 0)
+    assert sequences[0] < 0.2 * rows[-1, 9] and sequences[-1] > 0.8 * rows[-1, 9]
+    assert_untorn(model, rows, sequences, fields, position=True)
+
+
+def test_a_free_running_step_position_servo_never_tears_the_rendered_surface(
+    built, model, small_artifact, tmp_path
+):
+    """As the set_contact servo above, with step_position: 50,000 tips as fast as it goes
+    (the proxy's state is written too), the renderer at 1 kHz."""
+    tips = write_tips(tmp_path / "tips.csv", scripted(model, 50000), rate=1e6)
+    result, rows, sequences, fields = run_example(
+        built / "servo_loop", small_artifact, tmp_path, "--tips", str(tips), "--rate", "1e6",
+        "--render-rate", "1000",
+    )  # fmt: skip
+    assert len(rows) == 50000 and np.all(rows[:, 8] == 0)
+    assert len(np.unique(sequences)) > 50, result.stdout
+    assert_untorn(model, rows, sequences, fields, position=True)
+
+
+def test_the_position_bench_reports_every_call(built, model, small_artifact, tmp_path):
+    """``servo_loop --tips --bench`` (what make capi-bench runs): a latency line for each
+    call, the contact and free ticks counted apart (they add up to the calls)."""
+    tips = write_tips(tmp_path / "tips.csv", scripted(model, 300))
+    command = [str(built / "servo_loop"), str(small_artifact), "--tips", str(tips), "--bench",
+               "3000", "--bench-surfaces", "5"]  # fmt: skip
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout + result.stderr
+    calls = {m[1].strip(): int(m[2]) for m in re.finditer(r"^(.{20}) +(\d+) calls", result.stdout,
+                                                          re.MULTILINE)}  # fmt: skip
+    assert {k: calls[k] for k in ("step_position", "stiffness", "get_state", "surface")} == {
+        "step_position": 3000,
+        "stiffness": 3000,
+        "get_state": 3000,
+        "surface": 5,
+    }
+    assert calls["in contact"] + calls["free"] == 3000 and calls["in contact"] > 0
+
+
+BAD_TIPS = {  # file content: words of the example's message
+    "t,x,y,z\n0,1,2\n": ["line 2", "4 finite numbers"],
+    "0,1,2,nan\n": ["line 1", "finite"],
+    "0,1,2,3\n0,1,-inf,3\n": ["line 2"],
+    "0,1,2,3,4\n": ["line 1"],
+    "0,1,2,3x\n": ["line 1"],
+    "0,1,2,\n": ["line 1"],
+    "0,20000,0,0\n": ["line 1", "<= 10000"],
+    "t,x,y,z\n": ["no rows"],
+    "# a comment only\n\n": ["no rows"],
+    "": ["no rows"],
+    "0,1,2,3\n" + "0" * 5000 + "\n": ["line 2", "longer than 4096"],
+    "0,1,2,3\n0,1\x00,2,3\n": ["line 2", "NUL"],
+}
+
+
+def test_a_bad_tip_file_is_refused_before_loading(built, small_artifact, tmp_path):
+    """Each bad tip file: exit 1 and one message naming the file and the line, before the
+    model is loaded (nothing runs)."""
+    files = {}
+    for i, content in enumerate(BAD_TIPS):
+        files[tmp_path / f"bad{i}.csv"] = BAD_TIPS[content]
+        (tmp_path / f"bad{i}.csv").write_bytes(content.encode())
+    files[tmp_path / "missing.csv"] = ["No such file"]
+    files[tmp_path] = ["--tips"]  # a directory
+    for path, words in files.items():
+        command = [str(built / "servo_loop"), str(small_artifact), "--tips", str(path)]
+        result = subprocess.run(command, capture_output=True, text=True, timeout=60)
+        assert result.returncode == 1, (path, result.stdout, result.stderr)
+        assert "loaded" not in result.stdout and str(path) in result.stderr, result.stderr
+        for word in words:
+            assert word in result.stderr, (path.name, result.stderr)
 
 
 def test_a_host_without_its_python_gets_an_error_not_a_crash(built, small_artifact):
@@ -634,3 +930,39 @@ def test_the_example_runs_clean_under_address_sanitizer(built, small_artifact, t
     )  # fmt: skip
     assert "Sanitizer" not in result.stderr and "runtime error" not in result.stderr, result.stderr
     assert len(rows) == 500 and len(sequences) > 10
+
+
+def test_step_position_and_the_tip_reader_run_clean_under_address_sanitizer(
+    built, model, small_artifact, tmp_path
+):
+    """The example position in, force out under AddressSanitizer and UBSan, on a tip file
+    in every form the reader takes (a byte-order mark, CRLF line ends, a header, comments,
+    blank lines), and the reader on each bad file."""
+    reason = sanitizer_available()
+    if reason:
+        pytest.skip(reason)
+    make("capi-asan")
+    env = os.environ.copy()
+    env["ASAN_OPTIONS"] = "detect_leaks=1:abort_on_error=0:exitcode=99"
+    env["UBSAN_OPTIONS"] = "print_stacktrace=1:halt_on_error=1:exitcode=98"
+    env["LSAN_OPTIONS"] = f"suppressions={ROOT / 'capi' / 'lsan.supp'}:print_suppressions=0"
+    env.pop("LD_PRELOAD", None)
+    binary = BUILD / "asan" / "servo_loop"
+    for i, content in enumerate(BAD_TIPS):
+        bad = tmp_path / f"bad{i}.csv"
+        bad.write_bytes(content.encode())
+        result = subprocess.run([str(binary), str(small_artifact), "--tips", str(bad)], env=env,
+                                capture_output=True, text=True, timeout=60)  # fmt: skip
+        assert result.returncode == 1 and "Sanitizer" not in result.stderr, result.stderr
+    tips = scripted(model, 500)
+    lines = [
+        f"{0.001 * k!r}, {x!r},{y!r} ,{z!r}  # tick {k}"
+        for k, (x, y, z) in enumerate(tips.tolist())
+    ]
+    text = "\ufeff# play's scripted path\r\n T, X, Y, Z\r\n\r\n" + "\r\n".join(lines)
+    (tmp_path / "tips.csv").write_text(text, encoding="utf-8", newline="")
+    result, rows, sequences, _ = run_example(binary, small_artifact, tmp_path, "--tips",
+                                             str(tmp_path / "tips.csv"), env=env)  # fmt: skip
+    assert "Sanitizer" not in result.stderr and "runtime error" not in result.stderr, result.stderr
+    np.testing.assert_array_equal(rows[:, 1:4], tips)
+    assert np.all(rows[:, 8] == 0) and len(sequences) > 10
