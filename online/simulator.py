@@ -60,8 +60,9 @@ import numbers
 
 import numpy as np
 
-from hapticrom.online import kernels, proxy, surface_kernels
+from hapticrom.online import kernels, proxy
 from hapticrom.online.model import INTERPOLATIONS, RESPONSES, ReducedModel
+from hapticrom.online.renderer import SurfaceRenderer, SurfaceWork, surface_of
 from hapticrom.online.scalpel import CuttingController, readonly
 from hapticrom.shared.errors import (
     InputError,
@@ -226,16 +227,9 @@ class Simulator:
         # bound once: no lookups per step
         self._step_displacement = k.step_displacement_anm if anm else k.step_displacement_curves
         self._step_force = k.step_force_anm if anm else k.step_force_curves
-        n = model.num_modes
-        self._scratch = np.zeros(3 + 3 * n)  # (unused) + three n-vectors
-        self._coefficients = np.zeros((3, n))  # the neighbours' reduced coordinates
-        # The transported field's accumulated and one neighbour's field at the chart's nodes.
-        nodes = int(np.prod(model.chart.shape)) if interpolation == "transport" else 1
-        self._chart_fields = np.zeros((3, 3, nodes), dtype=np.float32)  # per neighbour
-        self._chart_rectangles = np.zeros((3, 5), dtype=np.int64)
-        self._chart_shifts = np.zeros((3, 12))
-        self._frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
-        self._frames_of = -1.0  # the contact (buf[CONTACTS]) the frames are of
+        self._work = SurfaceWork(model, interpolation)  # the surface's scratch
+        # Writing calls add 1 before and after: a SurfaceRenderer copies the state whole.
+        self._sequence = 0
         self._controlled = "displacement"  # the last step's control (the cuts' field needs it)
         self.cutting: CuttingController | None = None  # the scalpel, from its first placement
         # step_position's sphere against the offset sheet, and the proxy's state on it.
@@ -276,6 +270,7 @@ class Simulator:
         if self._inside:
             self._busy("set_contact")
         self._inside = True
+        self._sequence += 1  # odd: the state is being written
         try:
             p = point
             if type(p) is not _NDARRAY or p.dtype is not _F8 or p.ndim != 1:
@@ -286,6 +281,7 @@ class Simulator:
             if self.cutting is not None:
                 self.cutting.moved(region)  # a plain contact; scalpel() arms the blade again
         finally:
+            self._sequence += 1
             self._inside = False
 
     def _refuse_point(self, status: int, p: np.ndarray, point) -> None:
@@ -330,6 +326,7 @@ class Simulator:
         if self._inside:
             self._busy("step_displacement")
         self._inside = True
+        self._sequence += 1  # odd: the state is being written
         try:
             try:  # a 1-D float64 array goes straight in; anything else: TypeError
                 status = self._step_displacement(d, self._buf)
@@ -342,6 +339,7 @@ class Simulator:
                 self.cutting.displacement_stepped(self._force)
             return self._force_out
         finally:
+            self._sequence += 1
             self._inside = False
 
     def step_force(self, f) -> np.ndarray:
@@ -356,6 +354,7 @@ class Simulator:
         if self._inside:
             self._busy("step_force")
         self._inside = True
+        self._sequence += 1  # odd: the state is being written
         try:
             if self.cutting is not None:  # cut tissue yields more: a nearer depth limit
                 self.cutting.limit_depth()
@@ -372,6 +371,7 @@ class Simulator:
                 self.cutting.force_stepped(x, self._displacement)
             return self._displacement_out
         finally:
+            self._sequence += 1
             self._inside = False
 
     def step_position(self, tip) -> np.ndarray:
@@ -392,6 +392,7 @@ class Simulator:
         if self._inside:
             self._busy("step_position")
         self._inside = True
+        self._sequence += 1  # odd: the state is being written
         try:
             try:  # a 1-D float64 array goes straight in; anything else: TypeError
                 region = _step_position(tip, self._sheet, self._proxy, self._table, self._buf)
@@ -412,6 +413,7 @@ class Simulator:
                 cutting.displacement_stepped(self._force)
             return self._force_out
         finally:
+            self._sequence += 1
             self._inside = False
 
     def stiffness(self, out: np.ndarray) -> np.ndarray:
@@ -473,6 +475,7 @@ class Simulator:
         if self._inside:
             self._busy("scalpel")
         self._inside = True
+        self._sequence += 1  # odd: the state is being written
         try:
             cutting = self.cutting
             if cutting is None:  # kept once a placement succeeds
@@ -491,6 +494,7 @@ class Simulator:
                 self.cutting, self._table = cutting, cutting.table
             cutting.placed(region, background)
         finally:
+            self._sequence += 1
             self._inside = False
 
     @property
@@ -532,8 +536,15 @@ class Simulator:
         return [] if self.cutting is None else list(self.cutting.cuts.events)
 
     # -- rendering -------------------------------------------------------------------
+    def renderer(self) -> SurfaceRenderer:
+        """A render thread's view of this simulator: its ``surface(out)`` renders the state of
+        one whole step while the servo thread steps on (no torn frames, no waiting servo).
+        One per render thread; see :mod:`hapticrom.online.renderer`."""
+        return SurfaceRenderer(self)
+
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:
-        """Fill ``out`` (V, 3) float64 with the surface vertices' displacement (mm)."""
+        """Fill ``out`` (V, 3) float64 with the surface vertices' displacement (mm), on the
+        thread that steps (another thread: :meth:`renderer`)."""
         m = self.model
         if out.shape != m.vertices.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
             raise OutputArrayError(
@@ -550,39 +561,9 @@ class Simulator:
         return out
 
     def _surface(self, out: np.ndarray) -> None:
-        m, c = self.model, self._coefficients
-        if self.response == "anm":
-            a = m.anm
-            surface_kernels.anm_coefficients(self._buf, a["offsets"], a["coefficients"], c)
-        elif self.interpolation != "grassmann":
-            surface_kernels.curves_coefficients(self._buf, m.coefficients, c)
-        if self.interpolation == "transport":
-            ch = m.chart
-            surface_kernels.transported_surface(
-                self._buf, c, ch.node_basis, ch.sample_plan, m.sample_normals, ch.shape,
-                ch.read_rows, ch.read_columns, ch.spacing, ch.halo, ch.charted, ch.charted_node,
-                ch.charted_frac, ch.uncharted, m.surface_basis_t, self._chart_fields,
-                self._chart_rectangles, self._chart_shifts, out,
-            )  # fmt: skip
-        elif self.interpolation == "grassmann":
-            g = m.grassmann
-            self._grassmann_frames()
-            kernels.surface_grassmann(
-                self._buf, g["reference"], m.surface_basis_t, g["tangents_t"], self._frames,
-                m.coefficients, self._scratch, out,
-            )  # fmt: skip
-        else:
-            surface_kernels.blended_surface(self._buf, c, m.surface_basis_t, out)
+        surface_of(self.model, self.interpolation, self.response, self._buf, self._work, out)
         if self.cutting is not None:
             self.cutting.add_field(out, self._force, self.depth, self._controlled)
-
-    def _grassmann_frames(self) -> None:
-        """The Grassmann frames of the current contact (prepared once per contact)."""
-        contacts = float(self._buf[kernels.CONTACTS])
-        if self._frames_of != contacts:
-            g = self.model.grassmann
-            kernels.prepare_grassmann(self._buf, g["gtt"], g["gtb"], g["grb"], self._frames)
-            self._frames_of = contacts
 
     def cut_surface(self) -> tuple[np.ndarray, np.ndarray]:
         """(vertices, triangles) to render with the cut open: the model's surface vertices,

@@ -326,3 +326,47 @@ def test_tool_radius_must_be_positive(model):
     for bad in (0.0, -1.0, np.nan, "big"):
         with pytest.raises(InputError):
             model.simulator(tool_radius=bad)
+
+
+def test_a_render_thread_draws_whole_steps_while_the_servo_steps(model):
+    """A servo thread steps step_position along the scripted path while a render thread
+    draws through sim.renderer(): every rendered surface is the surface of one whole step
+    (equal to the bit to the surface a second simulator renders from that step's copied
+    state), and both threads run without a busy error."""
+    import threading
+    import time
+
+    from hapticrom.online.play import scripted_tips
+    from hapticrom.online.renderer import SurfaceWork, surface_of
+
+    sim = model.simulator()
+    tips = scripted_tips(model, 2000)
+    states = {0: sim._buf.copy()}  # the state after each writing call, by sequence
+
+    def servo():  # about 2 kHz, as a servo loop paces itself
+        for tip in tips:
+            sim.step_position(tip)
+            states[sim._sequence // 2] = sim._buf.copy()
+            time.sleep(0.0003)
+
+    renderer = sim.renderer()
+    frames = []
+
+    def render():
+        out = np.zeros_like(model.vertices)
+        while thread.is_alive() or not frames:
+            frames.append((renderer.surface(out).copy(), renderer.sequence))
+
+    thread = threading.Thread(target=servo)
+    drawer = threading.Thread(target=render)
+    thread.start()
+    drawer.start()
+    thread.join()
+    drawer.join()
+    work = SurfaceWork(model, sim.interpolation)
+    expected = np.zeros_like(model.vertices)
+    distinct = {sequence for _, sequence in frames}
+    assert len(distinct) > 5  # the frames caught the servo at many different steps
+    for surface, sequence in frames:
+        surface_of(model, sim.interpolation, sim.response, states[sequence], work, expected)
+        np.testing.assert_array_equal(surface, expected)
