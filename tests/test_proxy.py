@@ -370,3 +370,27 @@ def test_a_render_thread_draws_whole_steps_while_the_servo_steps(model):
     for surface, sequence in frames:
         surface_of(model, sim.interpolation, sim.response, states[sequence], work, expected)
         np.testing.assert_array_equal(surface, expected)
+
+
+def test_si_units_are_the_simulator_in_metres(model):
+    """SIUnits: the same forces for positions in m, stiffness in N/m, surfaces in m; bad
+    inputs refused by the simulator itself (no broadcasting of a scalar)."""
+    from hapticrom.online.units import SIUnits
+
+    mm, si = model.simulator(), SIUnits(model.simulator())
+    tip0, n = above(model, model.sample_points[0], 1.0)
+    for height in (1.0, 0.2, -0.1):
+        tip = tip0 + (height - 1.0) * n
+        np.testing.assert_array_equal(si.step_position(tip / 1e3), mm.step_position(tip))
+    np.testing.assert_allclose(si.depth * 1e3, mm.depth, rtol=1e-15)
+    np.testing.assert_allclose(si.proxy * 1e3, mm.proxy, rtol=1e-15)
+    K_si, K_mm = si.stiffness(np.zeros((3, 3))), mm.stiffness(np.zeros((3, 3)))
+    np.testing.assert_allclose(K_si, 1e3 * K_mm, rtol=1e-15)
+    u_si = si.surface_displacement(np.zeros_like(model.vertices))
+    u_mm = mm.surface_displacement(np.zeros_like(model.vertices))
+    np.testing.assert_allclose(u_si * 1e3, u_mm, rtol=1e-14, atol=1e-18)
+    push = -0.5 * model.trained_force * np.asarray(mm.contact_normal)
+    np.testing.assert_allclose(si.step_force(push) * 1e3, mm.step_force(push), rtol=1e-15)
+    for bad in (5.0, [1e-3], np.array([1e-3]), "abc", [np.nan, 0, 0]):
+        with pytest.raises(StepInputError):
+            si.step_position(bad)
