@@ -626,7 +626,10 @@ class Simulator:
 
     @property
     def in_contact(self) -> bool:
-        """Whether the tool pressed the tissue at the last step (False: it pulled away)."""
+        """Whether the tool pressed the tissue at the last step (False: it pulled away, or
+        nothing was stepped yet)."""
+        if self._buf[kernels.CONTACTS] == 0:  # no contact yet: nothing pressed
+            return False
         return not (int(self._buf[kernels.FLAGS]) & kernels.FLAG_NO_CONTACT)
 
     @property

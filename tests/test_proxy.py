@@ -179,6 +179,7 @@ def test_first_contact_comes_when_the_sphere_reaches_the_surface(model):
 
 def test_lifting_releases(model):
     sim = model.simulator()
+    assert not sim.in_contact  # nothing pressed yet
     tip0, n = above(model, model.sample_points[0], 1.0)
     sim.step_position(tip0)
     sim.step_position(tip0 - 1.3 * n)
