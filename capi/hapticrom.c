@@ -5,7 +5,8 @@
  * Layout of this file: simulator slots and handles; errors; the embedded interpreter
  * (started once, then the GIL released); load and free (under the GIL); the servo calls
  * (a busy flag and a sequence lock around a call through a function pointer); the render
- * calls (a snapshot of the servo state, then the surface from it).
+ * calls (a snapshot of the servo state, then the surface from it); set_friction (checked
+ * in Python under the GIL, then written like a servo call).
  *
  * The servo state a snapshot copies is two arrays of doubles this file treats as opaque:
  * the state buffer (all a surface reads) and the head of step_position's proxy state (the
@@ -28,6 +29,7 @@
 #include <stdarg.h>
 #include <stdio.h>
 #include <string.h>
+#include <time.h>
 #include <unistd.h>
 
 #include "hapticrom.h"
@@ -51,13 +53,15 @@ typedef int32_t (*position_fn)(const double *tip, const double *sheet, int64_t s
                                int64_t table_size, double *buf, int64_t buf_size, double *force);
 typedef int32_t (*estimate_fn)(const double *buf, int64_t buf_size, const double *indicator,
                                int64_t samples, double *out);
+typedef int32_t (*friction_fn)(const double *values, double *buf, int64_t buf_size);
 typedef int32_t (*surface_fn)(void *const *arrays, const int64_t *dims, const double *buf,
                               int64_t buf_size, double *out, int64_t vertices);
 
 /* The handle fields this file reads, by name (cabi.HANDLE_FIELDS gives their positions). */
 enum field {
     F_ABI, F_KEY, F_SET_CONTACT, F_STEP_DISPLACEMENT, F_STEP_FORCE, F_CONTACT_STIFFNESS,
-    F_ERROR_ESTIMATE, F_READ_STATE, F_SURFACE, F_STEP_POSITION, F_STIFFNESS, F_BUF, F_BUF_SIZE,
+    F_ERROR_ESTIMATE, F_READ_STATE, F_SURFACE, F_STEP_POSITION, F_STIFFNESS, F_SET_FRICTION,
+    F_BUF, F_BUF_SIZE,
     F_SNAPSHOT, F_TABLE, F_TABLE_SIZE, F_INDICATOR, F_SAMPLES, F_SHEET, F_SHEET_SIZE, F_PROXY,
     F_PROXY_SIZE, F_PROXY_HEAD, F_PROXY_SNAPSHOT, F_SURFACE_ARRAYS, F_SURFACE_DIMS, F_VERTICES,
     F_VERTEX_COUNT, F_TRIANGLES, F_TRIANGLE_COUNT, F_SAMPLE_POINTS, F_MODES, F_INTERPOLATION,
@@ -66,13 +70,14 @@ enum field {
 };
 static const char *const FIELD_NAMES[F_COUNT] = {
     "abi", "key", "set_contact", "step_displacement", "step_force", "contact_stiffness",
-    "error_estimate", "read_state", "surface", "step_position", "stiffness", "buf", "buf_size",
+    "error_estimate", "read_state", "surface", "step_position", "stiffness", "set_friction",
+    "buf", "buf_size",
     "snapshot", "table", "table_size", "indicator", "samples", "sheet", "sheet_size", "proxy",
     "proxy_size", "proxy_head", "proxy_snapshot", "surface_arrays", "surface_dims", "vertices",
     "vertex_count", "triangles", "triangle_count", "sample_points", "modes", "interpolation",
     "response", "trained_depth", "trained_force", "max_displacement", "max_force", "tool_radius",
 };
-#define STATE_SIZE 20 /* cabi.STATE_SIZE: read_state's doubles */
+#define STATE_SIZE 21 /* cabi.STATE_SIZE: read_state's doubles */
 
 /* --- slots and handles ---------------------------------------------------------------- */
 /* A handle: MAGIC (16 bits) | generation (28 bits) | slot index (20 bits). The slots are a
@@ -92,6 +97,7 @@ struct simulator_data {
     read_fn contact_stiffness, stiffness;
     state_fn read_state;
     estimate_fn error_estimate;
+    friction_fn set_friction;
     surface_fn surface;
     double *buf, *snapshot, *proxy, *proxy_snapshot;
     const double *table, *sheet, *indicator, *vertices, *sample_points;
@@ -188,7 +194,8 @@ void hapticrom_options_init(hapticrom_options *options) {
 static pthread_once_t python_once = PTHREAD_ONCE_INIT;
 static int python_status = HAPTICROM_E_PYTHON;
 static char python_error[1024];
-static PyObject *open_function, *free_function; /* cabi.open_simulator, free_simulator */
+/* cabi.open_simulator, free_simulator, validate_friction */
+static PyObject *open_function, *free_function, *friction_function;
 static Py_ssize_t field_index[F_COUNT];
 static Py_ssize_t handle_length;
 
@@ -256,9 +263,10 @@ static int import_cabi(void) {
     }
     open_function = PyObject_GetAttrString(module, "open_simulator");
     free_function = PyObject_GetAttrString(module, "free_simulator");
+    friction_function = PyObject_GetAttrString(module, "validate_friction");
     int fields = resolve_fields(module);
     Py_DECREF(module);
-    if (!open_function || !free_function) {
+    if (!open_function || !free_function || !friction_function) {
         python_exception("hapticrom.online.cabi lacks an entry point");
         return HAPTICROM_E_PYTHON;
     }
@@ -348,6 +356,7 @@ static void fill_slot(struct simulator_data *s, const int64_t *h) {
     s->surface = ENTRY(surface_fn, F_SURFACE);
     s->step_position = ENTRY(position_fn, F_STEP_POSITION);
     s->stiffness = ENTRY(read_fn, F_STIFFNESS);
+    s->set_friction = ENTRY(friction_fn, F_SET_FRICTION);
     s->buf = POINTER(F_BUF);
     s->buf_size = FIELD(F_BUF_SIZE);
     s->snapshot = POINTER(F_SNAPSHOT);
@@ -645,6 +654,7 @@ static void state_of(const double *values, uint64_t sequence, hapticrom_state *s
     memcpy(state->proxy, values + 13, 3 * sizeof(double));
     memcpy(state->contact_point, values + 16, 3 * sizeof(double));
     state->saturated = values[19] > 0.0;
+    state->slipping = values[20] > 0.0;
 }
 
 int hapticrom_get_state(hapticrom_simulator simulator, hapticrom_state *state) {
@@ -780,4 +790,114 @@ int hapticrom_sample_points(hapticrom_simulator simulator, double *points, size_
     if (!status) memcpy(points, s->d.sample_points, length * sizeof(double));
     leave(&s->render_busy);
     return status;
+}
+
+/* --- friction: a setting (the GIL for its check, then written like a servo call) ---------- */
+#define ENTER_WAIT_NS 1000000000 /* a second: a servo call takes microseconds */
+
+static int64_t monotonic_ns(void) {
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (int64_t)t.tv_sec * 1000000000 + t.tv_nsec;
+}
+
+/* Take the servo flag of the live simulator h, waiting for a servo call inside to end
+ * (microseconds; longer if the servo thread was preempted inside one): its slot; NULL and
+ * *status BAD_HANDLE, or BUSY if the flag stayed taken for ENTER_WAIT_NS. No message is
+ * written unless it fails. */
+static struct slot *enter_waiting(hapticrom_simulator h, int *status, const char *call) {
+    struct slot *s = slot_of(h);
+    if (!s) {
+        *status = fail(HAPTICROM_E_BAD_HANDLE, "%s: not a simulator handle (never returned by "
+                                               "hapticrom_load)", call);
+        return NULL;
+    }
+    int64_t deadline = 0;
+    for (unsigned attempt = 0;; attempt++) {
+        if (__atomic_load_n(&s->handle, __ATOMIC_ACQUIRE) != h) break;
+        int expected = 0;
+        if (__atomic_compare_exchange_n(&s->servo_busy, &expected, 1, 0, __ATOMIC_ACQUIRE,
+                                        __ATOMIC_RELAXED)) {
+            if (__atomic_load_n(&s->handle, __ATOMIC_ACQUIRE) != h) {
+                leave(&s->servo_busy);
+                break;
+            }
+            return s;
+        }
+        if (attempt % 64 == 63) { /* the servo thread may be preempted inside a call */
+            int64_t now = monotonic_ns();
+            if (!deadline) deadline = now + ENTER_WAIT_NS;
+            else if (now > deadline) break;
+            sched_yield();
+        }
+        relax();
+    }
+    if (__atomic_load_n(&s->handle, __ATOMIC_ACQUIRE) != h)
+        *status = fail(HAPTICROM_E_BAD_HANDLE, "%s: the simulator was freed", call);
+    else
+        *status = fail(HAPTICROM_E_BUSY, "%s: another thread was inside this simulator's servo "
+                                         "calls all the time for %d s; try again (nothing "
+                                         "changed)", call, ENTER_WAIT_NS / 1000000000);
+    return NULL;
+}
+
+/* The Python registry's key of the live simulator h into *key (load and free write it under
+ * slots_lock); BAD_HANDLE if h is not live. */
+static int key_of(hapticrom_simulator h, int64_t *key, const char *call) {
+    struct slot *s = slot_of(h);
+    if (!s)
+        return fail(HAPTICROM_E_BAD_HANDLE, "%s: not a simulator handle (never returned by "
+                                            "hapticrom_load)", call);
+    pthread_mutex_lock(&slots_lock);
+    int live = __atomic_load_n(&s->handle, __ATOMIC_ACQUIRE) == h;
+    if (live) *key = s->d.key;
+    pthread_mutex_unlock(&slots_lock);
+    return live ? HAPTICROM_OK
+                : fail(HAPTICROM_E_BAD_HANDLE, "%s: the simulator was freed", call);
+}
+
+/* cabi.validate_friction under the GIL: its status; the resolved (static, dynamic, ratio)
+ * into values. */
+static int friction_in_python(int64_t key, double mu_s, double mu_d, double kt, double values[3],
+                              const char *call) {
+    PyGILState_STATE gil = PyGILState_Ensure();
+    int status = HAPTICROM_E_INTERNAL;
+    PyObject *result = PyObject_CallFunction(friction_function, "Lddd", (long long)key, mu_s,
+                                             mu_d, kt);
+    int code = 0;
+    const char *message = NULL;
+    if (!result || !PyArg_ParseTuple(result, "is(ddd)", &code, &message, &values[0], &values[1],
+                                     &values[2])) {
+        python_exception("hapticrom.online.cabi.validate_friction");
+        fail(HAPTICROM_E_INTERNAL, "%s: %s", call, python_error);
+    } else if (code != HAPTICROM_OK) {
+        status = fail(code, "%s: %s (nothing changed)", call, message);
+    } else {
+        status = HAPTICROM_OK;
+    }
+    Py_XDECREF(result);
+    PyGILState_Release(gil);
+    return status;
+}
+
+int hapticrom_set_friction(hapticrom_simulator simulator, double static_coefficient,
+                           double dynamic_coefficient, double tangential_stiffness) {
+    static const char call[] = "hapticrom_set_friction";
+    int64_t key = 0;
+    int status = key_of(simulator, &key, call);
+    if (status) return status;
+    /* Simulator.set_friction's own check, never holding the servo flag while the GIL may be
+     * a wait (the servo thread gets BUSY only for the write below, and a host that holds
+     * the GIL while it frees the simulator cannot deadlock with it). */
+    double values[3];
+    status = friction_in_python(key, static_coefficient, dynamic_coefficient,
+                                tangential_stiffness, values, call);
+    if (status) return status;
+    struct slot *s = enter_waiting(simulator, &status, call);
+    if (!s) return status;
+    write_begin(s); /* a renderer's snapshot holds the state buffer whole */
+    status = s->d.set_friction(values, s->d.buf, s->d.buf_size);
+    write_end(s);
+    leave(&s->servo_busy);
+    return status ? fail_status(status, call, "") : HAPTICROM_OK;
 }

@@ -8,6 +8,7 @@
  *     hapticrom_simulator sim;
  *     if (hapticrom_load("cornea.h5", NULL, &sim) != HAPTICROM_OK)
  *         fprintf(stderr, "%s\n", hapticrom_last_error());
+ *     hapticrom_set_friction(sim, 0.5, 0.3, 0);          // optional: Coulomb friction
  *     hapticrom_step_position(sim, tip, force);          // tip centre mm in, N out, every tick
  *     hapticrom_surface(sim, vertex_displacement, 3 * V, &state);  // render thread, mm;
  *                                                        // draw the tool at state.proxy
@@ -34,16 +35,21 @@
  *
  * Threads (per simulator; different simulators are independent and may run in parallel):
  *   - servo calls (step_position, stiffness, set_contact, step_displacement, step_force,
- *     contact_stiffness, error_estimate, get_state): one thread at a time. A call while another thread is
- *     inside one returns HAPTICROM_E_BUSY at once (never waits, changes nothing).
+ *     contact_stiffness, error_estimate, get_state): one thread at a time. A call while
+ *     another thread is inside one returns HAPTICROM_E_BUSY at once (never waits, changes
+ *     nothing).
  *   - render calls (surface, get_info, surface_mesh, sample_points): one thread at a time,
  *     concurrently with the servo calls. hapticrom_surface computes from a consistent
  *     snapshot of the servo state (a sequence lock: the servo thread never waits for the
  *     renderer; the renderer retries a copy that a servo write overlapped) and reports
  *     which state it rendered (hapticrom_state.sequence).
- *   - hapticrom_load and hapticrom_free may be called from any thread; they take the GIL
- *     (and may wait for it). hapticrom_free waits for calls inside the simulator to end;
- *     later calls with the freed handle return HAPTICROM_E_BAD_HANDLE.
+ *   - hapticrom_load, hapticrom_free and hapticrom_set_friction may be called from any
+ *     thread; they take the GIL (and may wait for it). hapticrom_free waits for calls inside
+ *     the simulator to end; later calls with the freed handle return HAPTICROM_E_BAD_HANDLE.
+ *     hapticrom_set_friction checks its arguments under the GIL without holding the
+ *     simulator, then waits for a servo call inside to end (up to a second) and writes
+ *     (nanoseconds: a servo call in that window gets HAPTICROM_E_BUSY, as from any second
+ *     thread).
  *
  * Errors: every function but the string ones returns a hapticrom_status; on an error
  * nothing is changed and hapticrom_last_error() returns a message naming the call and
@@ -66,7 +72,7 @@ extern "C" {
 
 /* Bumped on any incompatible change; hapticrom_load refuses a Python package whose entry
  * points are of another ABI version (HAPTICROM_E_PYTHON). */
-#define HAPTICROM_ABI_VERSION 2
+#define HAPTICROM_ABI_VERSION 3
 
 /* Simulators open at once, at most (HAPTICROM_E_TOO_MANY beyond). */
 #define HAPTICROM_MAX_SIMULATORS 256
@@ -86,7 +92,8 @@ typedef enum hapticrom_status {
     HAPTICROM_E_BUSY = 7,               /* another thread is inside this simulator */
     HAPTICROM_E_BAD_HANDLE = 8,         /* not a live simulator: freed, or never loaded */
     HAPTICROM_E_LOAD_FAILED = 9,        /* the artifact is missing, damaged or refused */
-    HAPTICROM_E_INVALID_OPTION = 10,    /* a hapticrom_options field is wrong */
+    HAPTICROM_E_INVALID_OPTION = 10,    /* a hapticrom_options field or a setting (friction)
+                                           is out of its range */
     HAPTICROM_E_TOO_MANY = 11,          /* HAPTICROM_MAX_SIMULATORS are open */
     HAPTICROM_E_PYTHON = 12,            /* the interpreter or the package could not start */
     HAPTICROM_E_INTERNAL = 13           /* a bug: please report it with the message */
@@ -152,7 +159,7 @@ typedef struct hapticrom_state {
     uint32_t has_contact;    /* 1 once a contact point was set (by set_contact or by a
                                 step_position that touched) */
     uint64_t sequence;       /* the state's number: writing calls (set_contact, steps;
-                                refused ones too) since load */
+                                refused ones too; set_friction's that succeeded) since load */
     /* Since ABI 2; step_position's, zeros before the first one: */
     double proxy[3];         /* mm: where the tool tip's centre would be if the tissue did not
                                 yield (on the surface offset by the tool radius in contact, the
@@ -161,6 +168,10 @@ typedef struct hapticrom_state {
                                 foot: the point the contact model is evaluated at) */
     uint32_t in_contact;     /* 1 if the last step pressed the tissue (a force), 0 if free */
     uint32_t saturated;      /* 1 if the last step_position held the depth at max_displacement */
+    /* Since ABI 3: */
+    uint32_t slipping;       /* 1 if the last step_position slid with friction (the tangential
+                                force was dynamic_coefficient x the normal one); 0 if it stuck,
+                                was free or is frictionless (hapticrom_set_friction) */
 } hapticrom_state;
 
 /* The package version this library was built with ("0.1.0"); *abi_version (if not NULL)
@@ -188,6 +199,23 @@ int hapticrom_load(const char *artifact_path, const hapticrom_options *options,
  * is dead afterwards (BAD_HANDLE, also for a second free). Any thread; takes the GIL. */
 int hapticrom_free(hapticrom_simulator simulator);
 
+/* Coulomb friction for hapticrom_step_position (none after load): the proxy sticks while the
+ * tangential force is at most static_coefficient x the normal force, and slides with
+ * dynamic_coefficient x it otherwise (stick-slip: it needs the static cone again to slide
+ * after it stuck). While stuck the tangential force is a spring from the tip to the proxy,
+ * tangential_stiffness x the normal contact stiffness (d force / d depth); 0 means the
+ * default, 2/3 (Mindlin's 2 (1 - nu) / (2 - nu) for incompressible tissue). The rendered
+ * surface stays the normal indentation: the drag is in the force only. Coefficients: finite,
+ * 0 <= dynamic_coefficient <= static_coefficient <= 10 (pass the same value twice for one
+ * coefficient; 0, 0, 0 turns friction off); tangential_stiffness 0 or in (0, 10]. The checks
+ * are the Python runtime's (Simulator.set_friction, under the GIL: not a servo call, see
+ * "Threads"); the setting holds from the next step on. Errors: NOT_FINITE (an argument is
+ * NaN or infinite), INVALID_OPTION (out of range, dynamic above static; the message says
+ * which), BUSY (a thread stayed inside the servo calls for a whole second), BAD_HANDLE,
+ * INTERNAL; nothing changes on an error. */
+int hapticrom_set_friction(hapticrom_simulator simulator, double static_coefficient,
+                           double dynamic_coefficient, double tangential_stiffness);
+
 /* --- servo calls (one thread at a time per simulator; no GIL, no allocation, no lock) --- */
 
 /* Put (or slide) the tool's contact at point[3] (mm, on or near the surface); outside the
@@ -202,8 +230,11 @@ int hapticrom_set_contact(hapticrom_simulator simulator, const double point[3]);
  * hapticrom_get_state then gives in_contact, the proxy, the contact point and whether the
  * depth was held at max_displacement (saturated: a finite tip is never refused, a servo loop
  * gets a force every tick). It sets the contact itself (at the proxy's contact point): a
- * host that uses it calls no set_contact. Microseconds; every tick. Errors: NULL_ARGUMENT,
- * NOT_FINITE (nothing changed), BUSY, BAD_HANDLE. */
+ * host that uses it calls no set_contact. With friction (hapticrom_set_friction) the force
+ * has a tangential part: the proxy sticks and a spring pulls the tool back to it, or it
+ * slides and the drag is dynamic_coefficient x the normal force (hapticrom_state.slipping).
+ * Microseconds; every tick. Errors: NULL_ARGUMENT, NOT_FINITE (nothing changed), BUSY,
+ * BAD_HANDLE. */
 int hapticrom_step_position(hapticrom_simulator simulator, const double tip[3],
                             double force[3]);
 
@@ -211,7 +242,10 @@ int hapticrom_step_position(hapticrom_simulator simulator, const double tip[3],
  * step into stiffness[9]: near the tip x, the force on the tool is F(x + dx) ~ F - K dx (for
  * a host that steps the physics slower than its device loop and extrapolates, or tunes its
  * coupling). Frictionless: K = k n n^T, k = d force / d depth, n the contact normal; zero
- * when not in contact (also before any step). Errors: NULL_ARGUMENT, BUSY, BAD_HANDLE. */
+ * when not in contact (also before any step). With friction, k_t = tangential_stiffness x k:
+ * stuck, K + k_t (I - n n^T); slipping along the unit s (against the tangential force),
+ * K + k_t (I - n n^T - s s^T) - dynamic_coefficient k s n^T (not symmetric). Errors:
+ * NULL_ARGUMENT, BUSY, BAD_HANDLE. */
 int hapticrom_stiffness(hapticrom_simulator simulator, double stiffness[9]);
 
 /* Tool displacement[3] (mm, from the contact point) in, reaction force[3] on the tool (N)
@@ -236,7 +270,8 @@ int hapticrom_contact_stiffness(hapticrom_simulator simulator, double *stiffness
 int hapticrom_error_estimate(hapticrom_simulator simulator, double *estimate);
 
 /* The current state (normal, force, displacement, depth, flags; step_position's proxy,
- * contact point, in_contact and saturated). Errors: NULL_ARGUMENT, BUSY, BAD_HANDLE. */
+ * contact point, in_contact, saturated and slipping). Errors: NULL_ARGUMENT, BUSY,
+ * BAD_HANDLE. */
 int hapticrom_get_state(hapticrom_simulator simulator, hapticrom_state *state);
 
 /* --- render calls (one thread at a time per simulator, alongside the servo thread) --- */

@@ -24,6 +24,14 @@ and one C wrapper in ``capi/hapticrom.c`` that calls it between ``enter`` and ``
 (inside ``write_begin`` / ``write_end`` if it writes the state buffer or the proxy's state,
 so that the renderer's snapshot stays whole).
 
+Friction (``hapticrom_set_friction``) is the one setting C changes after the load: it is
+not a servo call. :func:`validate_friction` (under the GIL) runs
+:meth:`Simulator.set_friction <hapticrom.online.simulator.Simulator.set_friction>` itself
+on a scratch copy of the simulator (its own state buffer: the live one is the servo
+thread's), so that there is one validator and one default; C then writes the triple it
+resolved to with the entry point :func:`store_friction`, under the servo thread's busy flag
+and the sequence lock, never waiting for the GIL while it holds the flag.
+
 The renderer's snapshot is the state buffer (all a surface reads) and the head of the
 proxy's state (:data:`PROXY_HEAD` doubles: the proxy and its contact point, so that a host
 draws the tool where the surface it renders was dented; the stamps after it are the proxy's
@@ -36,7 +44,9 @@ would make numba's cfunc wrapper take the GIL to report it. Units: mm, N, N/mm.
 
 from __future__ import annotations
 
+import copy
 import itertools
+import math
 import os
 import sys
 from dataclasses import dataclass
@@ -51,7 +61,7 @@ from hapticrom.online.model import ReducedModel, load
 from hapticrom.online.simulator import Simulator
 from hapticrom.shared.errors import ArtifactError, HapticromError, InputError
 
-ABI_VERSION = 2  # the header's HAPTICROM_ABI_VERSION: bumped on any change of the handle
+ABI_VERSION = 3  # the header's HAPTICROM_ABI_VERSION: bumped on any change of the handle
 
 # The ABI's status codes (include/hapticrom.h, enum hapticrom_status; a test compares them).
 STATUS = {
@@ -82,8 +92,8 @@ RESPONSES = {0: None, 1: "anm", 2: "curves"}
 
 # read_state's output: normal (3), force (3), displacement (3), depth, flags, contacts prepared
 # so far (0: no contact point yet), in contact (1/0), step_position's proxy (3), its contact
-# point (3), saturated (1/0)
-STATE_SIZE = 20
+# point (3), saturated (1/0), slipping with friction (1/0; since ABI 3)
+STATE_SIZE = 21
 PROXY_HEAD = px.STATE_STAMPS  # the proxy state's doubles a snapshot copies (all but scratch)
 
 _f8p, _i8p = types.CPointer(types.float64), types.CPointer(types.int64)
@@ -236,6 +246,18 @@ def read_state(buf, buf_size, proxy, proxy_size, out):
     out[11] = state[k.CONTACTS]
     out[12] = 1.0 if _touching(state) else 0.0
     out[19] = p[px.STATE_SATURATED]
+    out[20] = state[k.SLIPPING]
+    return OK
+
+
+@cfunc(_status(_f8p, _f8p, types.int64), cache=True)
+def store_friction(values, buf, buf_size):
+    """``hapticrom_set_friction``'s write: values (3,), the (static, dynamic coefficient,
+    tangential stiffness ratio) that :func:`validate_friction` resolved, into the state
+    buffer where ``Simulator.set_friction`` keeps them."""
+    state = carray(buf, (buf_size,))
+    for c in range(3):
+        state[k.FRICTION + c] = values[c]
     return OK
 
 
@@ -381,7 +403,7 @@ HANDLE_FIELDS = (
     "key",  # the registry's key (free_simulator)
     # entry points (addresses of the cfuncs)
     "set_contact", "step_displacement", "step_force", "contact_stiffness", "error_estimate",
-    "read_state", "surface", "step_position", "stiffness",
+    "read_state", "surface", "step_position", "stiffness", "set_friction",
     # the state buffer, its render-side copy, the table, the model's arrays (addresses)
     "buf", "buf_size", "snapshot", "table", "table_size", "indicator", "samples",
     # step_position's sheet (read only), the proxy's state, the head a snapshot copies (its
@@ -482,6 +504,7 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
         "read_state": read_state.address,
         "surface": SURFACES[sim.interpolation, sim.response].address,
         "step_position": step_position.address, "stiffness": stiffness.address,
+        "set_friction": store_friction.address,
         "buf": _address(sim._buf), "buf_size": sim._buf.size, "snapshot": _address(snapshot),
         "table": _address(sim._table), "table_size": sim._table.size,
         "sheet": _address(sim._sheet), "sheet_size": sim._sheet.size,
@@ -503,8 +526,9 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
 
 
 def _limit(value: float) -> float | None:
-    """A limit (or the tool radius) from C: 0 is the model's default (None); anything else
-    is checked by the Simulator (finite, positive; the radius also at most MAX_LENGTH)."""
+    """A limit (the tool radius, the tangential stiffness) from C: 0 is the default (None);
+    anything else is checked by the Simulator (finite, positive; the radius also at most
+    MAX_LENGTH, the tangential stiffness MAX_FRICTION)."""
     return None if value == 0.0 else value
 
 
@@ -566,6 +590,38 @@ def open_simulator(path: str, interpolation: int, response: int, max_displacemen
 def free_simulator(key: int) -> bool:
     """``hapticrom_free``: forget the simulator ``key`` (its arrays may go); False if unknown."""
     return _REGISTRY.pop(key, None) is not None
+
+
+_NO_FRICTION = (0.0, 0.0, 0.0)
+
+
+def validate_friction(
+    key: int, static: float, dynamic: float, tangential_stiffness: float
+) -> tuple[int, str, tuple[float, float, float]]:
+    """``hapticrom_set_friction``'s check, under the GIL: ``Simulator.set_friction(static,
+    dynamic, tangential_stiffness)`` (0: its default, 2/3) on a scratch copy of the simulator
+    ``key`` with a state buffer of its own, so that the live buffer (the servo thread's) is
+    not written here.
+
+    Returns (status, message, values): OK, "" and the (static, dynamic, ratio) the
+    simulator's own check resolved (C writes them with :func:`store_friction`); or
+    NOT_FINITE (an argument is NaN or infinite) or INVALID_OPTION (out of range, dynamic
+    above static) with the simulator's message, BAD_HANDLE if ``key`` was freed meanwhile.
+    Never raises."""
+    entry = _REGISTRY.get(key)
+    if entry is None:
+        return STATUS["BAD_HANDLE"], "the simulator was freed", _NO_FRICTION
+    scratch = copy.copy(entry.simulator)
+    scratch._buf = np.zeros_like(entry.simulator._buf)  # set_friction writes its fields only
+    try:
+        scratch.set_friction(static, dynamic, _limit(tangential_stiffness))
+        values = scratch.friction
+    except InputError as exc:
+        finite = all(math.isfinite(x) for x in (static, dynamic, tangential_stiffness))
+        return (STATUS["INVALID_OPTION"] if finite else _NOT_FINITE), str(exc), _NO_FRICTION
+    except Exception as exc:  # noqa: BLE001 - C gets a status and a message, never a raise
+        return _INTERNAL, f"{type(exc).__name__}: {exc}", _NO_FRICTION
+    return OK, "", values
 
 
 def open_count() -> int:

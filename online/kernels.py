@@ -89,7 +89,10 @@ PLACEMENT = 34  # (6) the last placement's position and blade (NaN: none since)
 CONTACTS = 40  # contacts prepared so far (a count: what depends on the contact is stale)
 SAMPLES = 41  # (3) the contact's three samples (indices, as floats) of those weights
 LOCATE_SCRATCH = 44  # (3) locate's (u, v, h) of the triangle being tried
-CURVE = 47  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
+FRICTION = 47  # (3) step_position's Coulomb friction: static and dynamic coefficients (0 0:
+# frictionless), the tangential stiffness as a multiple of the normal one (see proxy)
+SLIPPING = 50  # 1 if the last step_position slid with friction (0: stuck, or frictionless)
+CURVE = 51  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
 # POD-ANM (response "anm"), at buf[ANM_BASE] = CURVE + 2 K: three neighbour blocks, each a
 # header then SMAX section records (the neighbour's sections, artifact order).
 BLOCK_WEIGHT, BLOCK_COUNT, BLOCK_SECTION, BLOCK_A, BLOCK_RECORDS = 0, 1, 2, 3, 4

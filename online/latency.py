@@ -111,6 +111,11 @@ def _time_runtime(model: ReducedModel, sim, steps: int, baseline_steps: int) -> 
     sim.step_position(tips[len(tips) // 2])  # in contact, mid-slide
     stiffness = np.zeros((3, 3))
     calls["stiffness"] = time_calls(lambda _: sim.stiffness(stiffness), range(20_000))
+    rubbing = model.simulator(sim.interpolation, response=sim.response)
+    rubbing.set_friction(0.4, 0.25)  # the slide slips, the press and the lift stick
+    calls["step_position_friction"] = time_calls(rubbing.step_position, tips)
+    rubbing.step_position(tips[len(tips) // 2])
+    calls["stiffness_friction"] = time_calls(lambda _: rubbing.stiffness(stiffness), range(20_000))
     ref = NumpySimulator(model, sim.response, root="newton")  # the kernels' algorithm
     ref.set_contact(centre)
     steps = displacements[:baseline_steps]
@@ -125,6 +130,8 @@ TARGETS = {
     "set_contact p99": ("set_contact", "p99_us", 20.0),
     "step_position p99 (contact detection included)": ("step_position", "p99_us", 10.0),
     "stiffness p99": ("stiffness", "p99_us", 2.0),
+    "step_position with friction p99": ("step_position_friction", "p99_us", 10.0),
+    "stiffness with friction p99": ("stiffness_friction", "p99_us", 2.0),
 }
 
 
@@ -137,7 +144,8 @@ def report(result: dict) -> str:
         f"{'call':28s} {'p50 us':>9s} {'p99 us':>9s} {'max us':>9s} {'calls':>8s}",
     ]
     keys = ("step_displacement", "step_force", "set_contact", "step_position", "stiffness",
-            "surface_displacement", "surface_untrained", "numpy_step_displacement")  # fmt: skip
+            "step_position_friction", "stiffness_friction", "surface_displacement",
+            "surface_untrained", "numpy_step_displacement")  # fmt: skip
     for key in keys:
         r = result[key]
         lines.append(

@@ -30,7 +30,8 @@ MAX_PATH_SECONDS = 3600.0  # an hour: a longer path would pace a real-time loop 
 MAX_LINE = 4096  # characters in one line of a tool path, comment included
 MAX_PATH_BYTES = 100 * MAX_PATH_ROWS  # 360 MB: an hour of rows of 100 characters
 MAX_COORDINATE = 1e4  # mm: a tip 10 m away is a unit mistake, not a path
-HISTORY_COLUMNS = ("t_s", "x_mm", "y_mm", "z_mm", "fx_n", "fy_n", "fz_n", "depth_mm", "contact")
+HISTORY_COLUMNS = ("t_s", "x_mm", "y_mm", "z_mm", "fx_n", "fy_n", "fz_n", "depth_mm", "contact",
+                   "normal_n", "tangential_n", "slipping")  # fmt: skip
 
 
 def tool_path(model, ticks: int, depth_fraction: float = 0.8):
@@ -198,14 +199,16 @@ def play(
     say: Callable[[str], None] = print,
     tip_path: str | Path | None = None,
     out: str | Path | None = None,
+    friction: tuple[float, ...] | None = None,
 ) -> dict:
     """Drive the scripted path (``rate`` Hz for ``seconds``) or the CSV ``tip_path`` through
     ``step_position`` of a simulator of the artifact at ``path``, as a servo loop would
     (paced in real time, or as fast as possible), reporting through ``say``. With ``out``
     (a path prefix) the history goes to OUT.csv and, with matplotlib, OUT.png. Returns
-    the achieved rate, the physics' latencies and the peak force. InputError (before
-    anything runs or is written) for a bad ``out``, ``tip_path``, ``rate`` or ``seconds``,
-    or a model the scripted path cannot be placed on."""
+    the achieved rate, the physics' latencies and the peak force. ``friction``: the
+    arguments of ``Simulator.set_friction`` (static[, dynamic[, tangential stiffness]]).
+    InputError (before anything runs or is written) for a bad ``out``, ``tip_path``,
+    ``rate``, ``seconds`` or ``friction``, or a model the scripted path cannot be placed on."""
     if out is not None:
         history_paths(out)  # refused now, not after an hour of servo loop
     if tip_path is None:
@@ -215,6 +218,8 @@ def play(
         what = f"{tip_path}: {len(times)} positions over {times[-1]:.3g} s"
     model = load(path)
     sim = model.simulator(interpolation)
+    if friction is not None:
+        sim.set_friction(*friction)
     if tip_path is None:
         try:
             times, tips = np.arange(ticks) / rate, scripted_tips(model, ticks)
@@ -227,7 +232,9 @@ def play(
     say(f"playing {model.describe()}")
     source = "the POD-ANM series" if sim.response == "anm" else "the stored full-order curves"
     pacing = "real time" if realtime else "free running"
-    say(f"{what}; tip radius {sim.tool_radius:g} mm; {pacing}; force from {source}")
+    rubbing = "frictionless" if not sim.friction[0] else (
+        "friction static {:g}, dynamic {:g}".format(*sim.friction[:2]))  # fmt: skip
+    say(f"{what}; tip radius {sim.tool_radius:g} mm; {rubbing}; {pacing}; force from {source}")
     history, physics_ns, elapsed = _servo_loop(sim, times, tips, realtime, say)
     us = physics_ns / 1e3
     summary = {
@@ -238,6 +245,7 @@ def play(
         "physics_max_us": float(us.max()),
         "max_force_n": float(np.linalg.norm(history[:, 4:7], axis=1).max()),
         "max_rate_hz": 1e6 / float(np.percentile(us, 99)),
+        "slipping_ticks": int(history[:, 11].sum()),
     }
     say(
         f"achieved {summary['achieved_rate_hz']:.0f} Hz over {elapsed:.2f} s; physics per tick "
@@ -264,8 +272,8 @@ def _scripted_ticks(rate: float, seconds: float) -> int:
 
 
 def _servo_loop(sim, times, tips, realtime: bool, say) -> tuple:
-    """(history (N, 9): t, tip, force, depth, contact; physics time per tick (ns);
-    seconds in all) of the loop."""
+    """(history (N, 12): t, tip, force, depth, contact, the force's normal and tangential
+    parts, slipping; physics time per tick (ns); seconds in all) of the loop."""
     ticks = len(times)
     history = np.zeros((ticks, len(HISTORY_COLUMNS)))
     history[:, 0], history[:, 1:4] = times, tips
@@ -281,6 +289,9 @@ def _servo_loop(sim, times, tips, realtime: bool, say) -> tuple:
         physics_ns[i] = time.perf_counter_ns() - t0
         history[i, 4:7] = force
         history[i, 7], history[i, 8] = sim.depth, sim.in_contact
+        normal = force @ sim.contact_normal if sim.in_contact else 0.0
+        history[i, 9], history[i, 11] = normal, sim.slipping
+        history[i, 10] = np.linalg.norm(force - normal * sim.contact_normal) if normal else 0.0
         if i % max(1, ticks // 15) == 0:
             state = "contact" if sim.in_contact else "free"
             say(
@@ -311,7 +322,8 @@ def history_paths(out: str | Path) -> tuple[Path, Path]:
 
 def write_history(history: np.ndarray, out: str | Path) -> list[Path]:
     """OUT.csv (the columns of HISTORY_COLUMNS) and, if matplotlib is installed, OUT.png
-    (force and depth over time); the names as :func:`history_paths` gives them."""
+    (force and depth over time; with friction, the tangential force against the cone's
+    bound and the slipping ticks); the names as :func:`history_paths` gives them."""
     csv, png = history_paths(out)
     np.savetxt(csv, history, delimiter=",", header=",".join(HISTORY_COLUMNS), comments="",
                fmt="%.9g")  # fmt: skip
@@ -323,12 +335,16 @@ def write_history(history: np.ndarray, out: str | Path) -> list[Path]:
         import matplotlib.pyplot as plt
     except ImportError:
         return written
-    fig, (top, bottom) = plt.subplots(2, 1, sharex=True, figsize=(7, 5))
+    rubbing = bool(history[:, 10].any())
+    fig, axes = plt.subplots(3 if rubbing else 2, 1, sharex=True, figsize=(7, 7 if rubbing else 5))
+    top, bottom = axes[0], axes[-1]
     for c, name in enumerate("xyz"):
         top.plot(history[:, 0], history[:, 4 + c], label=f"F{name}")
     top.plot(history[:, 0], np.linalg.norm(history[:, 4:7], axis=1), "k", label="|F|")
     top.set_ylabel("force on the tool (N)")
     top.legend(loc="upper left", ncol=4, fontsize=8)
+    if rubbing:
+        _friction_panel(axes[1], history)
     bottom.plot(history[:, 0], history[:, 7], "k")
     bottom.set_ylabel("depth (mm)")
     bottom.set_xlabel("time (s)")
@@ -336,3 +352,14 @@ def write_history(history: np.ndarray, out: str | Path) -> list[Path]:
     fig.savefig(png, dpi=110)
     plt.close(fig)
     return [*written, png]
+
+
+def _friction_panel(ax, history: np.ndarray) -> None:
+    """The tangential force, and where the proxy slipped (shaded)."""
+    t = history[:, 0]
+    ax.plot(t, history[:, 10], "C3", label="|F_t|")
+    ax.plot(t, history[:, 9], "k:", lw=0.8, label="F_n")
+    ax.fill_between(t, 0, history[:, 10].max(), where=history[:, 11] > 0, color="C3",
+                    alpha=0.15, lw=0, label="slipping")  # fmt: skip
+    ax.set_ylabel("friction (N)")
+    ax.legend(loc="upper left", ncol=3, fontsize=8)

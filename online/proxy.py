@@ -23,7 +23,8 @@ undeformed triangle), and the depth is the tip's distance behind the sheet along
 sheet's normal at the proxy (the normals of the triangles' corners, blended), so that it
 is zero exactly where the tool leaves the sheet: no force jump at release. The reduced
 model takes it from there as it does for ``set_contact`` and ``step_displacement``: the
-force along the model's normal at the contact (frictionless), where that normal is within
+force along the model's normal at the contact (plus, with Coulomb friction, a tangential
+force from a proxy that sticks and slips: see "Coulomb friction" below), where that normal is within
 60 degrees of the sheet's (fading out to 90 degrees: a surface facing away from the trained
 normals, e.g. inverted triangles, would otherwise pull the tool in). A tip that started inside
 the organ (or entered it from the side, below the sheet) feels nothing until it leaves
@@ -69,7 +70,10 @@ STATE_SATURATED = 9  # 1 if the last step's displacement was held at the simulat
 STATE_D = 10  # (3) scratch: the displacement handed to the response
 STATE_WHERE = 13  # (4) scratch: the walk's triangle and barycentric coordinates
 STATE_FOOT = 17  # (3) the contact point: the proxy's foot on the undeformed surface (mm)
-STATE_STAMPS = 20  # (T) the last query that tested each triangle
+STATE_SLIDE = 20  # (4) scratch: where a proxy slipping with friction goes (as STATE_WHERE)
+STATE_CONTACT = 24  # (2) the last step's own normal force (N) and dF_n/ddepth (N/mm), before
+# any softening by cuts: what friction's stick test needs of the last step (see friction_proxy)
+STATE_STAMPS = 26  # (T) the last query that tested each triangle
 NEVER, FREE, TOUCHING = 0.0, 1.0, 2.0
 MAX_WALK = 512  # triangles a proxy crosses in one step (a faster move goes on at the next)
 # The trained response pushes along the model's normal at the contact: where the sheet faces
@@ -446,6 +450,7 @@ def release(p, state, buf):
     state[STATE_MODE] = FREE
     state[STATE_PROXY], state[STATE_PROXY + 1], state[STATE_PROXY + 2] = p[0], p[1], p[2]
     state[STATE_SATURATED] = 0.0
+    buf[k.SLIPPING] = 0.0
     if buf[k.CONTACTS] == 0.0:  # never touched: nothing to take back to depth 0
         for c in range(3):
             buf[k.FORCE + c] = 0.0
@@ -471,6 +476,97 @@ def respond(d, buf):
     if buf[k.ANM_N1] > 0:
         return k.step_displacement_anm(d, buf)
     return k.step_displacement_curves(d, buf)
+
+
+# -- Coulomb friction ------------------------------------------------------------------------
+# The proxy sticks where it is while the tangential force it implies is inside the static
+# friction cone, and slips towards the frictionless goal g (the sheet's point nearest the tip)
+# otherwise (Salcudean and Vlaar 1997; CHAI3D's finger proxy does it with angles). The
+# tangential force is a spring between them, across the model's normal m at the contact:
+# F_t = -k_t delta (delta: g - proxy across m; zero without friction, exactly), with k_t a
+# multiple of the normal contact stiffness dF_n/ddepth (2 (1 - nu) / (2 - nu), Mindlin 1949,
+# = 2/3 for incompressible tissue, by default). Stuck while k_t |delta| <= mu_s F_n; else
+# F_t = -mu_d F_n delta / |delta| and the proxy goes to mu_d F_n / k_t behind the goal. A
+# sliding proxy slides on while k_t |delta| > mu_d F_n (the dynamic cone: Harwin and Melder
+# 2002), so a steady slide feels mu_d F_n, not a stick-slip buzz; it sticks again when the
+# tip stops or turns back, and needs the static cone to slide again. The reduced model's
+# field stays the normal indentation: the tissue's tangential drag is not in it (the
+# hyper-reduced model's issue).
+@njit(inline="always")
+def friction_proxy(goal, sheet, state, buf, where):
+    """Where the proxy goes with friction, from where it was (the frictionless goal, and in
+    where its place as walk writes it): it stays (returns True, where := the proxy's place)
+    while k_t |delta| <= mu F_n (mu: mu_s if it was stuck, mu_d if it was sliding), else it
+    slides to mu_d F_n / k_t behind the goal (returns False, where := there). F_n and k_t
+    are the last step's own, as the kernel computed them (STATE_CONTACT: not softened by a
+    cut, not another call's; one step of lag: the force itself obeys the law exactly,
+    add_friction). No normal force: the frictionless goal."""
+    fn = state[STATE_CONTACT]
+    kt = buf[k.FRICTION + 2] * state[STATE_CONTACT + 1]
+    if not (fn > 0.0 and kt > 0.0):
+        return False
+    t0 = int(state[STATE_TRIANGLE])
+    x0, _, _ = proxy_frame(sheet, t0, state[STATE_BARY], state[STATE_BARY + 1],
+                           state[STATE_BARY + 2])  # fmt: skip
+    _, dl = _lateral(goal, x0, buf)
+    # (sliding: the dynamic cone, where the last slide left the proxy to round-off: a tip
+    # that stopped finds it there, and it sticks)
+    cone = buf[k.FRICTION + 1] * (1.0 + 1e-9) if buf[k.SLIPPING] > 0.0 else buf[k.FRICTION]
+    if kt * dl <= cone * fn:
+        where[0] = t0
+        for c in range(3):
+            where[1 + c] = state[STATE_BARY + c]
+        return True
+    # Along the chord from the goal to the proxy (both on the sheet), not across m alone: the
+    # sheet may be tilted from m's tangent plane (outside the trained region m is the border
+    # sample's), and a target moved across m only lands on the sheet short of the lag, by the
+    # tilt's cosine squared (the proxy then sticks again below the dynamic cone).
+    s = min(buf[k.FRICTION + 1] * fn / kt, dl) / dl
+    target = (goal[0] + s * (x0[0] - goal[0]), goal[1] + s * (x0[1] - goal[1]),
+              goal[2] + s * (x0[2] - goal[2]))  # fmt: skip
+    slide = state[STATE_SLIDE : STATE_SLIDE + 4]
+    walk(target, sheet, t0, slide)
+    x1, _, n1 = proxy_frame(sheet, int(slide[0]), slide[1], slide[2], slide[3])
+    if k.finite3(x1) and k.finite3(n1):  # (else a degenerate triangle: the goal)
+        for c in range(4):
+            where[c] = slide[c]
+    return False
+
+
+@njit(inline="always")
+def normal_force(buf):
+    """The last step's force along the model's normal (N; the friction is across it)."""
+    return (buf[k.FORCE] * buf[k.NORMAL] + buf[k.FORCE + 1] * buf[k.NORMAL + 1]
+            + buf[k.FORCE + 2] * buf[k.NORMAL + 2])  # fmt: skip
+
+
+@njit(inline="always")
+def _lateral(goal, x, buf):
+    """The goal's offset from the proxy x across the model's normal, and its length."""
+    m = (buf[k.NORMAL], buf[k.NORMAL + 1], buf[k.NORMAL + 2])
+    r = k.minus(goal, x)
+    h = k.dot(r, m)
+    lateral = (r[0] - h * m[0], r[1] - h * m[1], r[2] - h * m[2])
+    return lateral, math.sqrt(k.dot(lateral, lateral))
+
+
+@njit(inline="always")
+def add_friction(goal, x, stuck, buf):
+    """The tangential force on the tool, added to the step's normal force F_n m: -k_t
+    delta while stuck and within the static cone, else mu_d F_n against the slip (delta: the
+    frictionless goal's offset from the proxy x). SLIPPING says which."""
+    fn = normal_force(buf)
+    lateral, dl = _lateral(goal, x, buf)
+    if not (fn > 0.0 and dl > 0.0):
+        return
+    kt = buf[k.FRICTION + 2] * k.contact_stiffness(buf)
+    if stuck and kt * dl <= buf[k.FRICTION] * fn:
+        scale = kt
+    else:
+        scale = buf[k.FRICTION + 1] * fn / dl
+        buf[k.SLIPPING] = 1.0
+    for c in range(3):
+        buf[k.FORCE + c] -= scale * lateral[c]
 
 
 @njit(f"int64({k.vec}, {k.ro_f8_1d}, {k.f8_1d}, {k.ro_f8_1d}, {k.f8_1d})", cache=True,
@@ -519,6 +615,11 @@ def step_position(tip, sheet, state, table, buf):
     if height >= 0.0 or fade <= 0.0:
         release(p, state, buf)
         return k.NO_VERTEX
+    goal, stuck = x, False  # the frictionless proxy: the sheet's point nearest the tip
+    if mode == TOUCHING and buf[k.FRICTION] > 0.0:
+        stuck = friction_proxy(goal, sheet, state, buf, where)
+        t = int(where[0])
+        x, q, n = proxy_frame(sheet, t, where[1], where[2], where[3])
     state[STATE_MODE], state[STATE_TRIANGLE] = TOUCHING, t
     for c in range(3):
         state[STATE_PROXY + c] = x[c]
@@ -533,14 +634,18 @@ def step_position(tip, sheet, state, table, buf):
     # The depth along the sheet's normal at the proxy (so that it reaches 0 exactly where
     # the tool leaves the sheet: no force jump), held at the limit; the force along the
     # model's normal at the contact, as a displacement step gives it.
-    depth = -height * fade
+    depth = -k.dot(k.minus(p, x), n) * fade  # (height, unless a stuck proxy moved the frame)
     limit = buf[k.MAX_DISPLACEMENT] * (1.0 - 1e-12)
     state[STATE_SATURATED] = 1.0 if depth > limit else 0.0
-    depth = min(depth, limit)
+    depth = max(min(depth, limit), 0.0)
     d = state[STATE_D : STATE_D + 3]
     for c in range(3):
         d[c] = -depth * buf[k.NORMAL + c]
     respond(d, buf)
+    buf[k.SLIPPING] = 0.0
+    state[STATE_CONTACT], state[STATE_CONTACT + 1] = normal_force(buf), k.contact_stiffness(buf)
+    if buf[k.FRICTION] > 0.0:
+        add_friction(goal, x, stuck, buf)
     return region
 
 
@@ -548,13 +653,31 @@ def step_position(tip, sheet, state, table, buf):
 def stiffness(buf, out):
     """The 3x3 contact stiffness K (N/mm) at the last step into out: F(tip + dx) ~ F - K dx
     for the force F on the tool. Frictionless: K = k n n^T with k = dF/ddepth; zero out of
-    contact. (The normal's turn as the proxy slides, of order F / the surface's radius of
-    curvature, is left out.) WRONG_SHAPE if out is not (3, 3)."""
+    contact. With friction (step_position's), stuck: + k_t (I - n n^T); slipping along s
+    (the unit slip, against the tangential force): + k_t (I - n n^T - s s^T) - mu_d k s n^T
+    (the force keeps mu_d F_n along the slip, turns with the tip across it, and grows with
+    the depth: not symmetric). (The normal's turn as the proxy slides, of order F / the
+    surface's radius of curvature, is left out.) WRONG_SHAPE if out is not (3, 3)."""
     if out.shape[0] != 3 or out.shape[1] != 3:
         return k.WRONG_SHAPE
     touching = not (int(buf[k.FLAGS]) & k.FLAG_NO_CONTACT) and buf[k.CONTACTS] > 0.0
     slope = k.contact_stiffness(buf) if touching else 0.0
+    n = (buf[k.NORMAL], buf[k.NORMAL + 1], buf[k.NORMAL + 2])
     for i in range(3):
         for j in range(3):
-            out[i, j] = slope * buf[k.NORMAL + i] * buf[k.NORMAL + j]
+            out[i, j] = slope * n[i] * n[j]
+    if not (touching and buf[k.FRICTION] > 0.0 and normal_force(buf) > 0.0):
+        return k.OK
+    kt = buf[k.FRICTION + 2] * slope
+    fn = normal_force(buf)
+    s = (fn * n[0] - buf[k.FORCE], fn * n[1] - buf[k.FORCE + 1], fn * n[2] - buf[k.FORCE + 2])
+    ts = math.sqrt(k.dot(s, s))  # |F_t|; s: against the tangential force
+    slipping = buf[k.SLIPPING] > 0.0 and ts > 0.0
+    scale = 1.0 / ts if slipping else 0.0
+    s = (s[0] * scale, s[1] * scale, s[2] * scale)
+    mu = buf[k.FRICTION + 1] if slipping else 0.0
+    for i in range(3):
+        for j in range(3):
+            eye = 1.0 if i == j else 0.0
+            out[i, j] += kt * (eye - n[i] * n[j] - s[i] * s[j]) - mu * slope * s[i] * n[j]
     return k.OK

@@ -16,10 +16,11 @@ point and the tool's displacement from it instead::
 
 The model is the PODI contact model of the artifact: the samples' force-depth
 curves and reduced fields, interpolated over the tool position (barycentric in
-the samples' triangulation on the surface) and over the depth (monotone cubic for forces). The
-contact is frictionless: the normal component of ``d`` indents the tissue and
+the samples' triangulation on the surface) and over the depth (monotone cubic for forces). A
+displacement step is frictionless: the normal component of ``d`` indents the tissue and
 the force is along the surface normal; to follow the tool sideways, move the
-contact point (``set_contact`` every step is fine: it is microseconds).
+contact point (``set_contact`` every step is fine: it is microseconds). ``step_position``
+adds Coulomb friction when asked (``set_friction``).
 
 The rendered surface (``interpolation``): "transport" (the default) carries each
 neighbour's field to the contact before the blend, so the dent is under the tool
@@ -97,6 +98,7 @@ def _as_vector(value, out: np.ndarray, what: str, error: type[Exception]) -> np.
     return out
 
 
+MAX_FRICTION = 10.0  # friction coefficients and the tangential stiffness ratio: at most this
 _STIFFNESS_OUT = "a writeable, C-contiguous float64 numpy array of shape (3, 3)"
 
 
@@ -122,6 +124,15 @@ def _limit(value, default: float, name: str, unit: str) -> float:
             f"{name} must be finite and positive ({unit}), or None for the default "
             f"({default:.3g} {unit}); got {value!r}"
         )
+    return float(value)
+
+
+def _coefficient(value, name: str) -> float:
+    """A friction coefficient: a finite real number in [0, MAX_FRICTION]."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(f"the {name} must be a number, got {value!r}")
+    if not (math.isfinite(value) and 0.0 <= value <= MAX_FRICTION):
+        raise InputError(f"the {name} must be finite and in [0, {MAX_FRICTION}]; got {value!r}")
     return float(value)
 
 
@@ -437,6 +448,52 @@ class Simulator:
             return out
         finally:
             self._inside = False
+
+    def set_friction(self, static: float, dynamic: float | None = None,
+                     tangential_stiffness: float | None = None) -> None:  # fmt: skip
+        """Coulomb friction for ``step_position`` (frictionless, 0, by default): the proxy
+        sticks while the tangential force is at most ``static`` times the normal force and
+        slides with ``dynamic`` (default: ``static``) times it otherwise (stick-slip; as
+        OpenHaptics' and CHAI3D's static and dynamic friction). The tangential force while
+        stuck is a spring from the tip to the proxy, ``tangential_stiffness`` times the normal
+        contact stiffness (default 2/3: Mindlin's 2 (1 - nu) / (2 - nu) for incompressible
+        tissue). The rendered field stays the normal indentation (the model's): the tissue's
+        drag is in the force only. ``stiffness`` gives the tangential terms. Coefficients
+        must be finite, 0 <= dynamic <= static <= MAX_FRICTION; else InputError, nothing
+        changed."""
+        if self._inside:
+            self._busy("set_friction")
+        self._inside = True  # a step must not read the coefficients half written
+        try:
+            mu_s = _coefficient(static, "static friction coefficient")
+            mu_d = (
+                mu_s if dynamic is None else _coefficient(dynamic, "dynamic friction coefficient")
+            )
+            if mu_d > mu_s:
+                raise InputError(
+                    f"the dynamic friction coefficient ({mu_d!r}) must not exceed the static "
+                    f"one ({mu_s!r}): a sliding contact would hold more than a stuck one"
+                )
+            ratio = _limit(tangential_stiffness, 2.0 / 3.0, "tangential_stiffness", "x normal")
+            if ratio > MAX_FRICTION:
+                raise InputError(
+                    f"tangential_stiffness must be at most {MAX_FRICTION} (times the normal "
+                    f"contact stiffness); got {ratio!r}"
+                )
+            self._buf[kernels.FRICTION : kernels.FRICTION + 3] = mu_s, mu_d, ratio
+        finally:
+            self._inside = False
+
+    @property
+    def friction(self) -> tuple[float, float, float]:
+        """(static, dynamic coefficient, tangential stiffness ratio) of ``set_friction``."""
+        mu_s, mu_d, ratio = self._buf[kernels.FRICTION : kernels.FRICTION + 3]
+        return float(mu_s), float(mu_d), float(ratio)
+
+    @property
+    def slipping(self) -> bool:
+        """Whether the last ``step_position`` slid with friction (False: stuck, or none)."""
+        return bool(self._buf[kernels.SLIPPING])
 
     @property
     def proxy(self) -> np.ndarray:

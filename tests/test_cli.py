@@ -317,18 +317,19 @@ def test_output_files_are_checked_before_any_work(
 ):
     _, store, _ = small_campaign
     toml = campaign_file(mesh_dir, tmp_path / "c.toml")
-    missing = tmp_path / "missing" / "model.h5"
+    a_file = tmp_path / "a-file"
+    a_file.write_text("")
+    under_a_file = a_file / "models" / "model.h5"
     for command in (["reduce", store.root], ["train", toml]):
-        line = main_error(capsys, *command, "--out", missing)
+        line = main_error(capsys, *command, "--out", under_a_file)
         assert line == (
-            f"hapticrom: error: {command[0]} --out {missing}: "
-            f"directory {missing.parent} does not exist"
+            f"hapticrom: error: {command[0]} --out {under_a_file}: {a_file} is not a directory"
         )
         line = main_error(capsys, *command, "--out", read_only_dir / "model.h5")
         assert f"cannot write in {read_only_dir} (" in line, line
         line = main_error(capsys, *command, "--out", tmp_path)
         assert f"--out {tmp_path} is a directory; give a file name" in line, line
-    assert not missing.parent.exists() and not any(read_only_dir.iterdir())
+    assert a_file.read_text() == "" and not any(read_only_dir.iterdir())
     assert not (tmp_path / "model.campaign").exists()
 
 
@@ -655,3 +656,19 @@ def test_export_is_wired(tmp_path, capsys, monkeypatch):
     line = main_error(capsys, "export", "m.h5", "--out", blocker)
     assert line == f"hapticrom: error: export --out {blocker} exists and is not a directory"
     assert len(calls) == 2
+
+
+def test_train_and_reduce_make_the_model_s_directory(
+    small_campaign, mesh_dir, tmp_path, no_expensive_work
+):
+    """A fresh checkout has no out/: `hapticrom train ... --out out/model.h5` makes it (as
+    `mesh --out` does) and goes on to the work."""
+    from hapticrom.cli import main
+
+    _, store, _ = small_campaign
+    toml = campaign_file(mesh_dir, tmp_path / "c.toml")
+    for command in (["reduce", store.root], ["train", toml]):
+        out = tmp_path / command[0] / "new" / "model.h5"
+        with pytest.raises(AssertionError, match="expensive work started"):
+            main([str(a) for a in (*command, "--out", out)])
+        assert out.parent.is_dir() and not out.exists()

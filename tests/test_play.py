@@ -59,6 +59,40 @@ def test_a_csv_path_is_played_and_its_history_written(model, tmp_path):
     assert (tmp_path / "history.png").stat().st_size > 1000
 
 
+def test_the_scripted_path_with_friction_obeys_the_friction_law(model, tmp_path):
+    """The oblique press and the slide with Coulomb friction (``play --friction``): at every
+    tick in contact |F_t| <= mu_s F_n when stuck and = mu_d F_n when slipping; the slide
+    slips; the press in at 30 degrees (tan 30 = 0.58 > mu_s) drags the tissue."""
+    mu_s, mu_d = 0.4, 0.25
+    summary = play(model.path, rate=1000.0, seconds=1.0, realtime=False, say=lambda _: None,
+                   out=tmp_path / "rub", friction=(mu_s, mu_d))  # fmt: skip
+    history = np.loadtxt(tmp_path / "rub.csv", delimiter=",", skiprows=1)
+    fn, ft, slipping = history[:, 9], history[:, 10], history[:, 11] > 0
+    touching = history[:, 8] > 0
+    assert np.all(fn[touching] >= 0) and not ft[~touching].any()
+    stuck = touching & ~slipping
+    # (the CSV keeps 9 significant digits; test_friction checks the law to 1e-12)
+    assert np.all(ft[stuck] <= mu_s * fn[stuck] * (1 + 3e-8) + 1e-15)
+    np.testing.assert_allclose(ft[slipping], mu_d * fn[slipping], rtol=3e-8)
+    ticks = len(history)
+    slide = slice(int(0.35 * ticks), int(0.65 * ticks))
+    assert slipping[slide].mean() > 0.5 and summary["slipping_ticks"] == slipping.sum()
+    assert (ft[touching] > 0).mean() > 0.5
+    play(model.path, rate=1000.0, seconds=1.0, realtime=False, say=lambda _: None,
+         out=tmp_path / "smooth")  # fmt: skip
+    frictionless = np.loadtxt(tmp_path / "smooth.csv", delimiter=",", skiprows=1)
+    assert frictionless[:, 10].max() < 1e-12 * frictionless[:, 9].max()
+    assert not frictionless[:, 11].any()
+
+
+@pytest.mark.parametrize("friction", [(-0.1,), (0.2, 0.3), (np.nan,)])
+def test_bad_friction_is_refused_before_the_loop(model, tmp_path, friction):
+    with pytest.raises(InputError, match="friction"):
+        play(model.path, seconds=0.01, realtime=False, say=lambda _: None,
+             out=tmp_path / "bad", friction=friction)  # fmt: skip
+    assert not any(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize(
     "text,message",
     [

@@ -19,11 +19,16 @@
  *   servo_loop MODEL [--tips FILE.csv] [--seconds S] [--rate HZ] [--render-rate HZ]
  *              [--forces FILE.csv] [--surfaces FILE.bin] [--response anm|curves]
  *              [--interpolation transport|podi] [--tool-radius MM]
- *   servo_loop MODEL [--tips FILE.csv] --bench N [--bench-surfaces M] [--cpu K]
+ *              [--friction MU_S,MU_D[,K_T]]
+ *   servo_loop MODEL [--tips FILE.csv] [--friction MU_S,MU_D[,K_T]] --bench N
+ *              [--bench-surfaces M] [--cpu K]
  *
+ * --friction: Coulomb friction for step_position (hapticrom_set_friction, before the loop):
+ * the static and dynamic coefficients and, optionally, the tangential stiffness as a multiple
+ * of the normal one (default 2/3); the contact-point mode (no --tips) is frictionless.
  * --forces: one CSV row per tick: tick, the contact point (or the tip) mm, depth mm, force
  * N, status, the state's sequence number after the tick's set_contact (after its
- * step_position); with --tips also in_contact, saturated and the proxy (mm).
+ * step_position); with --tips also in_contact, saturated, the proxy (mm) and slipping.
  * --surfaces: per rendered frame, the state's sequence number (uint64) then 3 V doubles
  * (mm), after a header of V (uint64). --bench: no threads; the latency of N set_contact,
  * get_state and step_displacement calls along the path (with --tips: step_position,
@@ -60,7 +65,7 @@ struct record {
     double proxy[3]; /* mm (step_position) */
     uint64_t sequence; /* the state's number after the tick's set_contact (its step_position) */
     int status;
-    uint32_t in_contact, saturated;
+    uint32_t in_contact, saturated, slipping;
 };
 
 struct run {
@@ -296,6 +301,7 @@ static int tick_position(hapticrom_simulator sim, const double tip[3], struct re
     out->sequence = state.sequence;
     out->in_contact = state.in_contact;
     out->saturated = state.saturated;
+    out->slipping = state.slipping;
     memcpy(out->proxy, state.proxy, sizeof out->proxy);
     return HAPTICROM_OK;
 }
@@ -374,7 +380,7 @@ static int write_forces(const struct run *r, const char *file) {
         return 1;
     }
     fprintf(f, "tick,x,y,z,depth,fx,fy,fz,status,sequence%s\n",
-            r->path.position ? ",in_contact,saturated,px,py,pz" : "");
+            r->path.position ? ",in_contact,saturated,px,py,pz,slipping" : "");
     for (size_t i = 0; i < r->path.ticks; i++) {
         const double *p = &r->path.points[3 * i];
         const struct record *t = &r->records[i];
@@ -382,8 +388,8 @@ static int write_forces(const struct run *r, const char *file) {
                 t->depth, t->force[0], t->force[1], t->force[2], t->status,
                 (unsigned long long)t->sequence);
         if (r->path.position)
-            fprintf(f, ",%u,%u,%.17g,%.17g,%.17g", t->in_contact, t->saturated, t->proxy[0],
-                    t->proxy[1], t->proxy[2]);
+            fprintf(f, ",%u,%u,%.17g,%.17g,%.17g,%u", t->in_contact, t->saturated,
+                    t->proxy[0], t->proxy[1], t->proxy[2], t->slipping);
         fputc('\n', f);
     }
     return fclose(f) != 0;
@@ -408,19 +414,20 @@ static int play(struct run *r, const char *forces_file, const char *surfaces_fil
     double seconds = (double)(now_ns() - start) * 1e-9;
     if (r->surfaces && fclose(r->surfaces) != 0) r->failed = 1;
     double peak = 0;
-    size_t touching = 0, saturated = 0;
+    size_t touching = 0, saturated = 0, slipping = 0;
     for (size_t i = 0; i < r->path.ticks; i++) {
         const double *F = r->records[i].force;
         peak = fmax(peak, sqrt(F[0] * F[0] + F[1] * F[1] + F[2] * F[2]));
         touching += r->records[i].in_contact;
         saturated += r->records[i].saturated;
+        slipping += r->records[i].slipping;
     }
     printf("servo: %zu ticks at %.0f Hz in %.3f s; render: %zu surfaces of %llu vertices (%zu "
            "skipped: busy); peak force %.6g N\n", r->path.ticks, r->rate, seconds, r->frames,
            (unsigned long long)r->info.vertex_count, r->skipped, peak);
     if (r->path.position)
-        printf("position in, force out: %zu ticks in contact, %zu saturated\n", touching,
-               saturated);
+        printf("position in, force out: %zu ticks in contact, %zu saturated, %zu slipping\n",
+               touching, saturated, slipping);
     if (forces_file && write_forces(r, forces_file)) return 1;
     return r->failed;
 }
@@ -545,9 +552,9 @@ static int usage(void) {
     fprintf(stderr, "usage: servo_loop MODEL [--tips FILE.csv] [--seconds S] [--rate HZ] "
                     "[--render-rate HZ] [--forces FILE.csv] [--surfaces FILE.bin] "
                     "[--response anm|curves] [--interpolation transport|podi] "
-                    "[--tool-radius MM]\n"
-                    "       servo_loop MODEL [--tips FILE.csv] --bench N [--bench-surfaces M] "
-                    "[--cpu K]\n");
+                    "[--tool-radius MM] [--friction MU_S,MU_D[,K_T]]\n"
+                    "       servo_loop MODEL [--tips FILE.csv] [--friction MU_S,MU_D[,K_T]] "
+                    "--bench N [--bench-surfaces M] [--cpu K]\n");
     return 2;
 }
 
@@ -555,6 +562,8 @@ struct arguments {
     const char *model, *forces, *surfaces, *tips;
     double seconds, rate, render_rate;
     long bench, bench_surfaces, cpu;
+    int friction;       /* --friction given */
+    double mu[3];       /* its static, dynamic coefficient, tangential stiffness (0: default) */
     hapticrom_options options;
 };
 
@@ -562,6 +571,23 @@ static int positive(const char *text, double *value) {
     char *end;
     *value = strtod(text, &end);
     return *end == '\0' && isfinite(*value) && *value > 0;
+}
+
+/* Whether text is 2 or 3 comma-separated numbers (into mu; the third 0 if absent). The
+ * library checks their ranges: a refusal there is its message, not a usage error. */
+static int coefficients(const char *text, double mu[3]) {
+    const char *p = text;
+    int n = 0;
+    mu[2] = 0.0;
+    for (; n < 3; n++) {
+        char *end;
+        mu[n] = strtod(p, &end);
+        if (end == p) return 0;
+        p = end;
+        if (*p != ',') break;
+        p++;
+    }
+    return *p == '\0' && n >= 1 && n < 3;
 }
 
 /* Whether text is a whole number >= 0 (then it goes into *value). */
@@ -596,6 +622,10 @@ static int parse(int argc, char **argv, struct arguments *a) {
             if (!count(value, &a->bench_surfaces)) return 1;
         }
         else if (!strcmp(key, "--cpu")) a->cpu = strtol(value, NULL, 10);
+        else if (!strcmp(key, "--friction")) {
+            if (!coefficients(value, a->mu)) return 1;
+            a->friction = 1;
+        }
         else if (!strcmp(key, "--response"))
             a->options.response = !strcmp(value, "anm") ? HAPTICROM_RESPONSE_ANM
                                   : !strcmp(value, "curves") ? HAPTICROM_RESPONSE_CURVES
@@ -639,7 +669,14 @@ int main(int argc, char **argv) {
            r.info.response == HAPTICROM_RESPONSE_ANM ? "POD-ANM series" : "stored curves",
            r.info.tool_radius);
     int failed = 0;
-    if (!a.tips) {
+    if (a.friction) {
+        failed = check(hapticrom_set_friction(r.sim, a.mu[0], a.mu[1], a.mu[2]), "friction") != 0;
+        if (!failed)
+            printf("friction: static %g, dynamic %g, tangential stiffness %g x normal%s\n",
+                   a.mu[0], a.mu[1], a.mu[2] != 0.0 ? a.mu[2] : 2.0 / 3.0,
+                   a.tips ? "" : " (step_position only: this contact-point run is frictionless)");
+    }
+    if (!failed && !a.tips) {
         size_t ticks = a.bench ? 2000 : (size_t)llround(a.seconds * a.rate);
         failed = ticks < 2 || make_path(r.sim, &r.info, ticks, &r.path);
     }

@@ -252,7 +252,7 @@ def cmd_reduce(args, petsc) -> int:
 
         reduction = CampaignConfig.from_toml(args.campaign)
     SnapshotStore(args.campaign_dir).manifest()  # a campaign directory, intact manifest
-    out = check_out_file(args.out, f"reduce --out {args.out}")
+    out = made_parent(check_out_file(args.out, f"reduce --out {args.out}", make_parents=True))
     petsc.start()
     from hapticrom.offline.reduce.reduction import reduce_campaign
 
@@ -267,7 +267,7 @@ def cmd_train(args, petsc) -> int:
     from hapticrom.offline.campaign.config import CampaignConfig
 
     config = CampaignConfig.from_toml(args.campaign)
-    out = check_out_file(args.out, f"train --out {args.out}")
+    out = made_parent(check_out_file(args.out, f"train --out {args.out}", make_parents=True))
     work = args.work or str(out.with_suffix(".campaign"))
     work = check_campaign_dir(work, f"train --work {work}", args.restart)
     petsc.start()
@@ -288,6 +288,13 @@ def cmd_train(args, petsc) -> int:
         failed = run_campaign_of(args, config, work)
     reduce_campaign(work, out, reduction=config)
     return 1 if failed else 0
+
+
+def made_parent(out):
+    """``out`` once its directory exists (a model's folder is made, as ``mesh --out``'s is;
+    by every rank: mkdir with exist_ok is safe against the others, and needs no MPI yet)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return out
 
 
 def campaign_options(p) -> None:

@@ -4,6 +4,7 @@ not know, ``-steps 5`` included, is refused."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
@@ -50,7 +51,7 @@ def cmd_play(args, petsc) -> int:
 
     play(args.model, rate=args.rate, seconds=args.seconds, interpolation=args.interpolation,
          realtime=not args.free_running, say=log.info, tip_path=args.path,
-         out=args.out)  # fmt: skip
+         out=args.out, friction=args.friction)  # fmt: skip
     return 0
 
 
@@ -97,9 +98,28 @@ def add_play(sub) -> None:
     p.add_argument(
         "--out",
         metavar="PREFIX",
-        help="write the history (tip, force, depth, contact) to PREFIX.csv and a plot to "
-        "PREFIX.png (matplotlib)",
+        help="write the history (tip, force, depth, contact, friction) to PREFIX.csv and a "
+        "plot to PREFIX.png (matplotlib)",
     )
+    p.add_argument(
+        "--friction",
+        type=friction_coefficients,
+        metavar="MU_S[,MU_D]",
+        help="Coulomb friction at the tool: static and dynamic coefficients (dynamic: the "
+        "static one if not given; at most 10); default frictionless",
+    )
+
+
+def friction_coefficients(text: str) -> tuple[float, ...]:
+    """``--friction``'s one or two numbers (the simulator checks their values)."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(part) for part in parts)
+    except ValueError:
+        values = ()
+    if not 1 <= len(values) <= 2:
+        raise argparse.ArgumentTypeError(f"expected MU_S or MU_S,MU_D, got {text!r}")
+    return values
 
 
 # -- bench -----------------------------------------------------------------------------------
