@@ -25,10 +25,10 @@ and one C wrapper in ``capi/hapticrom.c`` that calls it between ``enter`` and ``
 so that the renderer's snapshot stays whole).
 
 Friction (``hapticrom_set_friction``) is the one setting C changes after the load: it is
-not a servo call. :func:`validate_friction` (under the GIL) runs
-:meth:`Simulator.set_friction <hapticrom.online.simulator.Simulator.set_friction>` itself
-on a scratch copy of the simulator (its own state buffer: the live one is the servo
-thread's), so that there is one validator and one default; C then writes the triple it
+not a servo call. :func:`validate_friction` (under the GIL) runs the validator of
+:meth:`Simulator.set_friction <hapticrom.online.simulator.Simulator.set_friction>`
+(:func:`~hapticrom.online.simulator.friction_values`: one validator, one default, nothing
+written to the live buffer, which is the servo thread's); C then writes the triple it
 resolved to with the entry point :func:`store_friction`, under the servo thread's busy flag
 and the sequence lock, never waiting for the GIL while it holds the flag.
 
@@ -44,7 +44,6 @@ would make numba's cfunc wrapper take the GIL to report it. Units: mm, N, N/mm.
 
 from __future__ import annotations
 
-import copy
 import itertools
 import math
 import os
@@ -58,7 +57,7 @@ from hapticrom.online import kernels as k
 from hapticrom.online import proxy as px
 from hapticrom.online import surface_kernels as sk
 from hapticrom.online.model import ReducedModel, load
-from hapticrom.online.simulator import Simulator
+from hapticrom.online.simulator import Simulator, friction_values
 from hapticrom.shared.errors import ArtifactError, HapticromError, InputError
 
 ABI_VERSION = 3  # the header's HAPTICROM_ABI_VERSION: bumped on any change of the handle
@@ -94,7 +93,7 @@ RESPONSES = {0: None, 1: "anm", 2: "curves"}
 # so far (0: no contact point yet), in contact (1/0), step_position's proxy (3), its contact
 # point (3), saturated (1/0), slipping with friction (1/0; since ABI 3)
 STATE_SIZE = 21
-PROXY_HEAD = px.STATE_STAMPS  # the proxy state's doubles a snapshot copies (all but scratch)
+PROXY_HEAD = px.STATE_STAMPS  # the proxy state's doubles a snapshot copies (all but the stamps)
 
 _f8p, _i8p = types.CPointer(types.float64), types.CPointer(types.int64)
 _pointers = types.CPointer(types.voidptr)
@@ -598,24 +597,19 @@ _NO_FRICTION = (0.0, 0.0, 0.0)
 def validate_friction(
     key: int, static: float, dynamic: float, tangential_stiffness: float
 ) -> tuple[int, str, tuple[float, float, float]]:
-    """``hapticrom_set_friction``'s check, under the GIL: ``Simulator.set_friction(static,
-    dynamic, tangential_stiffness)`` (0: its default, 2/3) on a scratch copy of the simulator
-    ``key`` with a state buffer of its own, so that the live buffer (the servo thread's) is
-    not written here.
+    """``hapticrom_set_friction``'s check, under the GIL: ``Simulator.set_friction``'s own
+    validator (:func:`~hapticrom.online.simulator.friction_values`; tangential stiffness 0:
+    its default, 2/3), which writes nothing (the live buffer is the servo thread's).
 
     Returns (status, message, values): OK, "" and the (static, dynamic, ratio) the
     simulator's own check resolved (C writes them with :func:`store_friction`); or
     NOT_FINITE (an argument is NaN or infinite) or INVALID_OPTION (out of range, dynamic
     above static) with the simulator's message, BAD_HANDLE if ``key`` was freed meanwhile.
     Never raises."""
-    entry = _REGISTRY.get(key)
-    if entry is None:
+    if key not in _REGISTRY:
         return STATUS["BAD_HANDLE"], "the simulator was freed", _NO_FRICTION
-    scratch = copy.copy(entry.simulator)
-    scratch._buf = np.zeros_like(entry.simulator._buf)  # set_friction writes its fields only
     try:
-        scratch.set_friction(static, dynamic, _limit(tangential_stiffness))
-        values = scratch.friction
+        values = friction_values(static, dynamic, _limit(tangential_stiffness))
     except InputError as exc:
         finite = all(math.isfinite(x) for x in (static, dynamic, tangential_stiffness))
         return (STATUS["INVALID_OPTION"] if finite else _NOT_FINITE), str(exc), _NO_FRICTION

@@ -24,8 +24,8 @@ sheet's normal at the proxy (the normals of the triangles' corners, blended), so
 is zero exactly where the tool leaves the sheet: no force jump at release. The reduced
 model takes it from there as it does for ``set_contact`` and ``step_displacement``: the
 force along the model's normal at the contact (plus, with Coulomb friction, a tangential
-force from a proxy that sticks and slips: see "Coulomb friction" below), where that normal is within
-60 degrees of the sheet's (fading out to 90 degrees: a surface facing away from the trained
+force from a proxy that sticks and slips: "Coulomb friction" below), where that normal is
+within 60 degrees of the sheet's (fading out to 90 degrees: a surface facing away from the trained
 normals, e.g. inverted triangles, would otherwise pull the tool in). A tip that started inside
 the organ (or entered it from the side, below the sheet) feels nothing until it leaves
 and enters again from outside: no force jumps from nowhere.
@@ -551,15 +551,14 @@ def _lateral(goal, x, buf):
 
 
 @njit(inline="always")
-def add_friction(goal, x, stuck, buf):
-    """The tangential force on the tool, added to the step's normal force F_n m: -k_t
-    delta while stuck and within the static cone, else mu_d F_n against the slip (delta: the
-    frictionless goal's offset from the proxy x). SLIPPING says which."""
-    fn = normal_force(buf)
+def add_friction(goal, x, stuck, fn, slope, buf):
+    """The tangential force on the tool, added to the step's normal force fn m (slope: its
+    dF_n/ddepth): -k_t delta while stuck and within the static cone, else mu_d F_n against
+    the slip (delta: the frictionless goal's offset from the proxy x). SLIPPING says which."""
     lateral, dl = _lateral(goal, x, buf)
     if not (fn > 0.0 and dl > 0.0):
         return
-    kt = buf[k.FRICTION + 2] * k.contact_stiffness(buf)
+    kt = buf[k.FRICTION + 2] * slope
     if stuck and kt * dl <= buf[k.FRICTION] * fn:
         scale = kt
     else:
@@ -643,9 +642,10 @@ def step_position(tip, sheet, state, table, buf):
         d[c] = -depth * buf[k.NORMAL + c]
     respond(d, buf)
     buf[k.SLIPPING] = 0.0
-    state[STATE_CONTACT], state[STATE_CONTACT + 1] = normal_force(buf), k.contact_stiffness(buf)
+    fn, slope = normal_force(buf), k.contact_stiffness(buf)
+    state[STATE_CONTACT], state[STATE_CONTACT + 1] = fn, slope
     if buf[k.FRICTION] > 0.0:
-        add_friction(goal, x, stuck, buf)
+        add_friction(goal, x, stuck, fn, slope, buf)
     return region
 
 
@@ -666,10 +666,10 @@ def stiffness(buf, out):
     for i in range(3):
         for j in range(3):
             out[i, j] = slope * n[i] * n[j]
-    if not (touching and buf[k.FRICTION] > 0.0 and normal_force(buf) > 0.0):
+    fn = normal_force(buf)
+    if not (touching and buf[k.FRICTION] > 0.0 and fn > 0.0):
         return k.OK
     kt = buf[k.FRICTION + 2] * slope
-    fn = normal_force(buf)
     s = (fn * n[0] - buf[k.FORCE], fn * n[1] - buf[k.FORCE + 1], fn * n[2] - buf[k.FORCE + 2])
     ts = math.sqrt(k.dot(s, s))  # |F_t|; s: against the tangential force
     slipping = buf[k.SLIPPING] > 0.0 and ts > 0.0

@@ -136,6 +136,26 @@ def _coefficient(value, name: str) -> float:
     return float(value)
 
 
+def friction_values(static, dynamic=None, tangential_stiffness=None) -> tuple[float, ...]:
+    """(mu_s, mu_d, tangential stiffness ratio) of ``Simulator.set_friction``'s arguments,
+    checked (the one validator: the C ABI's ``hapticrom_set_friction`` calls it too);
+    InputError naming the culprit."""
+    mu_s = _coefficient(static, "static friction coefficient")
+    mu_d = mu_s if dynamic is None else _coefficient(dynamic, "dynamic friction coefficient")
+    if mu_d > mu_s:
+        raise InputError(
+            f"the dynamic friction coefficient ({mu_d!r}) must not exceed the static one "
+            f"({mu_s!r}): a sliding contact would hold more than a stuck one"
+        )
+    ratio = _limit(tangential_stiffness, 2.0 / 3.0, "tangential_stiffness", "x normal")
+    if ratio > MAX_FRICTION:
+        raise InputError(
+            f"tangential_stiffness must be at most {MAX_FRICTION} (times the normal contact "
+            f"stiffness); got {ratio!r}"
+        )
+    return mu_s, mu_d, ratio
+
+
 def _check_config(model: ReducedModel, interpolation: str, response: str | None) -> str:
     """The response to use (the model's default if None); InputError if they do not fit."""
     if interpolation == "transport" and model.chart is None:
@@ -455,8 +475,9 @@ class Simulator:
         sticks while the tangential force is at most ``static`` times the normal force and
         slides with ``dynamic`` (default: ``static``) times it otherwise (stick-slip; as
         OpenHaptics' and CHAI3D's static and dynamic friction). The tangential force while
-        stuck is a spring from the tip to the proxy, ``tangential_stiffness`` times the normal
-        contact stiffness (default 2/3: Mindlin's 2 (1 - nu) / (2 - nu) for incompressible
+        stuck is a spring from the frictionless proxy to the stuck one, of stiffness
+        ``tangential_stiffness`` times the normal contact stiffness (default 2/3: Mindlin's
+        2 (1 - nu) / (2 - nu) for incompressible
         tissue). The rendered field stays the normal indentation (the model's): the tissue's
         drag is in the force only. ``stiffness`` gives the tangential terms. Coefficients
         must be finite, 0 <= dynamic <= static <= MAX_FRICTION; else InputError, nothing
@@ -465,22 +486,8 @@ class Simulator:
             self._busy("set_friction")
         self._inside = True  # a step must not read the coefficients half written
         try:
-            mu_s = _coefficient(static, "static friction coefficient")
-            mu_d = (
-                mu_s if dynamic is None else _coefficient(dynamic, "dynamic friction coefficient")
-            )
-            if mu_d > mu_s:
-                raise InputError(
-                    f"the dynamic friction coefficient ({mu_d!r}) must not exceed the static "
-                    f"one ({mu_s!r}): a sliding contact would hold more than a stuck one"
-                )
-            ratio = _limit(tangential_stiffness, 2.0 / 3.0, "tangential_stiffness", "x normal")
-            if ratio > MAX_FRICTION:
-                raise InputError(
-                    f"tangential_stiffness must be at most {MAX_FRICTION} (times the normal "
-                    f"contact stiffness); got {ratio!r}"
-                )
-            self._buf[kernels.FRICTION : kernels.FRICTION + 3] = mu_s, mu_d, ratio
+            values = friction_values(static, dynamic, tangential_stiffness)
+            self._buf[kernels.FRICTION : kernels.FRICTION + 3] = values
         finally:
             self._inside = False
 
