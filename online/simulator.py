@@ -477,11 +477,10 @@ class Simulator:
         OpenHaptics' and CHAI3D's static and dynamic friction). The tangential force while
         stuck is a spring from the frictionless proxy to the stuck one, of stiffness
         ``tangential_stiffness`` times the normal contact stiffness (default 2/3: Mindlin's
-        2 (1 - nu) / (2 - nu) for incompressible
-        tissue). The rendered field stays the normal indentation (the model's): the tissue's
-        drag is in the force only. ``stiffness`` gives the tangential terms. Coefficients
-        must be finite, 0 <= dynamic <= static <= MAX_FRICTION; else InputError, nothing
-        changed."""
+        2 (1 - nu) / (2 - nu) for incompressible tissue). The rendered field stays the normal
+        indentation (the model's): the tissue's drag is in the force only. ``stiffness``
+        gives the tangential terms. Coefficients must be finite, 0 <= dynamic <= static <=
+        MAX_FRICTION; else InputError, nothing changed."""
         if self._inside:
             self._busy("set_friction")
         self._inside = True  # a step must not read the coefficients half written
