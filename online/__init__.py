@@ -25,12 +25,17 @@ the surface), :mod:`~hapticrom.online.scalpel` (the simulator's cutting controll
 :mod:`~hapticrom.online.tool_load`, :mod:`~hapticrom.online.cut_render`,
 :mod:`~hapticrom.online.cut_worker` (the cuts), :mod:`~hapticrom.online.latency`,
 :mod:`~hapticrom.online.play`, :mod:`~hapticrom.online.reference` (benchmarks, a scripted
-tool path, the plain-numpy reference).
+tool path, the plain-numpy reference), :mod:`~hapticrom.online.jit_cache` (numba's cache
+kept in step with the sources).
 """
 
-from hapticrom.online.model import ReducedModel, load
-from hapticrom.shared.artifact import ArtifactError
-from hapticrom.shared.errors import (
+from hapticrom.online.jit_cache import drop_if_stale
+
+drop_if_stale()  # before any kernel is compiled or loaded from the cache: see jit_cache
+
+from hapticrom.online.model import ReducedModel, load  # noqa: E402
+from hapticrom.shared.artifact import ArtifactError  # noqa: E402
+from hapticrom.shared.errors import (  # noqa: E402
     NoContactError,
     OutputArrayError,
     ScalpelInputError,

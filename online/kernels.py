@@ -2,7 +2,8 @@
 
 Start here: the default response of an artifact with POD-ANM series steps with
 :func:`step_displacement_anm` (tool displacement in, force out) and
-:func:`step_force_anm` (force in, displacement out); the stored full-order curves
+:func:`step_force_anm` (force in, displacement out), on the series tabulated per section
+at load (:func:`tabulate_series`); the stored full-order curves
 (``response="curves"``) with :func:`step_displacement_curves` and
 :func:`step_force_curves`. :func:`prepare_contact` is ``set_contact`` in one call,
 :func:`place_scalpel` the scalpel's placement, :func:`surface_grassmann` the Grassmann
@@ -92,29 +93,63 @@ LOCATE_SCRATCH = 44  # (3) locate's (u, v, h) of the triangle being tried
 FRICTION = 47  # (3) step_position's Coulomb friction: static and dynamic coefficients (0 0:
 # frictionless), the tangential stiffness as a multiple of the normal one (see proxy)
 SLIPPING = 50  # 1 if the last step_position slid with friction (0: stuck, or frictionless)
-CURVE = 51  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
+SECTION_KNOTS = 51  # POD-ANM: the knots of each section's table (below)
+CURVE = 52  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
 # POD-ANM (response "anm"), at buf[ANM_BASE] = CURVE + 2 K: three neighbour blocks, each a
 # header then SMAX section records (the neighbour's sections, artifact order).
-BLOCK_WEIGHT, BLOCK_COUNT, BLOCK_SECTION, BLOCK_A, BLOCK_RECORDS = 0, 1, 2, 3, 4
-# header: barycentric weight, section count, the section of the last depth, its a there.
-# A section record: [a_max, depth at 0, depth at a_max, force at a_max, dF/ddepth at a_max,
-# depth coefficients (N1), force coefficients (N1)].
-REC_AMAX, REC_DEPTH0, REC_DEPTH_END, REC_FORCE_END, REC_SLOPE_END, REC_COEFFS = 0, 1, 2, 3, 4, 5
+BLOCK_WEIGHT, BLOCK_COUNT, BLOCK_SAMPLE, BLOCK_RECORDS = 0, 1, 2, 3
+# header: barycentric weight, section count, the sample whose records the block holds (-1:
+# none yet; set_contact copies a sample's records only when they are not there already).
+# A section record is the section's series tabulated at buf[SECTION_KNOTS] = Q depths,
+# uniform from its start to its end: cubic Hermite interpolation of force and path parameter
+# a in depth then costs a few multiplications a step, where solving depth(a) = depth by
+# Newton on the series costs three iterations per neighbour (0.78 us a step; tabulated: see
+# README). The model chooses Q at load (`tabulate_sections`, `TABULATION_TOLERANCE`).
+# Record: [depth at a = 0, depth at a_max, force at a_max, dF/ddepth at a_max, a_max,
+# knot spacing, its inverse, then at the knots: force (N), dF/ddepth, a, da/ddepth (Q each)].
+REC_DEPTH0, REC_DEPTH_END, REC_FORCE_END, REC_SLOPE_END, REC_AMAX = 0, 1, 2, 3, 4
+REC_SPACING, REC_INVERSE_SPACING, REC_FORCE = 5, 6, 7
+TABULATION_TOLERANCE = 1e-11  # of the largest force, and of the largest a_max: see model.py
+MAX_TABLE_FLOATS = 1 << 23  # 64 MB of section records at most, beyond 17 knots a section
 
 
-def record_stride(n1: int) -> int:
-    """Floats per section record."""
-    return REC_COEFFS + 2 * n1
+def record_stride(knots: int) -> int:
+    """Floats per section record of ``knots`` knots."""
+    return REC_FORCE + 4 * knots
 
 
-def anm_block_size(n1: int, smax: int) -> int:
+def anm_block_size(knots: int, smax: int) -> int:
     """Floats per neighbour block."""
-    return BLOCK_RECORDS + smax * record_stride(n1)
+    return BLOCK_RECORDS + smax * record_stride(knots)
 
 
-def buffer_size(knots: int, n1: int = 0, smax: int = 0) -> int:
-    """Length of the state buffer of a model with ``knots`` depths (and POD-ANM series)."""
-    return CURVE + 2 * knots + (3 * anm_block_size(n1, smax) if n1 else 0)
+def buffer_size(knots: int, n1: int = 0, smax: int = 0, section_knots: int = 0) -> int:
+    """Length of the state buffer of a model with ``knots`` depths (and POD-ANM series of
+    N1 coefficients, at most ``smax`` sections a sample, tabulated at ``section_knots``)."""
+    return CURVE + 2 * knots + (3 * anm_block_size(section_knots, smax) if n1 else 0)
+
+
+def tabulate_series(depth, force, a_max, budget: int = MAX_TABLE_FLOATS
+                    ) -> tuple[np.ndarray, int, tuple[float, float]]:  # fmt: skip
+    """(section records (Z, record_stride(Q)), Q, (force error N, a error)) of POD-ANM
+    series ``depth``, ``force`` (Z, N1) on [0, ``a_max``]: the fewest knots Q (17, 33, ...,
+    1025) whose interpolant is within TABULATION_TOLERANCE of the largest force and a_max
+    (the cubic Hermite error falls as Q^-4). No more knots than ``budget`` floats of
+    records allow (a crafted file's rough series cannot make the tables huge): the knots
+    reached are kept, and their error returned, if the tolerance is not met."""
+    depth, force, a_max = (np.array(x, dtype=np.float64) for x in (depth, force, a_max))
+    for q in (17, 33, 65, 129, 257, 513, 1025):
+        if q > 17 and len(a_max) * record_stride(q) > budget:
+            break
+        records = np.zeros((len(a_max), record_stride(q)))
+        tabulate_sections(depth, force, a_max, records)
+        errors = tabulation_error(depth, force, a_max, records)
+        scale = np.abs(records[:, REC_FORCE : REC_FORCE + q]).max(initial=0.0)
+        if errors[0] <= TABULATION_TOLERANCE * scale and (
+            errors[1] <= TABULATION_TOLERANCE * a_max.max(initial=0.0)
+        ):
+            break
+    return records, (records.shape[1] - REC_FORCE) // 4, errors
 
 
 # -- the table: what set_contact and the scalpel read of the model ---------------------------
@@ -278,9 +313,8 @@ def write_displacement(buf, depth, flags):
 @njit(inline="always")
 def anm_layout(buf):
     """(where the blocks start, N1, a record's stride, a block's size) of the POD-ANM part."""
-    n1 = int(buf[ANM_N1])
-    stride = REC_COEFFS + 2 * n1
-    return int(buf[ANM_BASE]), n1, stride, BLOCK_RECORDS + int(buf[ANM_SMAX]) * stride
+    stride = REC_FORCE + 4 * int(buf[SECTION_KNOTS])
+    return int(buf[ANM_BASE]), int(buf[ANM_N1]), stride, BLOCK_RECORDS + int(buf[ANM_SMAX]) * stride
 
 
 @njit(inline="always")
@@ -330,60 +364,138 @@ def horner_derivative(c, start, n, a):
     return acc
 
 
-@njit(f"float64({f8_1d}, int64, int64, float64)", cache=True, nogil=True)
-def section_root(buf, rec, n1, depth):
-    """a in [0, a_max] with depth(a) = depth on the section at buf[rec]: bracketed Newton."""
-    c = rec + REC_COEFFS
-    lo, hi = 0.0, buf[rec + REC_AMAX]
-    d0, d1 = buf[rec + REC_DEPTH0], buf[rec + REC_DEPTH_END]
+@njit(f"float64({f8_1d}, float64, float64)", cache=True, nogil=True)
+def series_root(c, a_max, depth):
+    """a in [0, a_max] with sum_k c[k] a^k = depth (c: a section's depth series, increasing
+    on [0, a_max]): bracketed Newton."""
+    n = c.shape[0]
+    lo, hi = 0.0, a_max
+    d0, d1 = c[0], horner(c, 0, n, a_max)
     a = lo + (hi - lo) * (depth - d0) / (d1 - d0) if d1 > d0 else 0.5 * (lo + hi)
     tol = 1e-14 * (1.0 + abs(depth))
     for _ in range(60):
-        r = horner(buf, c, n1, a) - depth
+        r = horner(c, 0, n, a) - depth
         if abs(r) <= tol:
             break
-        a, lo, hi = newton_step(a, r, horner_derivative(buf, c, n1, a), lo, hi)
-        if hi - lo <= 1e-15 * buf[rec + REC_AMAX]:
+        a, lo, hi = newton_step(a, r, horner_derivative(c, 0, n, a), lo, hi)
+        if hi - lo <= 1e-15 * a_max:
             break
     return a
 
 
+@njit(inline="always")
+def section_of(buf, b, stride, depth):
+    """Where the record of neighbour block b's section holding ``depth`` starts (the last
+    section if depth is beyond them all)."""
+    first, count = b + BLOCK_RECORDS, int(buf[b + BLOCK_COUNT])
+    s = 0
+    while s < count - 1 and buf[first + s * stride + REC_DEPTH_END] < depth:
+        s += 1
+    return s, first + s * stride
+
+
+@njit(inline="always")
+def knot_of(buf, rec, q, depth):
+    """(knot k, t in [0, 1] between knots k and k + 1, spacing, its inverse) of ``depth``
+    in a section of q knots (t a hair outside [0, 1] in the 1e-6 mm gaps where consecutive
+    sections meet)."""
+    x = (depth - buf[rec + REC_DEPTH0]) * buf[rec + REC_INVERSE_SPACING]
+    k = min(max(int(x), 0), q - 2)
+    return k, x - k, buf[rec + REC_SPACING], buf[rec + REC_INVERSE_SPACING]
+
+
+@njit(inline="always")
+def cubic_hermite(buf, values, slopes, k, t, h, inverse_h):
+    """(value, d/ddepth) of the cubic Hermite interpolant between knots k and k + 1."""
+    v0, v1 = buf[values + k], buf[values + k + 1]
+    s0, s1 = h * buf[slopes + k], h * buf[slopes + k + 1]
+    c2, c3 = 3.0 * (v1 - v0) - 2.0 * s0 - s1, 2.0 * (v0 - v1) + s0 + s1
+    return v0 + t * (s0 + t * (c2 + t * c3)), (s0 + t * (2.0 * c2 + t * 3.0 * c3)) * inverse_h
+
+
+@njit(f"void({f8_2d}, {f8_2d}, {f8_1d}, {f8_2d})", cache=True, nogil=True)
+def tabulate_sections(depth, force, a_max, out):
+    """The section records ``out`` (Z, record_stride(Q)) of the series depth(a), force(a)
+    (Z, N1) on [0, a_max] (Z): each section solved for a at Q uniform depths (at load)."""
+    n1, q = depth.shape[1], (out.shape[1] - REC_FORCE) // 4
+    for z in range(depth.shape[0]):
+        c, f, r = depth[z], force[z], out[z]
+        d0, d1 = c[0], horner(c, 0, n1, a_max[z])
+        h = (d1 - d0) / (q - 1)
+        r[REC_DEPTH0], r[REC_DEPTH_END], r[REC_AMAX] = d0, d1, a_max[z]
+        r[REC_SPACING], r[REC_INVERSE_SPACING] = h, 1.0 / h
+        for k in range(q):
+            a = a_max[z] if k == q - 1 else series_root(c, a_max[z], d0 + k * h)
+            dd = horner_derivative(c, 0, n1, a)  # > 0: monotone sections (artifact_rules)
+            r[REC_FORCE + k] = horner(f, 0, n1, a)
+            r[REC_FORCE + q + k] = horner_derivative(f, 0, n1, a) / dd
+            r[REC_FORCE + 2 * q + k] = a
+            r[REC_FORCE + 3 * q + k] = 1.0 / dd
+        r[REC_FORCE_END] = r[REC_FORCE + q - 1]
+        r[REC_SLOPE_END] = r[REC_FORCE + 2 * q - 1]
+
+
+@njit(f"UniTuple(float64, 2)({f8_2d}, {f8_2d}, {f8_1d}, {f8_2d})", cache=True, nogil=True)
+def tabulation_error(depth, force, a_max, records):
+    """(largest |force error| (N), largest |a error|) of the tabulated sections between
+    their knots: at every interval's midpoint, where a cubic Hermite interpolant's error
+    peaks, against the series solved there."""
+    n1, q = depth.shape[1], (records.shape[1] - REC_FORCE) // 4
+    worst_force = worst_a = 0.0
+    for z in range(depth.shape[0]):
+        r = records[z]
+        for k in range(q - 1):
+            d = r[REC_DEPTH0] + (k + 0.5) * r[REC_SPACING]
+            a = series_root(depth[z], a_max[z], d)
+            f, _ = cubic_hermite(r, REC_FORCE, REC_FORCE + q, k, 0.5, r[REC_SPACING],
+                                 r[REC_INVERSE_SPACING])  # fmt: skip
+            t, _ = cubic_hermite(r, REC_FORCE + 2 * q, REC_FORCE + 3 * q, k, 0.5,
+                                 r[REC_SPACING], r[REC_INVERSE_SPACING])  # fmt: skip
+            worst_force = max(worst_force, abs(f - horner(force[z], 0, n1, a)))
+            worst_a = max(worst_a, abs(t - a))
+    return worst_force, worst_a
+
+
+@njit(inline="always")
+def anm_section(buf, b, depth):
+    """(section index, path parameter a) of neighbour block b at ``depth`` (mm): what the
+    surface field evaluates its series at (a_max beyond the last section)."""
+    _, _, stride, _ = anm_layout(buf)
+    q = int(buf[SECTION_KNOTS])
+    s, rec = section_of(buf, b, stride, depth)
+    if depth > buf[rec + REC_DEPTH_END]:
+        return s, buf[rec + REC_AMAX]
+    k, t, h, inverse_h = knot_of(buf, rec, q, depth)
+    a, _ = cubic_hermite(buf, rec + REC_FORCE + 2 * q, rec + REC_FORCE + 3 * q, k, t, h,
+                         inverse_h)  # fmt: skip
+    return s, a
+
+
 @njit(f"float64({f8_1d}, float64)", cache=True, nogil=True)
 def anm_force(buf, depth):
-    """Blended normal force (N) of the three neighbours' series at ``depth`` (mm).
+    """Blended normal force (N) of the three neighbours' series at ``depth`` (mm), from the
+    sections' tables.
 
-    Writes each neighbour's section and path parameter (for the surface), the
-    blended dF/ddepth into buf[ANM_SLOPE] and 1 into buf[ANM_BEYOND] if a
-    neighbour's last section ends before ``depth`` (its force then continues
-    linearly with the end slope).
+    Writes the blended dF/ddepth into buf[ANM_SLOPE] and 1 into buf[ANM_BEYOND] if a
+    neighbour's last section ends before ``depth`` (its force then continues linearly
+    with the end slope).
     """
-    base, n1, stride, block = anm_layout(buf)
+    base, _, stride, block = anm_layout(buf)
+    q = int(buf[SECTION_KNOTS])
     total = 0.0
     slope_total = 0.0
     beyond = 0
     for j in range(3):
         b = base + j * block
-        first = b + BLOCK_RECORDS
-        count = int(buf[b + BLOCK_COUNT])
-        s = 0
-        while s < count - 1 and buf[first + s * stride + REC_DEPTH_END] < depth:
-            s += 1
-        rec = first + s * stride
+        _, rec = section_of(buf, b, stride, depth)
         if depth > buf[rec + REC_DEPTH_END]:
             beyond = 1
-            a = buf[rec + REC_AMAX]
-            force = buf[rec + REC_FORCE_END] + buf[rec + REC_SLOPE_END] * (
-                depth - buf[rec + REC_DEPTH_END]
-            )
             slope = buf[rec + REC_SLOPE_END]
+            force = buf[rec + REC_FORCE_END] + slope * (depth - buf[rec + REC_DEPTH_END])
         else:
-            a = section_root(buf, rec, n1, depth)
-            c = rec + REC_COEFFS
-            force = horner(buf, c + n1, n1, a)
-            dd = horner_derivative(buf, c, n1, a)
-            slope = horner_derivative(buf, c + n1, n1, a) / dd if dd > 0.0 else 0.0
-        buf[b + BLOCK_SECTION] = s  # section index within the sample
-        buf[b + BLOCK_A] = a
+            k, t, h, inverse_h = knot_of(buf, rec, q, depth)
+            force, slope = cubic_hermite(buf, rec + REC_FORCE, rec + REC_FORCE + q, k, t, h,
+                                         inverse_h)  # fmt: skip
         total += buf[b + BLOCK_WEIGHT] * force
         slope_total += buf[b + BLOCK_WEIGHT] * slope
     buf[ANM_SLOPE] = slope_total
@@ -820,21 +932,21 @@ def prepare_curves(weights, samples, normals, forces, slopes, out_normal, out_fo
 
 @njit(cache=True, nogil=True)
 def load_sections(weights, samples, offsets, records, buf):
-    """Copy the three neighbours' section records (``records``: Z stride, row-major) and
-    weights into the POD-ANM blocks."""
+    """The three neighbours' weights into the POD-ANM blocks, and their section records
+    (``records``: Z stride, row-major) unless a block holds that sample's already."""
     base, _, stride, block = anm_layout(buf)
     for j in range(3):
         b = base + j * block
         i = int(samples[j])
-        first, count = int(offsets[i]), int(offsets[i + 1] - offsets[i])
         buf[b + BLOCK_WEIGHT] = weights[j]
+        if buf[b + BLOCK_SAMPLE] == i:
+            continue
+        first, count = int(offsets[i]), int(offsets[i + 1] - offsets[i])
         buf[b + BLOCK_COUNT] = count
-        buf[b + BLOCK_SECTION] = 0.0
-        buf[b + BLOCK_A] = 0.0
-        for s in range(count):
-            r = b + BLOCK_RECORDS + s * stride
-            for k in range(stride):
-                buf[r + k] = records[(first + s) * stride + k]
+        buf[b + BLOCK_SAMPLE] = i
+        start = b + BLOCK_RECORDS
+        for k in range(count * stride):
+            buf[start + k] = records[first * stride + k]
 
 
 @njit(cache=True, nogil=True)
@@ -856,7 +968,7 @@ def contact_at(point, table, buf):
     buf[FLAGS] = flag
     if buf[ANM_N1] > 0:
         load_sections(weights, samples, offsets, records, buf)
-        anm_force(buf, buf[DEPTH])  # the sections for the surface at this depth
+        anm_force(buf, buf[DEPTH])  # the slope and beyond flag of the new contact
     buf[CONTACTS] += 1.0
 
 

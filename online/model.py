@@ -254,28 +254,24 @@ def _cut_region(artifact: Artifact):
 
 
 def _anm_records(artifact: Artifact) -> dict:
-    """The kernels' per-section records (see online/kernels.py) from the artifact's series."""
-    from numpy.polynomial import polynomial as poly
-
-    from hapticrom.online.kernels import record_stride
+    """The kernels' per-section records (see online/kernels.py) from the artifact's series:
+    each section tabulated for the steps' Hermite interpolation."""
+    from hapticrom.online.kernels import tabulate_series
 
     a = artifact["anm"]
     offsets = _i8(a["section_offsets"])
     depth, force, a_max = _f8(a["depth"]), _f8(a["force"]), _f8(a["a_max"])
-    Z, n1 = depth.shape
     counts = np.diff(offsets)  # offsets, a_max and monotone sections: artifact_rules
-    depth_end = np.array([poly.polyval(a_max[z], depth[z]) for z in range(Z)])
-    force_end = np.array([poly.polyval(a_max[z], force[z]) for z in range(Z)])
-    dd = np.array([poly.polyval(a_max[z], poly.polyder(depth[z])) for z in range(Z)])
-    df = np.array([poly.polyval(a_max[z], poly.polyder(force[z])) for z in range(Z)])
-    records = np.column_stack([a_max, depth[:, 0], depth_end, force_end, df / dd, depth, force])
-    assert records.shape[1] == record_stride(n1)
+    records, knots, errors = tabulate_series(depth, force, a_max)
+    n1 = depth.shape[1]
     return {
         "offsets": offsets,
         "records": _f8(records),
         "coefficients": _f8(a["coefficients"]),
         "n1": int(n1),
         "smax": int(counts.max()),
+        "section_knots": knots,
+        "tabulation_error": errors,  # (N, a): the largest between knots
         "order": int(artifact.group_attrs["anm"]["order"]),
     }
 

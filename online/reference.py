@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from hapticrom.online import kernels
 from hapticrom.online.model import ReducedModel
 from hapticrom.shared.errors import StepInputError
 
@@ -89,16 +90,20 @@ def _edge_bisection(p, xa, xb, na, nb) -> float:
     return 0.5 * (lo + hi)
 
 
+def hermite_basis(t: float) -> np.ndarray:
+    """The cubic Hermite basis at t in [0, 1]: weights of (F_k, h F'_k, F_k+1, h F'_k+1)."""
+    return np.array(
+        [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
+    )
+
+
 def hermite(force: np.ndarray, slope: np.ndarray, step: float, depth: float) -> float:
     """The piecewise-cubic Hermite curve F(depth) (uniform knots 0, step, ...), in numpy."""
     last = len(force) - 1
     if depth >= last * step:
         return force[last] + slope[last] * (depth - last * step)
     k = int(depth // step)
-    t = depth / step - k
-    basis = np.array(
-        [2 * t**3 - 3 * t**2 + 1, t**3 - 2 * t**2 + t, -2 * t**3 + 3 * t**2, t**3 - t**2]
-    )
+    basis = hermite_basis(depth / step - k)
     return float(basis @ np.array([force[k], step * slope[k], force[k + 1], step * slope[k + 1]]))
 
 
@@ -111,8 +116,9 @@ class NumpySimulator:
     """
 
     def __init__(self, model: ReducedModel, response: str = "curves", root: str = "eigen"):
-        """``root``: "eigen" (polynomial roots, for tests) or "newton" (the kernels'
-        algorithm in numpy: the fair baseline for the latency benchmark)."""
+        """``root``: "eigen" (polynomial roots, for tests) or "table" (the kernels'
+        algorithm, the sections' tables interpolated, in numpy: the fair baseline for the
+        latency benchmark)."""
         self.model, self.response, self.root = model, response, root
         # The contact (set_contact): samples, weights, clamped?, normal, curve and slopes.
         self.vertices, self.weights, self.outside = np.zeros(3, dtype=np.int64), np.zeros(3), False
@@ -123,6 +129,7 @@ class NumpySimulator:
             self.offsets, self.a_max = a["section_offsets"], a["a_max"]
             self.depth_series, self.force_series = a["depth"], a["force"]
             self.coefficient_series = a["coefficients"]
+            self.records, self.knots = model.anm["records"], model.anm["section_knots"]
 
     def set_contact(self, point) -> None:
         """The contact at ``point`` (mm): its samples, weights, normal and curve."""
@@ -155,8 +162,6 @@ class NumpySimulator:
         rows = range(self.offsets[i], self.offsets[i + 1])
         for z in rows:
             end = P.polyval(self.a_max[z], self.depth_series[z])
-            if depth <= end and self.root == "newton":
-                return z, self._newton(z, depth, end), False
             if depth <= end:
                 c = self.depth_series[z].copy()
                 c[0] -= depth
@@ -166,26 +171,25 @@ class NumpySimulator:
                 return z, float(inside.min()), False
         return rows[-1], float(self.a_max[rows[-1]]), True
 
-    def _newton(self, z: int, depth: float, end: float) -> float:
-        """Bracketed Newton for depth(a) = depth on [0, a_max], as the kernel does."""
-        c = self.depth_series[z]
-        dc = np.polynomial.polynomial.polyder(c)
-        lo, hi = 0.0, float(self.a_max[z])
-        a = hi * (depth - c[0]) / (end - c[0])
-        for _ in range(60):
-            r = np.polynomial.polynomial.polyval(a, c) - depth
-            if abs(r) <= 1e-14 * (1 + abs(depth)):
-                break
-            lo, hi = (lo, a) if r > 0 else (a, hi)
-            slope = np.polynomial.polynomial.polyval(a, dc)
-            trial = a - r / slope if slope > 0 else 0.5 * (lo + hi)
-            a = trial if lo < trial < hi else 0.5 * (lo + hi)
-        return float(a)
+    def _tabulated_force(self, i: int, depth: float) -> float:
+        """Sample i's force at a depth from its sections' tables, as the kernels do."""
+        k, q = kernels, self.knots
+        rows = self.records[self.offsets[i] : self.offsets[i + 1]]
+        r = rows[min(int(np.searchsorted(rows[:, k.REC_DEPTH_END], depth)), len(rows) - 1)]
+        if depth > r[k.REC_DEPTH_END]:
+            return r[k.REC_FORCE_END] + r[k.REC_SLOPE_END] * (depth - r[k.REC_DEPTH_END])
+        x = (depth - r[k.REC_DEPTH0]) * r[k.REC_INVERSE_SPACING]
+        j = min(max(int(x), 0), q - 2)
+        force, slope = r[k.REC_FORCE :][:q], r[k.REC_FORCE + q :][:q] * r[k.REC_SPACING]
+        return float(hermite_basis(x - j) @ (force[j], slope[j], force[j + 1], slope[j + 1]))
 
     def _anm(self, depth: float) -> tuple[float, list]:
         P = np.polynomial.polynomial
         total, found = 0.0, []
         for w, i in zip(self.weights, self.vertices, strict=True):
+            if self.root == "table":
+                total += w * self._tabulated_force(i, depth)
+                continue
             z, a, beyond = self._section(i, depth)
             force = P.polyval(a, self.force_series[z])
             if beyond:

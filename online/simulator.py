@@ -185,12 +185,15 @@ def _state_buffer(model: ReducedModel, anm: dict | None, max_displacement: float
     """A new simulator's state buffer (layout: :mod:`hapticrom.online.kernels`)."""
     k = kernels
     K = model.force.shape[1]
-    n1, smax = (anm["n1"], anm["smax"]) if anm else (0, 0)
-    buf = np.zeros(k.buffer_size(K, n1, smax))
+    n1, smax, q = (anm["n1"], anm["smax"], anm["section_knots"]) if anm else (0, 0, 0)
+    buf = np.zeros(k.buffer_size(K, n1, smax, q))
     if anm:
         buf[k.ANM_BASE] = k.CURVE + 2 * K
         buf[k.ANM_N1] = n1
         buf[k.ANM_SMAX] = smax
+        buf[k.SECTION_KNOTS] = q
+        for j in range(3):  # no sample's records in the blocks yet
+            buf[k.CURVE + 2 * K + j * k.anm_block_size(q, smax) + k.BLOCK_SAMPLE] = -1.0
     buf[k.STEP] = model.depth_step
     buf[k.MAX_DISPLACEMENT] = buf[k.MAX_DEPTH] = max_displacement
     buf[k.MAX_FORCE] = max_force

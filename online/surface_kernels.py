@@ -20,14 +20,13 @@ import numpy as np
 from numba import njit
 
 from hapticrom.online.kernels import (
-    BLOCK_A,
-    BLOCK_SECTION,
     DEPTH,
     NORMAL,
     SAMPLES,
     STEP,
     WEIGHTS,
     anm_layout,
+    anm_section,
     axpy,
     depth_weights,
     f8_1d,
@@ -52,14 +51,14 @@ def curves_coefficients(buf, coefficients, out):
 
 @njit(f"void({f8_1d}, {ro_i8_1d}, {ro_f8_3d}, {f8_2d})", cache=True, nogil=True)
 def anm_coefficients(buf, offsets, series, out):
-    """out[j] = the POD-ANM series of neighbour j at its section and path parameter of the
-    last step (``series`` (Z, N1, n), Horner in a)."""
+    """out[j] = the POD-ANM series of neighbour j at the last step's depth: at its section
+    and path parameter there (``series`` (Z, N1, n), Horner in a)."""
     base, n1, _, block = anm_layout(buf)
     for j in range(3):
         b = base + j * block
         i = int(buf[SAMPLES + j])
-        row = offsets[i] + int(buf[b + BLOCK_SECTION])
-        a = buf[b + BLOCK_A]
+        section, a = anm_section(buf, b, buf[DEPTH])
+        row = offsets[i] + section
         for m in range(out.shape[1]):
             acc = 0.0
             for k in range(n1 - 1, -1, -1):

@@ -188,16 +188,16 @@ def test_simulator_needs_a_contact(model):
 
 
 def test_numpy_baseline_of_the_anm_step_computes_the_same_force(model):
-    """The latency baseline (numpy, the kernels' Newton) agrees with the eigenvalue roots."""
+    """The latency baseline (numpy, the kernels' tables) agrees with the eigenvalue roots."""
     eigen = NumpySimulator(model, "anm")
-    newton = NumpySimulator(model, "anm", root="newton")
+    table = NumpySimulator(model, "anm", root="table")
     for point in points_in_region(model, 5):
         eigen.set_contact(point)
-        newton.set_contact(point)
+        table.set_contact(point)
         for depth in RNG.uniform(0.0, 1.2 * model.trained_depth, 5):
             d = -depth * eigen.normal
             np.testing.assert_allclose(
-                newton.step_displacement(d), eigen.step_displacement(d), rtol=1e-10, atol=1e-15
+                table.step_displacement(d), eigen.step_displacement(d), rtol=1e-10, atol=1e-15
             )
 
 
