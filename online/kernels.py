@@ -138,6 +138,11 @@ def tabulate_series(depth, force, a_max, budget: int = MAX_TABLE_FLOATS
     records allow (a crafted file's rough series cannot make the tables huge): the knots
     reached are kept, and their error returned, if the tolerance is not met."""
     depth, force, a_max = (np.array(x, dtype=np.float64) for x in (depth, force, a_max))
+    ends = np.array([horner(c, 0, len(c), a) for c, a in zip(depth, a_max, strict=True)])
+    flat = np.flatnonzero(~(ends > depth[:, 0]))
+    if flat.size:
+        raise ValueError(f"POD-ANM section {flat[0]} has no depth range: it starts at "
+                         f"{depth[flat[0], 0]!r} mm and ends at {ends[flat[0]]!r} mm")  # fmt: skip
     for q in (17, 33, 65, 129, 257, 513, 1025):
         if q > 17 and len(a_max) * record_stride(q) > budget:
             break
@@ -397,10 +402,10 @@ def section_of(buf, b, stride, depth):
 @njit(inline="always")
 def knot_of(buf, rec, q, depth):
     """(knot k, t in [0, 1] between knots k and k + 1, spacing, its inverse) of ``depth``
-    in a section of q knots (t a hair outside [0, 1] in the 1e-6 mm gaps where consecutive
-    sections meet)."""
-    x = (depth - buf[rec + REC_DEPTH0]) * buf[rec + REC_INVERSE_SPACING]
-    k = min(max(int(x), 0), q - 2)
+    in a section of q knots. A depth in the 1e-6 mm gap before a section's start reads its
+    start: never an extrapolation, however short a crafted section is."""
+    x = min(max((depth - buf[rec + REC_DEPTH0]) * buf[rec + REC_INVERSE_SPACING], 0.0), q - 1.0)
+    k = min(int(x), q - 2)
     return k, x - k, buf[rec + REC_SPACING], buf[rec + REC_INVERSE_SPACING]
 
 

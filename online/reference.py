@@ -178,8 +178,8 @@ class NumpySimulator:
         r = rows[min(int(np.searchsorted(rows[:, k.REC_DEPTH_END], depth)), len(rows) - 1)]
         if depth > r[k.REC_DEPTH_END]:
             return r[k.REC_FORCE_END] + r[k.REC_SLOPE_END] * (depth - r[k.REC_DEPTH_END])
-        x = (depth - r[k.REC_DEPTH0]) * r[k.REC_INVERSE_SPACING]
-        j = min(max(int(x), 0), q - 2)
+        x = min(max((depth - r[k.REC_DEPTH0]) * r[k.REC_INVERSE_SPACING], 0.0), q - 1.0)
+        j = min(int(x), q - 2)
         force, slope = r[k.REC_FORCE :][:q], r[k.REC_FORCE + q :][:q] * r[k.REC_SPACING]
         return float(hermite_basis(x - j) @ (force[j], slope[j], force[j + 1], slope[j + 1]))
 

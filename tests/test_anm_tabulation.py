@@ -171,3 +171,24 @@ def test_rough_series_cannot_make_the_tables_huge(samples):
     assert errors[0] > k.TABULATION_TOLERANCE * np.abs(records[:, k.REC_FORCE]).max()
     records, q, _ = k.tabulate_series(dc, fc, a_max, budget=1)
     assert q == 17  # the fewest, whatever the budget
+
+
+def test_a_depth_before_a_crafted_short_section_reads_its_start():
+    """A section 1e-12 mm long after a 1e-6 mm gap (a crafted file): its knot spacing's
+    inverse is 6e13, and a depth in the gap must not extrapolate its cubic 6e7 intervals."""
+    first = np.r_[0.0, 1.0, 0, 0]  # depth = a on [0, 0.2]
+    second = np.r_[0.2 + 1e-6, 1e-12 / 0.2, 0, 0]
+    force = np.array([[0.0, 0.05, 0.01, 0], [0.0104, 0.05, 0, 0]])
+    records, q, _ = k.tabulate_series(np.array([first, second]), force, [0.2, 0.2])
+    samples = (None, None, None, records, np.array([0, 2, 2, 2], dtype=np.int64))
+    buf = _buffer(samples, weights=(1.0, 0.0, 0.0), order=(0, 0, 0))
+    got = k.anm_force(buf, 0.2 + 5e-7)  # past the first section's end, before the second's
+    assert got == records[1, k.REC_FORCE]  # the second section's start
+    assert np.isfinite(buf[k.ANM_SLOPE])
+
+
+def test_a_section_with_no_depth_range_is_refused():
+    """1e-200 mm on 0.2 mm rounds to no range at all: refused, naming the section."""
+    flat = np.r_[0.2, 1e-200, 0, 0]
+    with pytest.raises(ValueError, match="section 1 .*no depth range"):
+        k.tabulate_series([np.r_[0.0, 1.0, 0, 0], flat], [[0, 0.05, 0, 0]] * 2, [0.2, 0.2])
