@@ -98,45 +98,52 @@ def rotation(a, b):
 
 
 @njit(inline="always")
-def contract_rectangle(node_basis, i, c, shape, rows, columns, field):
-    """field (3, N) = sum_m c_m (the modes of sample i) over rows [rows[0], rows[1]) and
-    columns [columns[0], columns[1]) of every layer; the other nodes are not written."""
+def layer_run(shape, layer, rows, columns):
+    """[first, last): the flat nodes of one layer from the rectangle's first node (row
+    rows[0], column columns[0]) to its last (rows[1] - 1, columns[1] - 1), the columns
+    outside it on the rows between included: one contiguous loop a layer does the rectangle
+    faster than a loop a row (measured: 30 against 38 us for the cornea's three contractions;
+    the loops' set-up, not the 30 % more nodes, was the cost)."""
     n_rows, n_cols = shape[1], shape[2]
-    count = columns[1] - columns[0]
+    first = (layer * n_rows + rows[0]) * n_cols + columns[0]
+    return first, (layer * n_rows + rows[1] - 1) * n_cols + columns[1]
+
+
+@njit(inline="always")
+def contract_rectangle(node_basis, i, c, shape, rows, columns, field):
+    """field (3, N) = sum_m c_m (the modes of sample i) over the rectangle of rows [rows[0],
+    rows[1]) and columns [columns[0], columns[1]) of every layer (its :func:`layer_run`s)."""
     for layer in range(shape[0]):
-        for a in range(rows[0], rows[1]):
-            first = (layer * n_rows + a) * n_cols + columns[0]
-            for comp in range(3):
-                out = field[comp, first : first + count]
-                out[:] = 0.0
-                for m in range(c.shape[0]):
-                    cm = np.float32(c[m])
-                    modes = node_basis[i, m, comp, first : first + count]
-                    for b in range(count):
-                        out[b] += cm * modes[b]
+        first, last = layer_run(shape, layer, rows, columns)
+        for comp in range(3):
+            out = field[comp, first:last]
+            cm = np.float32(c[0])
+            modes = node_basis[i, 0, comp, first:last]
+            for b in range(last - first):
+                out[b] = cm * modes[b]
+            for m in range(1, c.shape[0]):
+                cm = np.float32(c[m])
+                modes = node_basis[i, m, comp, first:last]
+                for b in range(last - first):
+                    out[b] += cm * modes[b]
 
 
 @njit(inline="always")
 def weigh_and_rotate(field, rows, columns, shape, w, R):
-    """field (3, N) = w R field over rows [rows[0], rows[1]) and columns [columns[0],
-    columns[1]) of every layer, in place: a neighbour's weight and rotation applied once a
-    node here rather than once a vertex in the reads (contiguous rows: a vectorised loop)."""
-    n_rows, n_cols = shape[1], shape[2]
-    count = columns[1] - columns[0]
+    """field (3, N) = w R field over the rectangle (its :func:`layer_run`s), in place: a
+    neighbour's weight and rotation applied once a node here rather than once a vertex in
+    the reads (a vectorised loop)."""
     r00, r01, r02 = np.float32(w * R[0]), np.float32(w * R[1]), np.float32(w * R[2])
     r10, r11, r12 = np.float32(w * R[3]), np.float32(w * R[4]), np.float32(w * R[5])
     r20, r21, r22 = np.float32(w * R[6]), np.float32(w * R[7]), np.float32(w * R[8])
     for layer in range(shape[0]):
-        for a in range(rows[0], rows[1]):
-            first = (layer * n_rows + a) * n_cols + columns[0]
-            x = field[0, first : first + count]
-            y = field[1, first : first + count]
-            z = field[2, first : first + count]
-            for b in range(count):
-                px, py, pz = x[b], y[b], z[b]
-                x[b] = r00 * px + r01 * py + r02 * pz
-                y[b] = r10 * px + r11 * py + r12 * pz
-                z[b] = r20 * px + r21 * py + r22 * pz
+        first, last = layer_run(shape, layer, rows, columns)
+        x, y, z = field[0, first:last], field[1, first:last], field[2, first:last]
+        for b in range(last - first):
+            px, py, pz = x[b], y[b], z[b]
+            x[b] = r00 * px + r01 * py + r02 * pz
+            y[b] = r10 * px + r11 * py + r12 * pz
+            z[b] = r20 * px + r21 * py + r22 * pz
 
 
 @njit(inline="always")
