@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from hapticrom.shared.errors import InputError
 
@@ -55,22 +56,27 @@ def ecsw(G: np.ndarray, b: np.ndarray | None = None, tolerance: float = 1e-2,
     limit = min(E, m) if max_elements is None else min(int(max_elements), E)
     norm_b = float(np.linalg.norm(b))
     w = np.zeros(E)
-    selected: list[int] = []
+    qr = _ColumnQR(G, b, limit)
     residual = b.copy()
     iterations = 0
-    while np.linalg.norm(residual) > tolerance * norm_b and len(selected) < limit:
+    excluded = np.zeros(E, dtype=bool)  # selected, or dependent on the selected columns
+    while np.linalg.norm(residual) > tolerance * norm_b and len(qr.columns) < limit:
         if iterations >= 3 * limit + 10:  # round-off cycling an element in and out
             break
         iterations += 1
         gradient = G.T @ residual
-        gradient[selected] = -np.inf
+        gradient[excluded] = -np.inf
         e = int(np.argmax(gradient))
         if not gradient[e] > 1e-14 * norm_b * max(np.abs(G[:, e]).max(), 1e-300):
             break  # no element can reduce the residual any more: the NNLS optimum
-        selected.append(e)
-        selected = _positive_least_squares(G, b, w, selected)
-        residual = b - G[:, selected] @ w[selected]
-    order = np.sort(np.asarray(selected, dtype=np.int64))
+        excluded[e] = True
+        if not qr.append(e):
+            continue  # in the span of the selected columns: it cannot help
+        _positive_least_squares(qr, w)
+        excluded[:] = False
+        excluded[qr.columns] = True
+        residual = b - G[:, qr.columns] @ w[qr.columns]
+    order = np.sort(np.asarray(qr.columns, dtype=np.int64))
     return Sampling(
         elements=order,
         weights=w[order].copy(),
@@ -79,25 +85,67 @@ def ecsw(G: np.ndarray, b: np.ndarray | None = None, tolerance: float = 1e-2,
     )
 
 
-def _positive_least_squares(G, b, w, selected: list[int]) -> list[int]:
+class _ColumnQR:
+    """A thin QR factorisation of the selected columns of G, grown a column at a time
+    (classical Gram-Schmidt, twice: orthogonal to round-off), so that a least-squares
+    solve costs O(m k) per added column instead of a fresh O(m k^2) factorisation."""
+
+    def __init__(self, G: np.ndarray, b: np.ndarray, capacity: int):
+        self.G, self.b = G, b
+        self.Q = np.zeros((G.shape[0], capacity))
+        self.R = np.zeros((capacity, capacity))
+        self.qtb = np.zeros(capacity)  # Q^T b
+        self.columns: list[int] = []
+
+    def append(self, e: int) -> bool:
+        """Add column e; False (nothing added) if it lies in the others' span."""
+        k = len(self.columns)
+        v = self.G[:, e].copy()
+        norm = np.linalg.norm(v)
+        r = np.zeros(k)
+        for _ in range(2):
+            c = self.Q[:, :k].T @ v
+            v -= self.Q[:, :k] @ c
+            r += c
+        rest = np.linalg.norm(v)
+        if not rest > 1e-10 * norm:
+            return False
+        self.Q[:, k] = v / rest
+        self.R[:k, k], self.R[k, k] = r, rest
+        self.qtb[k] = self.Q[:, k] @ self.b
+        self.columns.append(e)
+        return True
+
+    def solve(self) -> np.ndarray:
+        """The least-squares weights of the columns: R z = Q^T b."""
+        k = len(self.columns)
+        return solve_triangular(self.R[:k, :k], self.qtb[:k]) if k else np.zeros(0)
+
+    def keep(self, columns: list[int]) -> None:
+        """Factorise these columns afresh (some were dropped: rare)."""
+        self.columns = []
+        for e in columns:
+            self.append(e)
+
+
+def _positive_least_squares(qr: _ColumnQR, w: np.ndarray) -> None:
     """Lawson and Hanson's inner loop: the least-squares weights of the selected columns,
     stepping back towards the previous w (and dropping the columns that reach zero) while
-    any comes out non-positive. Updates w in place; returns the columns kept."""
-    while True:
-        z, *_ = np.linalg.lstsq(G[:, selected], b, rcond=None)
+    any comes out non-positive. Updates w and the selection in place."""
+    while qr.columns:
+        selected = qr.columns
+        z = qr.solve()
         if np.all(z > 0):
             w[selected] = z
-            return selected
+            return
         current = w[selected]
         negative = z <= 0
         step = np.min(current[negative] / (current[negative] - z[negative]))
         w[selected] = current + step * (z - current)
-        kept = [e for e in selected if w[e] > 1e-14 * max(w[selected].max(), 1e-300)]
-        for e in set(selected) - set(kept):
-            w[e] = 0.0
-        selected = kept
-        if not selected:
-            return selected
+        largest = max(w[selected].max(), 1e-300)
+        kept = [e for e in selected if w[e] > 1e-14 * largest]
+        w[[e for e in selected if w[e] <= 1e-14 * largest]] = 0.0
+        qr.keep(kept)
 
 
 def _checked(G, b, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
