@@ -1,0 +1,197 @@
+"""A hyper-reduced mixed model (issue 18): global displacement and pressure bases, the
+elements ECSW sampled with their weights, and a reduced Newton on them.
+
+The residual and tangent are :mod:`hapticrom.online.hyperreduced`'s (the module's formulas:
+the part linear in (u, p) exact through small matrices over every element, the rest summed
+over the sampled elements); the Newton around them is numpy, the prototype of the online
+solve. Units: mm, N, MPa; displacement rows in the campaign's canonical order.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from mpi4py import MPI
+
+from hapticrom.offline.fe.dofs import CanonicalOrder
+from hapticrom.offline.fe.organ import load_organ
+from hapticrom.online import element_kernels as ek
+from hapticrom.online.hyperreduced import (
+    Scratch,
+    element_contributions,
+    sampled_residual_tangent,
+)
+from hapticrom.online.material_kernels import KAPPA, law_parameters
+from hapticrom.shared.errors import InputError, SolverError
+
+
+@dataclass(frozen=True)
+class MeshElements:
+    """An organ's elements as the element kernels read them (E elements of ``nodes`` nodes,
+    m = 3 nodes rows)."""
+
+    X: np.ndarray  # (E, nodes, 3) reference nodes, mm, Basix order
+    rows: np.ndarray  # (E, m) the nodes' canonical displacement rows
+    cell: np.ndarray  # (E,) the element's canonical cell (pressure) index
+    params: np.ndarray  # (E, PARAMETER_SIZE) packed law, each cell's fibres
+    reference: ek.ReferenceElement
+
+
+def mesh_elements(mesh_file, material) -> MeshElements:
+    """The elements of the organ in ``mesh_file`` with ``material`` (a MaterialConfig)."""
+    from dolfinx import fem
+
+    organ = load_organ(mesh_file, MPI.COMM_SELF)
+    cell = organ.cell_type
+    V = fem.functionspace(organ.mesh, ("Lagrange", ek.CELLS[cell], (3,)))
+    Q = fem.functionspace(organ.mesh, ("DG", 0))
+    nodes, cells = CanonicalOrder(V), CanonicalOrder(Q)
+    blocks = V.dofmap.list  # (E, nodes), Basix order within a cell
+    X = V.tabulate_dof_coordinates()[blocks]
+    canonical = nodes.canonical_of_global[blocks]
+    rows = (3 * canonical[:, :, None] + np.arange(3)).reshape(len(blocks), -1)
+    cell_index = cells.canonical_of_global[Q.dofmap.list[:, 0]]
+    params = dict(material.params)
+    if material.law == "hgo":
+        m0, n0 = organ.fibre_fields()
+        m = m0.x.array.reshape(-1, 3)[m0.function_space.dofmap.list[:, 0]]
+        n = n0.x.array.reshape(-1, 3)[n0.function_space.dofmap.list[:, 0]]
+        pairs = zip(m, n, strict=True)
+        packed = np.array([law_parameters("hgo", **params, m0=a, n0=b) for a, b in pairs])
+    else:
+        packed = np.tile(law_parameters(material.law, **params), (len(blocks), 1))
+    return MeshElements(np.ascontiguousarray(X), rows, cell_index, packed,
+                        ek.reference_element(cell))  # fmt: skip
+
+
+def rest_tangents(elements: MeshElements) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each element's tangent at rest and volume: (K0 (E, m, m), k0 (E, m), V_e (E,))."""
+    X, ref = elements.X, elements.reference
+    E, m = elements.rows.shape
+    K0, k0, volumes = np.empty((E, m, m)), np.empty((E, m)), np.empty(E)
+    r_u, scalars = np.empty(m), np.empty(ek.SCALAR_SIZE)
+    rest = np.zeros((m // 3, 3))
+    for e in range(E):
+        ek.element_residual_tangent(X[e], rest, 0.0, elements.params[e], ref.gradients,
+                                    ref.weights, r_u, K0[e], k0[e], scalars)  # fmt: skip
+        volumes[e] = scalars[ek.VOLUME]
+    return K0, k0, volumes
+
+
+def _readonly(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    a.flags.writeable = False
+    return a
+
+
+class HyperReducedModel:
+    """R(q, pi) = 0 on the bases ``Phi`` (N, n) and ``Psi`` (cells, n_p) with the internal
+    forces of the sampled ``elements`` (indices) and ``weights``; every element with weight
+    1 if ``elements`` is None (the Galerkin model itself). ``split``: the linear part exact
+    (else sampled with the rest). ``rest``: :func:`rest_tangents`' output, if computed."""
+
+    def __init__(self, mesh: MeshElements, Phi, Psi, elements=None, weights=None,
+                 split: bool = True, rest=None):  # fmt: skip
+        E = len(mesh.X)
+        if elements is None:
+            elements, weights = np.arange(E), np.ones(E)
+        elements, weights = np.asarray(elements, dtype=np.int64), np.asarray(weights, float)
+        if elements.shape != weights.shape or not (weights > 0).all():
+            raise InputError("elements and weights: one positive weight a sampled element")
+        K0, k0, volumes = rest if rest is not None else rest_tangents(mesh)
+        Phi_e = Phi[mesh.rows]  # (E, m, n)
+        Psi_e = Psi[mesh.cell]  # (E, n_p)
+        self.n, self.n_p = Phi.shape[1], Psi.shape[1]
+        self.M = np.einsum("e,ek,el->kl", volumes / mesh.params[:, KAPPA], Psi_e, Psi_e)
+        if split:
+            self.L_uu = np.einsum("emi,emj->ij", Phi_e, np.einsum("emk,ekj->emj", K0, Phi_e))
+            self.L_up = np.einsum("emi,em,ek->ik", Phi_e, k0, Psi_e)
+        else:
+            self.L_uu, self.L_up = np.zeros((self.n, self.n)), np.zeros((self.n, self.n_p))
+            K0, k0 = np.zeros_like(K0), np.zeros_like(k0)
+        s = elements
+        arrays = (mesh.X[s], Phi_e[s], Psi_e[s], mesh.params[s], weights, K0[s], k0[s])
+        self.sample = tuple(_readonly(a) for a in arrays)
+        self.reference = mesh.reference
+        self.scratch = Scratch(mesh.X.shape[1], self.n)
+        size = self.n + self.n_p
+        self.r, self.K = np.empty(size), np.empty((size, size))
+
+    @property
+    def sampled_elements(self) -> int:
+        return len(self.sample[0])
+
+    def residual_tangent(self, q, pi, load) -> tuple[np.ndarray, np.ndarray]:
+        """(R, dR/d(q, pi)) at (q, pi) under the reduced load ``load`` (n,), N."""
+        ref, n = self.reference, self.n
+        sampled_residual_tangent(*self.sample, ref.gradients, ref.weights,
+                                 np.ascontiguousarray(q, float), np.ascontiguousarray(pi, float),
+                                 self.r, self.K, *self.scratch.buffers())  # fmt: skip
+        r, K = self.r.copy(), self.K.copy()
+        r[:n] += self.L_uu @ q + self.L_up @ pi - load
+        r[n:] += self.L_up.T @ q - self.M @ pi
+        K[:n, :n] += self.L_uu
+        K[:n, n:] += self.L_up
+        K[n:, :n] += self.L_up.T
+        K[n:, n:] -= self.M
+        return r, K
+
+    def solve(self, load, factors, tolerance: float = 1e-9, max_iterations: int = 30,
+              partial: bool = False):  # fmt: skip
+        """Newton along the load path ``factors`` * ``load`` (reduced, N), each step from
+        the last; returns (q (steps, n), pi (steps, n_p), Newton iterations a step).
+        Converged when the update is below ``tolerance`` relative to the state. A step that
+        does not converge raises SolverError, or with ``partial`` ends the path there (the
+        arrays hold the steps that converged)."""
+        q, pi = np.zeros(self.n), np.zeros(self.n_p)
+        Q, Pi, iterations = [], [], []
+        for factor in factors:
+            converged = self._newton(q, pi, factor * load, tolerance, max_iterations)
+            if converged is None:
+                if partial:
+                    break
+                raise SolverError(f"reduced Newton: no convergence in {max_iterations} "
+                                  f"iterations at load factor {factor:g}")  # fmt: skip
+            Q.append(q.copy())
+            Pi.append(pi.copy())
+            iterations.append(converged)
+        return np.array(Q).reshape(-1, self.n), np.array(Pi).reshape(-1, self.n_p), iterations
+
+    def _newton(self, q, pi, load, tolerance, max_iterations) -> int | None:
+        """Newton from (q, pi), updated in place; its iterations, or None if it did not
+        converge (or left the finite numbers)."""
+        for iteration in range(1, max_iterations + 1):
+            r, K = self.residual_tangent(q, pi, load)
+            if not (np.isfinite(r).all() and np.isfinite(K).all()):
+                return None
+            delta = np.linalg.solve(K, -r)
+            q += delta[: self.n]
+            pi += delta[self.n :]
+            if np.linalg.norm(delta[: self.n]) <= tolerance * max(np.linalg.norm(q), 1e-300):
+                return iteration
+        return None
+
+
+def training_matrix(mesh: MeshElements, Phi, Psi, states, split: bool = True, rest=None):
+    """ECSW's G for the model on ``Phi``, ``Psi``: column e stacks element e's sampled
+    contribution (unweighted) at each of ``states``, reduced coordinates (q, pi); rows
+    state-major, n + n_p a state. The displacement and pressure rows are scaled apart, by
+    the norm of their full sums over the states, so that both weigh alike (the pressure
+    rows are mm^3, the others N). Returns (G, the scale of a state's n + n_p rows)."""
+    everything = HyperReducedModel(mesh, Phi, Psi, split=split, rest=rest)
+    ref, n, n_p = mesh.reference, everything.n, everything.n_p
+    scratch = everything.scratch
+    out = np.empty((len(mesh.X), n + n_p))
+    blocks = []
+    for q, pi in states:
+        element_contributions(*everything.sample, ref.gradients, ref.weights,
+                              np.ascontiguousarray(q, float), np.ascontiguousarray(pi, float),
+                              out, scratch.u, scratch.r_u, scratch.scalars)  # fmt: skip
+        blocks.append(out.T.copy())
+    G = np.vstack(blocks)
+    sums = G.sum(axis=1).reshape(-1, n + n_p)
+    scale = np.empty(n + n_p)
+    for rows in (slice(0, n), slice(n, n + n_p)):
+        scale[rows] = 1.0 / max(float(np.linalg.norm(sums[:, rows])), 1e-300)
+    return G * np.tile(scale, len(blocks))[:, None], scale

@@ -1,0 +1,131 @@
+"""The hyper-reduced mixed model against the full order it reduces.
+
+A force-controlled HGO campaign on the coarse cornea, solved by the trainer (DOLFINx):
+with bases that span a position's own full-order states, those states are a root of the
+reduced equations, and the reduced Newton (element kernels summed over every element)
+must find them along the load path. The linear split must not change the solution, and
+ECSW's sampled elements must keep it close.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import hapticrom.offline  # noqa: F401 - h5py and MPI first
+from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+from hapticrom.offline.campaign.store import SnapshotStore
+from hapticrom.offline.reduce.ecsw import ecsw
+from hapticrom.offline.reduce.ecsw_model import (
+    HyperReducedModel,
+    mesh_elements,
+    rest_tangents,
+    training_matrix,
+)
+from hapticrom.shared.errors import InputError
+
+pytestmark = pytest.mark.serial
+
+CAMPAIGN = """
+[campaign]
+name = "ecsw-model"
+[mesh]
+file = "{mesh}"
+[material]
+law = "hgo"
+[load]
+mode = "force"
+magnitude = 0.02
+direction = "normal"
+contact_radius = 0.6
+steps = 4
+[solver]  # the full order solved tighter than the campaigns' default (snes_atol 1e-10 N)
+petsc_options = {{ snes_rtol = 1e-12, snes_atol = 1e-15, snes_stol = 1e-14 }}
+[positions]
+points = [[0.0, 0.0, 0.0], [1.0, 0.5, 0.0]]
+"""
+
+
+@pytest.fixture(scope="module")
+def campaign(mesh_dir, tmp_path_factory):
+    root = tmp_path_factory.mktemp("ecsw-model")
+    path = root / "campaign.toml"
+    path.write_text(CAMPAIGN.format(mesh=mesh_dir / "cornea-coarse.msh"))
+    config = CampaignConfig.from_toml(path)
+    run_campaign(config, root / "store", verbose=False)
+    store = SnapshotStore(root / "store")
+    mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
+    return store, mesh, rest_tangents(mesh)
+
+
+def position(store, index):
+    data, _ = store.read_position(index)
+    return data["displacement"], data["pressure"], data["load_vector"], data["load_factor"]
+
+
+def spanning_bases(U, P):
+    """Orthonormal bases of the states' own span: the states are exact in them."""
+    return np.linalg.qr(U.T)[0], np.linalg.qr(P.T)[0]
+
+
+@pytest.mark.parametrize("split", [True, False])
+def test_reduced_newton_finds_the_full_order_states(campaign, split):
+    store, mesh, rest = campaign
+    U, P, f, factors = position(store, 1)
+    Phi, Psi = spanning_bases(U, P)
+    model = HyperReducedModel(mesh, Phi, Psi, split=split, rest=rest)
+    Q, Pi, iterations = model.solve(Phi.T @ f, factors, tolerance=1e-12)
+    u_error = np.linalg.norm(Q @ Phi.T - U, axis=1) / np.linalg.norm(U, axis=1)
+    p_error = np.linalg.norm(Pi @ Psi.T - P, axis=1) / np.linalg.norm(P, axis=1)
+    # the full order's own Newton tolerance bounds how well its states solve these equations
+    assert u_error.max() <= 1e-8, u_error
+    assert p_error.max() <= 1e-8, p_error
+    assert max(iterations) <= 8  # quadratic convergence from the previous step
+
+
+def test_sampled_model_stays_close(campaign):
+    """ECSW on the sampled contributions at both positions' states (tolerance 1e-4): the
+    sampled model's load path within 1 % of the Galerkin model's on all the elements, and
+    of the full order's, with fewer elements."""
+    store, mesh, rest = campaign
+    states = [position(store, i) for i in store.completed()]
+    U_all = np.vstack([s[0] for s in states])
+    Phi, Psi = spanning_bases(U_all, np.vstack([s[1] for s in states]))
+    reduced = [(Phi.T @ u, Psi.T @ p) for U, P, _, _ in states for u, p in zip(U, P, strict=True)]
+    G, _ = training_matrix(mesh, Phi, Psi, reduced, rest=rest)
+    assert G.shape == (len(reduced) * (Phi.shape[1] + Psi.shape[1]), len(mesh.X))
+    sampling = ecsw(G, tolerance=1e-4)
+    assert len(sampling.elements) < 0.25 * len(mesh.X)  # 50 of 264 when written
+    full = HyperReducedModel(mesh, Phi, Psi, rest=rest)
+    sampled = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights, rest=rest)
+    U, _, f, factors = states[0]
+    reference = full.solve(Phi.T @ f, factors)[0] @ Phi.T
+    got = sampled.solve(Phi.T @ f, factors)[0] @ Phi.T
+    assert np.linalg.norm(got - reference) <= 1e-2 * np.linalg.norm(reference)
+    assert np.linalg.norm(got - U) <= 1e-2 * np.linalg.norm(U)
+
+
+def test_training_columns_sum_to_the_model(campaign):
+    """Each column of G is one element's term: G 1 (unscaled) is the sampled sum of the
+    model on every element, at each state."""
+    store, mesh, rest = campaign
+    U, P, _, _ = position(store, 0)
+    Phi, Psi = spanning_bases(U, P)
+    q, pi = Phi.T @ U[-1], Psi.T @ P[-1]
+    G, scale = training_matrix(mesh, Phi, Psi, [(q, pi)], rest=rest)
+    full = HyperReducedModel(mesh, Phi, Psi, rest=rest)
+    r, _ = full.residual_tangent(q, pi, np.zeros(full.n))
+    n = full.n
+    linear = np.concatenate([full.L_uu @ q + full.L_up @ pi, full.L_up.T @ q - full.M @ pi])
+    np.testing.assert_allclose(G.sum(axis=1) / scale, r - linear, rtol=1e-11,
+                               atol=1e-13 * np.abs(r - linear).max())  # fmt: skip
+    assert np.abs((r - linear)[:n]).max() > 0 and np.abs((r - linear)[n:]).max() > 0
+
+
+def test_refuses_bad_samplings(campaign):
+    store, mesh, rest = campaign
+    U, P, _, _ = position(store, 0)
+    Phi, Psi = spanning_bases(U, P)
+    for elements, weights in (([0, 1], [1.0]), ([0], [0.0]), ([0], [-1.0])):
+        with pytest.raises(InputError, match="positive weight"):
+            HyperReducedModel(mesh, Phi, Psi, elements, weights, rest=rest)

@@ -1,0 +1,546 @@
+"""The hyper-reduced internal forces (:mod:`hapticrom.online.hyperreduced`) on small
+synthetic meshes, without DOLFINx.
+
+Distorted grids of Q1 hexahedra and face-sharing P2 tetrahedra with one global node
+numbering (elements share DOFs), random global bases Phi, Psi and the three laws (HGO
+also near-incompressible, kappa = 2e5 MPa). The kernel is held to an independent numpy
+assembly of its module's formulas over the element kernel called per element from
+Python, with and without the rest-tangent split; the split to the unsplit sum plus the
+exact linear matrices; its tangent to central differences of its residual. Then: every
+output written, a reused scratch, wrong shapes refused before writing, no allocation.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass
+from itertools import cycle
+
+import numpy as np
+import pytest
+
+from hapticrom.online import element_kernels as ek
+from hapticrom.online import material_kernels as mk
+from hapticrom.online.hyperreduced import Scratch, sampled_residual_tangent
+
+pytestmark = pytest.mark.serial
+RNG = np.random.default_rng(20260518)
+MODES, PRESSURE_MODES = 5, 3
+SPACING = 2.0  # mm: the hexahedra's edge, about the tetrahedra's
+# mm a unit of q: |grad u| up to 0.05-0.15 at q of about 1 (the P2 nodes are twice as
+# close and their gradients steeper)
+MODE_SCALE = {"hexahedron": 0.03, "tetrahedron": 0.01}
+PRESSURE = 0.05  # MPa a unit of pi: p of about 0.1 MPa, the laws' stresses here
+RELATIVE = 1e-12  # kernel vs the numpy assembly (the same sums in another order)
+
+# A case: the cell, and the laws of its elements (cycled over them); the law's keyword
+# arguments take random unit fibres when the law is hgo. kappa: svk 0.58, neo-Hookean
+# 9.3, the compressible hgo 200, the default hgo (the cornea's) 2e5 MPa.
+SVK = ("svk", dict(E=1.0, nu=0.3))
+NEO_HOOKEAN = ("neo-hookean", dict(E=3.0, nu=0.45))
+HGO = ("hgo", dict(C1=0.05, D=1e-2, C2=0.02, k1=0.5, k2=10.0, k3=0.1, k4=5.0))
+HGO_TENSION_ONLY = ("hgo", dict(D=1e-2, fibre_tension_only=True))
+HGO_DEFAULT = ("hgo", {})
+CASES = {
+    "hex-svk": ("hexahedron", [SVK]),
+    "hex-neo-hookean": ("hexahedron", [NEO_HOOKEAN]),
+    "hex-hgo": ("hexahedron", [HGO]),
+    "hex-mixed-laws": ("hexahedron", [SVK, HGO, NEO_HOOKEAN, HGO_TENSION_ONLY]),
+    "tet-neo-hookean": ("tetrahedron", [NEO_HOOKEAN]),
+    "tet-hgo-incompressible": ("tetrahedron", [HGO_DEFAULT]),
+}
+
+
+def readonly(a) -> np.ndarray:
+    """A C-contiguous float64 read-only copy: the kernel's input flags."""
+    a = np.array(a, dtype=np.float64, order="C")
+    a.flags.writeable = False
+    return a
+
+
+def random_unit() -> np.ndarray:
+    v = RNG.standard_normal(3)
+    return v / np.linalg.norm(v)
+
+
+# -- the synthetic meshes ---------------------------------------------------------------------
+def hexahedra(cells=(3, 2, 1)) -> np.ndarray:
+    """(E, 8, 3): a grid of SPACING-mm cells, each grid node moved up to 0.1 SPACING a
+    direction (no cell affine); node a of a cell at its corner (a & 1, a >> 1 & 1, a >> 2)."""
+    shape = tuple(c + 1 for c in cells)
+    grid = np.stack(np.meshgrid(*(np.arange(s) for s in shape), indexing="ij"), axis=-1)
+    grid = SPACING * grid + 0.1 * SPACING * RNG.uniform(-1.0, 1.0, grid.shape)
+    corners = np.stack([np.arange(8) & 1, np.arange(8) >> 1 & 1, np.arange(8) >> 2], axis=1)
+    X = [
+        [grid[i + a, j + b, k + c] for a, b, c in corners]
+        for i in range(cells[0])
+        for j in range(cells[1])
+        for k in range(cells[2])
+    ]
+    return np.array(X)
+
+
+def affine_tetrahedron(vertices: np.ndarray) -> np.ndarray:
+    """The 10 P2 nodes (Basix order) of the tetrahedron of these vertices, reordered so that
+    its map from the reference cell has a positive determinant."""
+    J = (vertices[1:] - vertices[0]).T  # columns: the reference axes' images
+    if np.linalg.det(J) < 0:
+        vertices = vertices[[0, 2, 1, 3]]
+        J = (vertices[1:] - vertices[0]).T
+    return vertices[0] + ek.reference_element("tetrahedron").nodes @ J.T
+
+
+def tetrahedra() -> np.ndarray:
+    """(3, 10, 3): a tetrahedron of a random affine map and the two built on its faces
+    opposite vertices 0 and 1 (their apexes that vertex mirrored through the face's
+    centroid): two faces shared, six nodes each, and an edge shared by all three."""
+    J = SPACING * (np.eye(3) + 0.2 * RNG.standard_normal((3, 3)))
+    while np.linalg.det(J) < 0.5 * SPACING**3:  # well shaped, positively oriented
+        J = SPACING * (np.eye(3) + 0.2 * RNG.standard_normal((3, 3)))
+    V = np.vstack([np.zeros(3), J.T]) + RNG.uniform(-5.0, 5.0, 3)
+    elements = [affine_tetrahedron(V)]
+    for apex in (0, 1):
+        face = V[[v for v in range(4) if v != apex]]
+        mirrored = 2 * face.mean(axis=0) - V[apex]
+        elements.append(affine_tetrahedron(np.vstack([face, mirrored])))
+    return np.array(elements)
+
+
+def global_nodes(X: np.ndarray) -> np.ndarray:
+    """(E, nodes): one global number a distinct point (coincident within 1e-9 mm)."""
+    points: list[np.ndarray] = []
+    numbers = np.empty(X.shape[:2], dtype=np.int64)
+    for e, a in np.ndindex(*X.shape[:2]):
+        match = [i for i, x in enumerate(points) if np.linalg.norm(x - X[e, a]) < 1e-9]
+        numbers[e, a] = match[0] if match else len(points)
+        if not match:
+            points.append(X[e, a])
+    return numbers
+
+
+@dataclass
+class Problem:
+    """Every element of a mesh with its global bases' rows and rest tangents."""
+
+    X: np.ndarray  # (E, nodes, 3)
+    rows: np.ndarray  # (E, m): the element's rows of Phi
+    params: np.ndarray  # (E, PARAMETER_SIZE)
+    Phi: np.ndarray  # (3 global nodes, MODES)
+    Psi: np.ndarray  # (E, PRESSURE_MODES): one row a cell
+    reference: ek.ReferenceElement
+    K0: np.ndarray  # (E, m, m): K_uu at rest
+    k0: np.ndarray  # (E, m): K_up at rest
+
+    @property
+    def elements(self) -> int:
+        return len(self.X)
+
+    @property
+    def nodes(self) -> int:
+        return self.X.shape[1]
+
+
+def element_tangents(X, u, p, params, reference):
+    """The element kernel called from Python: (r_u, K_uu, K_up, scalars)."""
+    m = X.size
+    r_u, K_uu, K_up, scalars = np.empty(m), np.empty((m, m)), np.empty(m), np.empty(4)
+    ek.element_residual_tangent(readonly(X), readonly(u), p, readonly(params),
+                                reference.gradients, reference.weights, r_u, K_uu, K_up,
+                                scalars)  # fmt: skip
+    return r_u, K_uu, K_up, scalars
+
+
+def make_problem(name: str) -> Problem:
+    cell, laws = CASES[name]
+    X = hexahedra() if cell == "hexahedron" else tetrahedra()
+    numbers = global_nodes(X)
+    rows = (3 * numbers[:, :, None] + np.arange(3)).reshape(len(X), -1)
+    params = []
+    for _, (law, kwargs) in zip(X, cycle(laws)):
+        fibres = dict(m0=random_unit(), n0=random_unit()) if law == "hgo" else {}
+        params.append(mk.law_parameters(law, **kwargs, **fibres))
+    reference = ek.reference_element(cell)
+    zero = np.zeros(X.shape[1:])
+    rest = [element_tangents(x, zero, 0.0, pa, reference) for x, pa in zip(X, params, strict=True)]
+    return Problem(
+        X=X,
+        rows=rows,
+        params=np.array(params),
+        Phi=MODE_SCALE[cell] * RNG.standard_normal((3 * (numbers.max() + 1), MODES)),
+        Psi=RNG.standard_normal((len(X), PRESSURE_MODES)),
+        reference=reference,
+        K0=np.array([t[1] for t in rest]),
+        k0=np.array([t[2] for t in rest]),
+    )
+
+
+@pytest.fixture(scope="module", params=list(CASES))
+def problem(request) -> Problem:
+    return make_problem(request.param)
+
+
+def random_state() -> tuple[np.ndarray, np.ndarray]:
+    return readonly(RNG.standard_normal(MODES)), readonly(PRESSURE * RNG.standard_normal(3))
+
+
+def sample(problem: Problem, elements, weights, split: bool) -> tuple:
+    """The kernel's per-sample inputs (X, Phi, Psi, params, weights, K0, k0), read-only;
+    the rest tangents of the sampled elements, or zeros for no split."""
+    s = np.asarray(elements)
+    K0, k0 = problem.K0[s], problem.k0[s]
+    if not split:
+        K0, k0 = np.zeros_like(K0), np.zeros_like(k0)
+    arrays = (problem.X[s], problem.Phi[problem.rows[s]], problem.Psi[s], problem.params[s],
+              weights, K0, k0)  # fmt: skip
+    return tuple(readonly(a) for a in arrays)
+
+
+def evaluate(problem: Problem, inputs: tuple, q, pi, scratch: Scratch | None = None):
+    """The kernel's (r, K) into NaN-filled outputs."""
+    scratch = Scratch(problem.nodes, MODES) if scratch is None else scratch
+    size = MODES + PRESSURE_MODES
+    r, K = np.full(size, np.nan), np.full((size, size), np.nan)
+    sampled_residual_tangent(*inputs, problem.reference.gradients, problem.reference.weights,
+                             q, pi, r, K, *scratch.buffers())  # fmt: skip
+    return r, K
+
+
+def numpy_sums(problem: Problem, elements, weights, q, pi, split: bool):
+    """The module's sampled sums, element by element in numpy over the element kernel."""
+    n, size = MODES, MODES + PRESSURE_MODES
+    r, K = np.zeros(size), np.zeros((size, size))
+    for e, w in zip(elements, weights, strict=True):
+        Phi_e, Psi_e = problem.Phi[problem.rows[e]], problem.Psi[e]
+        u, p = Phi_e @ q, Psi_e @ pi
+        r_u, K_uu, K_up, scalars = element_tangents(
+            problem.X[e], u.reshape(-1, 3), p, problem.params[e], problem.reference
+        )
+        Theta = scalars[ek.PRESSURE_RESIDUAL] + p * scalars[ek.VOLUME] / problem.params[e, mk.KAPPA]
+        K0, k0 = (problem.K0[e], problem.k0[e]) if split else (0.0 * K_uu, 0.0 * K_up)
+        r[:n] += w * Phi_e.T @ (r_u - K0 @ u - k0 * p)
+        r[n:] += w * Psi_e * (Theta - k0 @ u)
+        K[:n, :n] += w * Phi_e.T @ (K_uu - K0) @ Phi_e
+        K[:n, n:] += w * np.outer(Phi_e.T @ (K_up - k0), Psi_e)
+    K[n:, :n] = K[:n, n:].T
+    return r, K
+
+
+def relative(a, reference) -> float:
+    return float(np.abs(a - reference).max() / np.abs(reference).max())
+
+
+def tangent_errors(K, K_ref) -> dict[str, float]:
+    """Each block's largest difference relative to the reference block's largest entry:
+    the q rows (N) and pi rows (mm^3) differ in scale by orders of magnitude."""
+    n = MODES
+    return {
+        "K_qq": relative(K[:n, :n], K_ref[:n, :n]),
+        "K_qpi": relative(K[:n, n:], K_ref[:n, n:]),
+        "K_piq": relative(K[n:, :n], K_ref[n:, :n]),
+    }
+
+
+def block_errors(r, K, r_ref, K_ref) -> dict[str, float]:
+    """tangent_errors and those of the residual's q and pi rows."""
+    n = MODES
+    errors = {"r_q": relative(r[:n], r_ref[:n]), "r_pi": relative(r[n:], r_ref[n:])}
+    return errors | tangent_errors(K, K_ref)
+
+
+def random_subset(problem: Problem):
+    """All elements but one, shuffled, with weights in [0.5, 2]: an ECSW sample."""
+    elements = RNG.permutation(problem.elements)[: problem.elements - 1]
+    return elements, RNG.uniform(0.5, 2.0, len(elements))
+
+
+# -- the sums -------------------------------------------------------------------------------
+@pytest.mark.parametrize("split", [True, False], ids=["rest-split", "no-split"])
+def test_sums_equal_a_numpy_assembly(problem, split):
+    elements, weights = random_subset(problem)
+    q, pi = random_state()
+    r, K = evaluate(problem, sample(problem, elements, weights, split), q, pi)
+    r_ref, K_ref = numpy_sums(problem, elements, weights, q, pi, split)
+    errors = block_errors(r, K, r_ref, K_ref)
+    assert max(errors.values()) <= RELATIVE, errors
+    n = MODES
+    assert np.all(K[n:, n:] == 0.0)  # Theta does not depend on p: no pi-pi block
+
+
+def test_split_is_exact(problem):
+    """With every element at weight 1, the split's sampled part plus the exact linear
+    matrices is the whole residual and tangent."""
+    everything, ones = np.arange(problem.elements), np.ones(problem.elements)
+    q, pi = random_state()
+    r_split, K_split = evaluate(problem, sample(problem, everything, ones, True), q, pi)
+    r_whole, K_whole = evaluate(problem, sample(problem, everything, ones, False), q, pi)
+    Phi_e, Psi_e = problem.Phi[problem.rows], problem.Psi
+    L_uu = np.einsum("emi,emk,ekj->ij", Phi_e, problem.K0, Phi_e)
+    L_up = np.einsum("emi,em,ek->ik", Phi_e, problem.k0, Psi_e)
+    without_linear = block_errors(r_split, K_split, r_whole, K_whole)
+    n = MODES
+    r_split[:n] += L_uu @ q + L_up @ pi
+    r_split[n:] += L_up.T @ q
+    K_split[:n, :n] += L_uu
+    K_split[:n, n:] += L_up
+    K_split[n:, :n] += L_up.T
+    errors = block_errors(r_split, K_split, r_whole, K_whole)
+    assert max(errors.values()) <= RELATIVE, errors
+    # not trivially: without the linear matrices every block would be far off
+    assert min(without_linear.values()) > 1e-3, without_linear
+
+
+@pytest.mark.parametrize("split", [True, False], ids=["rest-split", "no-split"])
+def test_tangent_is_the_residuals_derivative(problem, split):
+    """Central differences of r in q extrapolated (Richardson: (4 D(h/2) - D(h)) / 3) at
+    h = 1e-3 against q of about 1. The h^2 error term cancels (alone it reaches 5.5e-6
+    here: strains of 0.05-0.16 a unit of q, hgo's exponents 10-30); the h^4 / 480 |r^(5)|
+    term stays below the rounding, about 3e-13 |r'| / h (the sum cancels between elements
+    and against K0 u) times the combination's 3: the error grows as h shrinks, the worst
+    of 240 random draws 1.6e-9 at 1e-3 (6e-9 at 1e-4). Held to 1e-8 of each block's
+    largest entry. r is linear in pi, so its differences in pi are exact but for rounding
+    (step 1: p moves by about 1 MPa)."""
+    elements, weights = random_subset(problem)
+    inputs = sample(problem, elements, weights, split)
+    q, pi = random_state()
+    r, K = evaluate(problem, inputs, q, pi)
+    assert np.array_equal(K, K.T)
+    n, size = MODES, MODES + PRESSURE_MODES
+
+    def difference(step):  # r(x + step) - r(x - step)
+        plus = evaluate(problem, inputs, readonly(q + step[:n]), readonly(pi + step[n:]))[0]
+        return plus - evaluate(problem, inputs, readonly(q - step[:n]), readonly(pi - step[n:]))[0]
+
+    K_fd = np.empty((size, size))
+    for column in range(size):
+        step = np.zeros(size)
+        if column < n:
+            step[column] = h = 1e-3
+            K_fd[:, column] = (8 * difference(step / 2) - difference(step)) / (6 * h)
+        else:
+            step[column] = 1.0
+            K_fd[:, column] = difference(step) / 2
+    errors = tangent_errors(K, K_fd)
+    assert max(errors["K_qq"], errors["K_piq"]) <= 1e-8, errors
+    assert errors["K_qpi"] <= 1e-10, errors
+    # the pi-pi block: Theta's differences in pi, rounding of p V / kappa only
+    assert np.abs(K_fd[n:, n:]).max() <= 1e-10 * np.abs(K_fd[n:, :n]).max()
+
+
+# -- outputs and scratch ----------------------------------------------------------------------
+def test_every_output_written_and_scratch_reusable(problem):
+    """NaN-filled r, K and scratch come back finite, equal to a fresh scratch's; a scratch
+    reused across calls at other states and samples gives the same bits again."""
+    elements, weights = random_subset(problem)
+    inputs = sample(problem, elements, weights, True)
+    q, pi = random_state()
+    fresh = evaluate(problem, inputs, q, pi)
+    assert np.isfinite(fresh[0]).all() and np.isfinite(fresh[1]).all()
+    scratch = Scratch(problem.nodes, MODES)
+    for buffer in scratch.buffers():
+        buffer.fill(np.nan)
+    first = evaluate(problem, inputs, q, pi, scratch)
+    assert all(np.array_equal(a, b) for a, b in zip(first, fresh, strict=True))
+    other_inputs = sample(problem, *random_subset(problem), False)
+    between = evaluate(problem, other_inputs, *random_state(), scratch)
+    assert not np.array_equal(between[0], first[0])
+    again = evaluate(problem, inputs, q, pi, scratch)
+    assert all(np.array_equal(a, b) for a, b in zip(again, first, strict=True))
+
+
+def test_wrong_shapes_refused_before_writing():
+    """Each of the kernel's shape checks, by the start of its message, with r and K left
+    as they were."""
+    problem = make_problem("hex-neo-hookean")
+    elements, weights = random_subset(problem)
+    X, Phi, Psi, params, w, K0, k0 = sample(problem, elements, weights, True)
+    q, pi = random_state()
+    G, quadrature = problem.reference.gradients, problem.reference.weights
+    size = MODES + PRESSURE_MODES
+    r, K = np.empty(size), np.empty((size, size))
+    buffers = Scratch(problem.nodes, MODES).buffers()
+    rows, nodes, K0_, k0_q_pi = "one row a sampled", "3 rows a node", "K0 must", "k0 must"
+    r_K, wrong_scratch = "r must be", "the scratch does not fit"
+
+    def call(**changed):
+        arguments = dict(X=X, Phi=Phi, Psi=Psi, params=params, weights=w, K0=K0, k0=k0,
+                         gradients=G, quadrature=quadrature, q=q, pi=pi, r=r, K=K)  # fmt: skip
+        arguments.update(changed)
+        scratch = arguments.pop("scratch", buffers)
+        return tuple(arguments.values()) + tuple(scratch)
+
+    def scratch_with(index, array):
+        return tuple(array if i == index else b for i, b in enumerate(buffers))
+
+    m = Phi.shape[1]
+    calls = [
+        (rows, call(X=X[:-1])),
+        (rows, call(Psi=Psi[:-1])),
+        (rows, call(params=params[:-1])),
+        (rows, call(weights=w[:-1])),
+        (nodes, call(Phi=readonly(Phi[:, :-3]))),
+        (nodes, call(X=readonly(np.pad(X, ((0, 0), (0, 0), (0, 1)))))),
+        (nodes, call(params=readonly(params[:, :-1]))),
+        (K0_, call(K0=K0[:-1])),
+        (K0_, call(K0=readonly(K0[:, :-1]))),
+        (K0_, call(K0=readonly(K0[:, :, :-1]))),
+        (K0_, call(k0=k0[:-1])),
+        (k0_q_pi, call(k0=readonly(k0[:, :-1]))),
+        (k0_q_pi, call(q=readonly(np.append(q, 0.0)))),
+        (k0_q_pi, call(q=q[:-1])),
+        (k0_q_pi, call(pi=pi[:-1])),
+        (r_K, call(r=np.empty(size + 1))),
+        (r_K, call(K=np.empty((size + 1, size)))),
+        (r_K, call(K=np.empty((size, size - 1)))),
+        (wrong_scratch, call(scratch=Scratch(problem.nodes + 2, MODES).buffers())),
+        (wrong_scratch, call(scratch=Scratch(10, MODES).buffers())),  # a P2 tetrahedron's
+        (wrong_scratch, call(scratch=Scratch(problem.nodes, MODES + 1).buffers())),
+        (wrong_scratch, call(scratch=scratch_with(1, np.empty(m - 1)))),  # r_u
+        (wrong_scratch, call(scratch=scratch_with(2, np.empty((m + 3, m))))),  # K_uu
+        # oversized (in bounds if unchecked): u, K_uu, K_up, scalars, T
+        (wrong_scratch, call(scratch=scratch_with(0, np.empty((problem.nodes, 4))))),
+        (wrong_scratch, call(scratch=scratch_with(2, np.empty((m, m + 3))))),
+        (wrong_scratch, call(scratch=scratch_with(3, np.empty(m + 1)))),
+        (wrong_scratch, call(scratch=scratch_with(4, np.empty(ek.SCALAR_SIZE + 1)))),
+        (wrong_scratch, call(scratch=scratch_with(5, np.empty((m + 3, MODES))))),
+    ]
+    for message, arguments in calls:
+        r_, K_ = arguments[11], arguments[12]
+        r_.fill(7.0)
+        K_.fill(7.0)
+        with pytest.raises(ValueError, match=message):
+            sampled_residual_tangent(*arguments)
+        assert np.all(r_ == 7.0) and np.all(K_ == 7.0), message  # nothing written
+
+
+def test_wrong_reference_element_refused():
+    """The gradients and quadrature must be the elements' reference's: a P2 tetrahedron's
+    (14 points, 10 nodes) with hexahedra, gradients of 4 directions, a rule with fewer
+    weights than gradients' points. All in bounds, so an unchecked kernel would return a
+    wrong sum rather than crash (the other way round, fewer nodes or points than the
+    kernel reads, it reads past the arrays' ends)."""
+    problem = make_problem("hex-svk")
+    elements, weights = random_subset(problem)
+    inputs = sample(problem, elements, weights, True)
+    q, pi = random_state()
+    tetrahedron = ek.reference_element("tetrahedron")
+    G, quadrature = problem.reference.gradients, problem.reference.weights
+    size = MODES + PRESSURE_MODES
+    for message, gradients, rule in [
+        ("gradients must be", tetrahedron.gradients, tetrahedron.weights),
+        ("gradients must be", readonly(np.pad(G, ((0, 0), (0, 0), (0, 1)))), quadrature),
+        ("quadrature must have", G, readonly(quadrature[:-1])),
+    ]:
+        r, K = np.full(size, 7.0), np.full((size, size), 7.0)
+        with pytest.raises(ValueError, match=message):
+            sampled_residual_tangent(*inputs, gradients, rule, q, pi, r, K,
+                                     *Scratch(problem.nodes, MODES).buffers())  # fmt: skip
+        assert np.all(r == 7.0) and np.all(K == 7.0)
+
+
+def test_too_many_nodes_refused():
+    """Elements of more than MAX_NODES nodes would overflow the element kernel's stack
+    scratch: refused before anything runs (in a subprocess, so an overflow fails this test
+    rather than the session)."""
+    code = textwrap.dedent("""
+        import numpy as np
+        from hapticrom.online import material_kernels as mk
+        from hapticrom.online.element_kernels import MAX_NODES
+        from hapticrom.online.hyperreduced import Scratch, sampled_residual_tangent
+
+        def readonly(a):
+            a = np.array(a, dtype=np.float64, order="C")
+            a.flags.writeable = False
+            return a
+
+        rng = np.random.default_rng(2)
+        nodes, n, n_p, points = MAX_NODES + 1, 2, 1, 8
+        m = 3 * nodes
+        inputs = [rng.standard_normal((1, nodes, 3)), 0.01 * rng.standard_normal((1, m, n)),
+                  np.ones((1, n_p)), [mk.law_parameters("svk", E=1.0, nu=0.3)], [1.0],
+                  np.zeros((1, m, m)), np.zeros((1, m)), rng.standard_normal((points, nodes, 3)),
+                  np.full(points, 1.0 / points), np.ones(n), np.ones(n_p)]
+        r, K = np.full(n + n_p, 7.0), np.full((n + n_p, n + n_p), 7.0)
+        try:
+            sampled_residual_tangent(*map(readonly, inputs), r, K, *Scratch(nodes, n).buffers())
+        except ValueError as error:
+            print(error)
+        print(bool(np.all(r == 7.0) and np.all(K == 7.0)))
+    """)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "MAX_NODES" in proc.stdout and proc.stdout.split()[-1] == "True", proc.stdout
+
+
+# -- no allocation ------------------------------------------------------------------------------
+def test_allocates_nothing():
+    """numba's allocation counters (which see an allocating canary) move as much over 1000
+    calls of the kernel from a compiled driver as over one: the boxing of the driver's
+    arguments only."""
+    code = textwrap.dedent("""
+        import numpy as np
+        from numba import njit
+        from numba.core.runtime import rtsys
+        from hapticrom.online import element_kernels as ek, material_kernels as mk
+        from hapticrom.online.hyperreduced import Scratch, sampled_residual_tangent
+
+        @njit
+        def run(X, Phi, Psi, params, w, K0, k0, G, Wq, q, pi, r, K,
+                u, r_u, K_uu, K_up, scalars, T, n):
+            total = 0.0
+            for _ in range(n):
+                sampled_residual_tangent(X, Phi, Psi, params, w, K0, k0, G, Wq, q, pi, r, K,
+                                         u, r_u, K_uu, K_up, scalars, T)
+                total += r[0]
+            return total
+
+        @njit
+        def allocating(n):  # the counters' canary: one array per iteration
+            total = 0.0
+            for _ in range(n):
+                total += np.ones(3)[0]
+            return total
+
+        allocating(1)
+        before = rtsys.get_allocation_stats().alloc
+        allocating(100)
+        assert rtsys.get_allocation_stats().alloc - before == 100
+
+        def readonly(a):
+            a = np.array(a, dtype=np.float64, order="C")
+            a.flags.writeable = False
+            return a
+
+        rng = np.random.default_rng(1)
+        fibres = dict(m0=np.array([1.0, 0.0, 0.0]), n0=np.array([0.0, 1.0, 0.0]))
+        laws = [mk.law_parameters("neo-hookean", E=1.0, nu=0.3), mk.law_parameters("hgo", **fibres)]
+        n, n_p, S = 5, 3, 2
+        for cell in ("hexahedron", "tetrahedron"):
+            ref = ek.reference_element(cell)
+            m = ref.nodes.size
+            X = readonly([ref.nodes, ref.nodes + 0.02 * rng.standard_normal(ref.nodes.shape)])
+            inputs = (X, readonly(0.01 * rng.standard_normal((S, m, n))),
+                      readonly(rng.standard_normal((S, n_p))), readonly(laws),
+                      readonly([1.0, 2.0]), readonly(rng.standard_normal((S, m, m))),
+                      readonly(rng.standard_normal((S, m))), ref.gradients, ref.weights,
+                      readonly(rng.standard_normal(n)), readonly(0.1 * rng.standard_normal(n_p)),
+                      np.empty(n + n_p), np.empty((n + n_p, n + n_p)),
+                      *Scratch(len(ref.nodes), n).buffers())
+            run(*inputs, 1)  # compile the driver
+            before = rtsys.get_allocation_stats()
+            run(*inputs, 1)
+            once = rtsys.get_allocation_stats()
+            run(*inputs, 1000)
+            after = rtsys.get_allocation_stats()
+            per_call = [b - a for a, b in zip(before, once)]
+            assert [b - a for a, b in zip(once, after)] == per_call, (before, once, after)
+            assert np.isfinite(inputs[11]).all()
+        print("ok")
+    """)
+    env = {**os.environ, "NUMBA_NRT_STATS": "1"}
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                          timeout=900)  # fmt: skip
+    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
