@@ -18,8 +18,11 @@ from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
+    group_nodes,
     mesh_elements,
+    rest_operators,
     rest_tangents,
+    supremizers,
     training_matrix,
 )
 from hapticrom.shared.errors import InputError
@@ -129,3 +132,46 @@ def test_refuses_bad_samplings(campaign):
     for elements, weights in (([0, 1], [1.0]), ([0], [0.0]), ([0], [-1.0])):
         with pytest.raises(InputError, match="positive weight"):
             HyperReducedModel(mesh, Phi, Psi, elements, weights, rest=rest)
+
+
+def test_rest_operators_are_the_models_linear_part(campaign):
+    """The assembled rest operators projected on the bases are the model's exact linear
+    matrices; the condensed stiffness is A + Bt C^-1 Bt^T; supremizers solve A s = Bt psi
+    on the free rows."""
+    store, mesh, rest = campaign
+    U, P, _, _ = position(store, 0)
+    Phi, Psi = spanning_bases(U, P)
+    model = HyperReducedModel(mesh, Phi, Psi, rest=rest)
+    operators = rest_operators(mesh, rest)
+    close = dict(rtol=1e-12, atol=0)
+    np.testing.assert_allclose(Phi.T @ (operators.A @ Phi), model.L_uu,
+                               atol=1e-12 * np.abs(model.L_uu).max(), rtol=0)  # fmt: skip
+    np.testing.assert_allclose(Phi.T @ (operators.Bt @ Psi), model.L_up,
+                               atol=1e-12 * np.abs(model.L_up).max(), rtol=0)  # fmt: skip
+    np.testing.assert_allclose(Psi.T @ (operators.compliance[:, None] * Psi), model.M, **close)
+    x = np.random.default_rng(3).standard_normal(operators.A.shape[0])
+    Bx = operators.Bt.T @ x
+    expected = operators.A @ x + operators.Bt @ (Bx / operators.compliance)
+    np.testing.assert_allclose(operators.condensed() @ x, expected, rtol=1e-12,
+                               atol=1e-12 * np.abs(expected).max())  # fmt: skip
+    free = np.flatnonzero(np.abs(U).max(axis=0) > 0)
+    S = supremizers(operators, Psi, free)
+    residual = (operators.A @ S - operators.Bt @ Psi)[free]
+    assert np.abs(residual).max() <= 1e-9 * np.abs(operators.Bt @ Psi).max()
+    fixed = np.setdiff1d(np.arange(len(S)), free)
+    assert np.all(S[fixed] == 0.0)
+
+
+def test_group_nodes_hold_the_tool_loads(campaign, mesh_dir):
+    """The loadable group's nodes (canonical numbering, coordinates) carry every stored
+    tool load, and their coordinates are the elements' own."""
+    store, mesh, _ = campaign
+    nodes, xyz = group_nodes(mesh_dir / "cornea-coarse.msh", "loadable")
+    for i in store.completed():
+        f = position(store, i)[2].reshape(-1, 3)
+        loaded = np.flatnonzero(np.abs(f).max(axis=1) > 0)
+        assert loaded.size and np.isin(loaded, nodes).all()
+    element_xyz = np.zeros((int(mesh.rows.max()) // 3 + 1, 3))
+    element_xyz[mesh.rows[:, ::3].ravel() // 3] = mesh.X.reshape(-1, 3)
+    np.testing.assert_allclose(xyz, element_xyz[nodes], rtol=0, atol=1e-12)
+    assert len(nodes) < len(element_xyz)  # a surface group, not the whole mesh

@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
 from mpi4py import MPI
 
 from hapticrom.offline.fe.dofs import CanonicalOrder
@@ -65,6 +67,18 @@ def mesh_elements(mesh_file, material) -> MeshElements:
                         ek.reference_element(cell))  # fmt: skip
 
 
+def group_nodes(mesh_file, group: str) -> tuple[np.ndarray, np.ndarray]:
+    """(canonical node indices, their coordinates (mm)) of a surface group's facets: the
+    nodes of :func:`mesh_elements`' displacement space (vertices, and edge nodes of P2)."""
+    from dolfinx import fem
+
+    organ = load_organ(mesh_file, MPI.COMM_SELF)
+    V = fem.functionspace(organ.mesh, ("Lagrange", ek.CELLS[organ.cell_type], (3,)))
+    blocks = fem.locate_dofs_topological(V, organ.mesh.topology.dim - 1, organ.facets(group))
+    nodes = CanonicalOrder(V).canonical_of_global[blocks]
+    return nodes, V.tabulate_dof_coordinates()[blocks]
+
+
 def rest_tangents(elements: MeshElements) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each element's tangent at rest and volume: (K0 (E, m, m), k0 (E, m), V_e (E,))."""
     X, ref = elements.X, elements.reference
@@ -77,6 +91,47 @@ def rest_tangents(elements: MeshElements) -> tuple[np.ndarray, np.ndarray, np.nd
                                     ref.weights, r_u, K0[e], k0[e], scalars)  # fmt: skip
         volumes[e] = scalars[ek.VOLUME]
     return K0, k0, volumes
+
+
+@dataclass(frozen=True)
+class RestOperators:
+    """The mixed model's linear operators at rest, assembled over every element (N
+    displacement rows, C cells): A = sum K0_e (N/mm, the volumetric part excluded), Bt =
+    sum k0_e (N x C, mm^2: the divergence, transposed), and compliance = V_e / kappa_e
+    (C,) (mm^3/MPa). With one pressure a cell it condenses exactly:
+    K = A + Bt diag(1 / compliance) Bt^T is the full order's stiffness at rest."""
+
+    A: scipy.sparse.csr_matrix
+    Bt: scipy.sparse.csr_matrix
+    compliance: np.ndarray
+
+    def condensed(self) -> scipy.sparse.csr_matrix:
+        return (self.A + self.Bt @ scipy.sparse.diags(1.0 / self.compliance) @ self.Bt.T).tocsr()
+
+
+def rest_operators(mesh: MeshElements, rest) -> RestOperators:
+    """:class:`RestOperators` from :func:`rest_tangents`' output."""
+    K0, k0, volumes = rest
+    E, m = mesh.rows.shape
+    N = int(mesh.rows.max()) + 1
+    rows = np.repeat(mesh.rows, m, axis=1).ravel()
+    columns = np.tile(mesh.rows, (1, m)).ravel()
+    A = scipy.sparse.csr_matrix((K0.ravel(), (rows, columns)), shape=(N, N))
+    cells = np.repeat(mesh.cell, m)
+    Bt = scipy.sparse.csr_matrix((k0.ravel(), (mesh.rows.ravel(), cells)), shape=(N, E))
+    compliance = np.empty(E)
+    compliance[mesh.cell] = volumes / mesh.params[:, KAPPA]
+    return RestOperators(A, Bt, compliance)
+
+
+def supremizers(operators: RestOperators, Psi, free) -> np.ndarray:
+    """A^-1 Bt Psi (N, n_p), zero outside the ``free`` rows: for each pressure mode the
+    displacement it pushes hardest, whose addition makes a mixed reduced basis inf-sup
+    stable (Rozza and Veroy 2007)."""
+    A = operators.A[free][:, free].tocsc()
+    out = np.zeros((operators.A.shape[0], Psi.shape[1]))
+    out[free] = scipy.sparse.linalg.splu(A).solve(np.asarray(operators.Bt @ Psi)[free])
+    return out
 
 
 def _readonly(a: np.ndarray) -> np.ndarray:

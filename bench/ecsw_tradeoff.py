@@ -1,0 +1,225 @@
+"""ECSW on a trained campaign: tolerance -> sampled elements -> error -> time, at held-out
+positions, beside the Galerkin model on every element (issue 18).
+
+    python bench/ecsw_tradeoff.py CAMPAIGN.toml CAMPAIGN_DIR [--modes 20] [--pressure-modes 10]
+        [--basis campaign|bumps|both] [--supremizers] [--split linear|none] [--held-out 6]
+        [--steps 2,5,10] [--tolerances 0.1,0.03,0.01,0.003] [--out FILE.json]
+
+1. Bases from the training positions (all but every ``len/held-out``-th): the leading
+   ``--modes`` left singular vectors of their stored states (``--basis campaign``), of the
+   linear responses to smooth tool loads centred at every node their loads touch
+   (``bumps``, as ``bench/basis_span.py``) or of both, and ``--pressure-modes`` of the
+   element pressures of the same; ``--supremizers``
+   adds to the displacement basis A^-1 B^T psi for each pressure mode psi (A: the rest
+   stiffness without its volumetric part, B: the divergence), the classical cure of a
+   mixed reduced basis that is not inf-sup stable.
+2. ECSW's training matrix (``offline/reduce/ecsw_model.training_matrix``) at the training
+   states of ``--steps``, projected on the bases: each element's contribution to the
+   reduced residual, all of it (``--split none``) or its part nonlinear in (u, p)
+   (``linear``: the linear part is exact through small matrices).
+3. At each tolerance: the sampled elements; at the held-out states, the error of the
+   weighted sums against the full ones relative to the whole residual's rows (displacement
+   rows u, pressure rows p); the reduced Newton along each held-out position's load path,
+   its tool depth against the full order's (the largest relative error over the steps that
+   converged), its field (relative L2 over the nodes at the last of them) and the share of
+   the steps that converged ("solved"); the time of one residual and
+   tangent (the online kernel, p50 and p99 of 300 calls). The first row is the Galerkin
+   model on every element: the basis' own error, which no sampling can remove.
+
+Prints a table; ``--out`` writes it as JSON. Serial. Units: mm, N, MPa.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import h5py  # noqa: F401  (before dolfinx: see the README)
+import numpy as np
+import scipy.sparse.linalg
+from basis_span import pod, training_bumps  # bench/, beside this script
+
+from hapticrom.offline.campaign.config import CampaignConfig
+from hapticrom.offline.campaign.store import SnapshotStore
+from hapticrom.offline.reduce.ecsw import ecsw
+from hapticrom.offline.reduce.ecsw_model import (
+    HyperReducedModel,
+    mesh_elements,
+    rest_operators,
+    rest_tangents,
+    supremizers,
+    training_matrix,
+)
+
+
+def bases(store, training, args, mesh, rest, config):
+    """(Phi, Psi) from the training positions: the POD of the campaign's states, of the
+    linear responses to smooth tool loads at every loaded node (``bench/basis_span.py``),
+    or of both; the pressure modes of the same; supremizers if asked."""
+    data = [store.read_position(i)[0] for i in training]
+    U = np.vstack([d["displacement"] for d in data]).T
+    P = np.vstack([d["pressure"] for d in data]).T
+    free = np.flatnonzero(np.abs(U).max(axis=1) > 0)  # the supports' rows stay zero
+    operators = rest_operators(mesh, rest)
+    if args.basis != "campaign":
+        K = operators.condensed()
+        loads = training_bumps(config, store, training, K.shape[0])
+        responses = np.zeros(loads.shape)
+        responses[free] = scipy.sparse.linalg.splu(K[free][:, free].tocsc()).solve(loads[free])
+        pressures = (operators.Bt.T @ responses) / operators.compliance[:, None]
+        if args.basis == "bumps":
+            U, P = responses, pressures
+        else:
+            U, P = np.hstack([U, responses]), np.hstack([P, pressures])
+    Phi = pod(U)[:, : args.modes]
+    Psi = pod(P)[:, : args.pressure_modes]
+    if args.supremizers:
+        Phi = np.linalg.qr(np.hstack([Phi, supremizers(operators, Psi, free)]))[0]
+    return Phi, Psi
+
+
+def held_out_paths(store, held_out):
+    """Per held-out position: (displacements (steps, N), pressures, load vector, factors,
+    depths along the path: the load-weighted mean displacement along the load, mm)."""
+    paths = []
+    for i in held_out:
+        data, _ = store.read_position(i)
+        f = data["load_vector"]
+        force = np.linalg.norm(f.reshape(-1, 3).sum(axis=0))
+        U = data["displacement"]
+        paths.append((U, data["pressure"], f, data["load_factor"], U @ f / force, force))
+    return paths
+
+
+def solve_paths(model, Phi, paths) -> dict:
+    """The reduced Newton along each held-out path: the worst depth error over the steps
+    that converged, the field error at the last of them, the fraction of steps converged."""
+    depth, field, iterations, converged, total = 0.0, 0.0, [], 0, 0
+    for U, _, f, factors, depths, force in paths:
+        Q, _, its = model.solve(Phi.T @ f, factors, tolerance=1e-8, partial=True)
+        total += len(factors)
+        converged += len(Q)
+        if not len(Q):
+            continue
+        u = Q @ Phi.T
+        k = len(Q)
+        depth = max(depth, float(np.abs(u @ f / force / depths[:k] - 1.0).max()))
+        field = max(field, float(np.linalg.norm(u[-1] - U[k - 1]) / np.linalg.norm(U[k - 1])))
+        iterations.append(float(np.mean(its)))
+    newton = float(np.mean(iterations)) if iterations else None
+    return {"depth_error": depth, "field_error": field, "newton": newton,
+            "converged": converged / total}  # fmt: skip
+
+
+def kernel_times(model, q, pi) -> tuple[float, float]:
+    """(p50, p99) of one residual and tangent (s)."""
+    times = []
+    for _ in range(300):
+        t = time.perf_counter()
+        model.residual_tangent(q, pi, np.zeros(model.n))
+        times.append(time.perf_counter() - t)
+    return float(np.percentile(times, 50)), float(np.percentile(times, 99))
+
+
+def row_errors(G, scale, w, totals, n) -> tuple[float, float]:
+    """The weighted sums' error relative to the whole residual's rows, u and p apart."""
+    width = len(scale)
+    error = (G @ w - G.sum(axis=1)) / np.tile(scale, len(G) // width)
+    error = error.reshape(-1, width)
+    return tuple(
+        float(np.linalg.norm(error[:, b]) / np.linalg.norm(totals[:, b]))
+        for b in (slice(0, n), slice(n, width))
+    )
+
+
+def whole_rows(model, states) -> np.ndarray:
+    """The reduced residual's rows without load or the exact p / kappa part, per state."""
+    out = []
+    for q, pi in states:
+        r, _ = model.residual_tangent(q, pi, np.zeros(model.n))
+        r[model.n :] += model.M @ pi
+        out.append(r)
+    return np.array(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("config")
+    parser.add_argument("campaign")
+    parser.add_argument("--modes", type=int, default=20)
+    parser.add_argument("--pressure-modes", type=int, default=10)
+    parser.add_argument("--basis", choices=("campaign", "bumps", "both"), default="campaign")
+    parser.add_argument("--supremizers", action="store_true")
+    parser.add_argument("--split", choices=("none", "linear"), default="linear")
+    parser.add_argument("--held-out", type=int, default=6)
+    parser.add_argument("--tolerances", default="0.1,0.03,0.01,0.003")
+    parser.add_argument("--steps", default="2,5,10")
+    parser.add_argument("--out")
+    args = parser.parse_args()
+    t0 = time.perf_counter()
+    config = CampaignConfig.from_toml(args.config)
+    store = SnapshotStore(args.campaign)
+    mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
+    rest = rest_tangents(mesh)
+    positions = store.completed()
+    stride = max(len(positions) // max(args.held_out, 1), 1)
+    held_out = positions[stride // 2 :: stride][: args.held_out]
+    training = [i for i in positions if i not in held_out]
+    Phi, Psi = bases(store, training, args, mesh, rest, config)
+    n, split = Phi.shape[1], args.split == "linear"
+    steps = [int(s) - 1 for s in args.steps.split(",")]
+
+    def states(indices):
+        out = []
+        for i in indices:
+            data, _ = store.read_position(i)
+            for k in steps:
+                out.append((Phi.T @ data["displacement"][k], Psi.T @ data["pressure"][k]))
+        return out
+
+    G, scale = training_matrix(mesh, Phi, Psi, states(training), split=split, rest=rest)
+    H, held_scale = training_matrix(mesh, Phi, Psi, states(held_out), split=split, rest=rest)
+    galerkin = HyperReducedModel(mesh, Phi, Psi, split=split, rest=rest)
+    totals = whole_rows(galerkin, states(held_out))
+    paths = held_out_paths(store, held_out)
+    q_last, pi_last = states(held_out[:1])[-1]
+    print(f"{len(mesh.X)} elements, {len(training)} training / {len(held_out)} held-out "
+          f"positions, {args.basis} basis, {n} + {Psi.shape[1]} modes (supremizers: "
+          f"{args.supremizers}), G "
+          f"{G.shape[0]} x {G.shape[1]}, split: {args.split}; {time.perf_counter() - t0:.0f} s "
+          "to set up")  # fmt: skip
+    columns = ("tolerance", "elements", "rows u", "rows p", "depth", "field", "newton", "solved",
+               "p50 ms", "p99 ms")  # fmt: skip
+    widths = (9, 8, 8, 8, 8, 8, 6, 6, 7, 7)  # the rows' below
+    print(" ".join(f"{c:>{w}s}" for c, w in zip(columns, widths, strict=True)))
+    results = []
+    for tolerance in ["galerkin"] + [float(t) for t in args.tolerances.split(",")]:
+        if tolerance == "galerkin":
+            model, count, errors = galerkin, len(mesh.X), (0.0, 0.0)
+        else:
+            sampling = ecsw(G, tolerance=tolerance)
+            w = np.zeros(G.shape[1])
+            w[sampling.elements] = sampling.weights
+            errors = row_errors(H, held_scale, w, totals, n)
+            model = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights,
+                                      split=split, rest=rest)  # fmt: skip
+            count = len(sampling.elements)
+        solved = solve_paths(model, Phi, paths)
+        p50, p99 = kernel_times(model, q_last, pi_last)
+        results.append({"tolerance": tolerance, "elements": count, "rows_u": errors[0],
+                        "rows_p": errors[1], **solved, "p50_s": p50, "p99_s": p99})  # fmt: skip
+        label = tolerance if isinstance(tolerance, str) else f"{tolerance:g}"
+        newton = "-" if solved["newton"] is None else f"{solved['newton']:.1f}"
+        print(f"{label:>9s} {count:8d} {errors[0]:8.2e} {errors[1]:8.2e} "
+              f"{solved['depth_error']:8.2e} {solved['field_error']:8.2e} {newton:>6s} "
+              f"{solved['converged']:6.0%} "
+              f"{1e3 * p50:7.2f} {1e3 * p99:7.2f}", flush=True)  # fmt: skip
+    if args.out:
+        record = {"arguments": vars(args), "held_out": held_out, "results": results}
+        Path(args.out).write_text(json.dumps(record, indent=1))
+
+
+if __name__ == "__main__":
+    main()
