@@ -7,8 +7,10 @@ Tests marked ``serial`` are skipped when more than one rank runs them.
 from __future__ import annotations
 
 import os
+import zlib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -120,3 +122,18 @@ def small_artifact(small_campaign, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("artifact") / "small.h5"
     reduce_campaign(store.root, out, MPI.COMM_SELF, verbose=False)
     return out
+
+
+def reseed(generator: np.random.Generator, name: str) -> None:
+    """Restart a generator from a seed of ``name``: a test (or a module fixture) draws the
+    same numbers whatever ran before it (pytest-xdist changes the order)."""
+    seeded = np.random.default_rng(zlib.crc32(name.encode()))
+    generator.bit_generator.state = seeded.bit_generator.state
+
+
+@pytest.fixture(autouse=True)
+def _reseed_module_generator(request):
+    """A test module's ``RNG`` restarted from the test's id before each test."""
+    generator = getattr(request.module, "RNG", None)
+    if isinstance(generator, np.random.Generator):
+        reseed(generator, request.node.nodeid)

@@ -21,6 +21,7 @@ from itertools import cycle
 
 import numpy as np
 import pytest
+from conftest import reseed
 
 from hapticrom.online import element_kernels as ek
 from hapticrom.online import material_kernels as mk
@@ -179,6 +180,7 @@ def make_problem(name: str) -> Problem:
 
 @pytest.fixture(scope="module", params=list(CASES))
 def problem(request) -> Problem:
+    reseed(RNG, f"problem-{request.param}")
     return make_problem(request.param)
 
 
@@ -288,8 +290,10 @@ def test_split_is_exact(problem):
     K_split[n:, :n] += L_up.T
     errors = block_errors(r_split, K_split, r_whole, K_whole)
     assert max(errors.values()) <= RELATIVE, errors
-    # not trivially: without the linear matrices every block would be far off
-    assert min(without_linear.values()) > 1e-3, without_linear
+    # not trivially: without the linear matrices the pressure coupling is far off (the q
+    # blocks can be too, but at a state where a fibre's exponential dominates they need
+    # not be: seen 3e-14 on tet-hgo-incompressible)
+    assert min(without_linear["K_qpi"], without_linear["K_piq"]) > 1e-3, without_linear
 
 
 @pytest.mark.parametrize("split", [True, False], ids=["rest-split", "no-split"])
@@ -301,8 +305,15 @@ def test_tangent_is_the_residuals_derivative(problem, split):
     and against K0 u) times the combination's 3: the error grows as h shrinks, the worst
     of 240 random draws 1.6e-9 at 1e-3 (6e-9 at 1e-4). Held to 1e-8 of each block's
     largest entry. r is linear in pi, so its differences in pi are exact but for rounding
-    (step 1: p moves by about 1 MPa)."""
+    (step 1: p moves by about 1 MPa).
+
+    Tension-only fibres are left out: their energy has a kink where a family starts to
+    carry (I4 = 1), and a difference that straddles it is no derivative (seen: 2.6e-3 at
+    h = 1e-3, 3.5e-9 at h = 1e-5 for the same state); their tangent is checked against UFL
+    away from the kink (tests/test_material_kernels.py)."""
     elements, weights = random_subset(problem)
+    smooth = problem.params[elements, mk.TENSION_ONLY] == 0.0
+    elements, weights = elements[smooth], weights[smooth]
     inputs = sample(problem, elements, weights, split)
     q, pi = random_state()
     r, K = evaluate(problem, inputs, q, pi)
