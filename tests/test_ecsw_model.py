@@ -18,13 +18,17 @@ from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
+    condensed_internal_force,
     group_nodes,
     mesh_elements,
+    modal_derivatives,
     rest_operators,
     rest_tangents,
     supremizers,
     training_matrix,
 )
+from hapticrom.online import element_kernels as ek
+from hapticrom.online import material_kernels as mk
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial
@@ -175,3 +179,56 @@ def test_group_nodes_hold_the_tool_loads(campaign, mesh_dir):
     element_xyz[mesh.rows[:, ::3].ravel() // 3] = mesh.X.reshape(-1, 3)
     np.testing.assert_allclose(xyz, element_xyz[nodes], rtol=0, atol=1e-12)
     assert len(nodes) < len(element_xyz)  # a surface group, not the whole mesh
+
+
+def test_condensed_internal_force_is_the_full_orders(campaign):
+    """At the full order's states (DOLFINx, mixed u-p) the condensed internal force equals
+    the tool's load on every free row: the condensation p = kappa Theta / V is the full
+    order's own pressure."""
+    store, mesh, _ = campaign
+    U, _, f, factors = position(store, 1)
+    free = np.flatnonzero(np.abs(U).max(axis=0) > 0)
+    for u, factor in zip(U, factors, strict=True):
+        internal = condensed_internal_force(mesh, u)
+        load = factor * f
+        # the full order stops at its own tolerances (snes_stol 1e-14 on u here), which
+        # kappa = 2/D turns into force through the pressure: measured 1.2e-8 of the load
+        assert np.abs(internal[free] - load[free]).max() <= 1e-7 * np.abs(load).max()
+
+
+def condensed_tangent_times(mesh, u, a):
+    """K_c(u) a from the tangent kernel: K_uu + K_up K_up^T / (V / kappa) per element, at
+    the condensed pressure (a second path to the force's derivatives)."""
+    ref, out = mesh.reference, np.zeros(u.size)
+    m = mesh.rows.shape[1]
+    r, K, k, s = np.empty(m), np.empty((m, m)), np.empty(m), np.empty(4)
+    for e in range(len(mesh.X)):
+        rows = mesh.rows[e]
+        u_e = np.ascontiguousarray(u[rows].reshape(-1, 3))
+        args = (mesh.X[e], u_e)
+        ek.element_residual(*args, 0.0, mesh.params[e], ref.gradients, ref.weights, r, s)
+        p = mesh.params[e, mk.KAPPA] * s[ek.PRESSURE_RESIDUAL] / s[ek.VOLUME]
+        ek.element_residual_tangent(*args, p, mesh.params[e], ref.gradients, ref.weights,
+                                    r, K, k, s)  # fmt: skip
+        out[rows] += K @ a[rows] + k * (k @ a[rows]) / -s[ek.PRESSURE_STIFFNESS]
+    return out
+
+
+def test_modal_derivatives_are_the_tangents_derivative(campaign):
+    """-D^2 f[a, b] (modal_derivatives with the identity for K^-1) against the central
+    difference of the tangent kernel's K_c(t b) a in t: two paths to the same third
+    derivative of the energy."""
+    store, mesh, _ = campaign
+    U, _, _, _ = position(store, 0)
+    Phi = np.linalg.qr(U[[1, 3]].T)[0]  # two directions of the organ's own response
+    derivatives = modal_derivatives(mesh, Phi, lambda x: x, size=5e-3)
+    assert derivatives.shape == (U.shape[1], 3)  # (0, 0), (0, 1), (1, 1)
+    scale = 5e-3 / np.abs(Phi).max()
+    a, b = scale * Phi[:, 0], scale * Phi[:, 1]
+    t = 1e-3
+    zero = np.zeros_like(a)
+    tangent = (condensed_tangent_times(mesh, zero + t * b, a)
+               - condensed_tangent_times(mesh, zero - t * b, a)) / (2 * t)  # fmt: skip
+    expected = -tangent / scale**2
+    got = derivatives[:, 1]
+    assert np.abs(got - expected).max() <= 1e-5 * np.abs(expected).max()

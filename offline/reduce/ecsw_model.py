@@ -134,6 +134,44 @@ def supremizers(operators: RestOperators, Psi, free) -> np.ndarray:
     return out
 
 
+def condensed_internal_force(mesh: MeshElements, u: np.ndarray) -> np.ndarray:
+    """The full order's internal force (N, canonical rows) at the displacement u (mm), each
+    element's pressure condensed out: p_e = kappa Theta_e / V_e makes its r_p zero, as at
+    any equilibrium of the mixed model with one pressure a cell."""
+    X, ref = mesh.X, mesh.reference
+    f = np.zeros(u.size)
+    r_u, scalars = np.empty(mesh.rows.shape[1]), np.empty(ek.SCALAR_SIZE)
+    for e in range(len(X)):
+        u_e = np.ascontiguousarray(u[mesh.rows[e]].reshape(-1, 3))
+        params = mesh.params[e]
+        ek.element_residual(X[e], u_e, 0.0, params, ref.gradients, ref.weights, r_u, scalars)
+        p = params[KAPPA] * scalars[ek.PRESSURE_RESIDUAL] / scalars[ek.VOLUME]  # r_p(0) = Theta
+        ek.element_residual(X[e], u_e, p, params, ref.gradients, ref.weights, r_u, scalars)
+        f[mesh.rows[e]] += r_u
+    return f
+
+
+def modal_derivatives(mesh: MeshElements, Phi, solve, size: float = 5e-3) -> np.ndarray:
+    """The second-order corrections of the modes Phi (N, n): -K^-1 D^2 f[phi_i, phi_j] for
+    i <= j, (N, n (n + 1) / 2), D^2 f by central differences of
+    :func:`condensed_internal_force` (four a pair, the modes scaled to ``size`` mm at most;
+    the fourth-order term is exact to rounding for a quadratic f). ``solve``: K^-1 on the
+    free rows (K, the stiffness at rest). A linear mode of a nearly incompressible tissue
+    keeps its volume to first order only; its square changes it by |grad u|^2 and meets
+    kappa (bench/ecsw_tradeoff.py measures the locking): these corrections restore the
+    volume, and follow rotations, to second order (Idelsohn and Cardona 1985)."""
+    scale = size / max(float(np.abs(Phi).max()), 1e-300)
+    columns = []
+    for i in range(Phi.shape[1]):
+        for j in range(i, Phi.shape[1]):
+            a, b = scale * Phi[:, i], scale * Phi[:, j]
+            second = (condensed_internal_force(mesh, a + b) - condensed_internal_force(mesh, a - b)
+                      - condensed_internal_force(mesh, b - a)
+                      + condensed_internal_force(mesh, -a - b)) / (4.0 * scale**2)  # fmt: skip
+            columns.append(-solve(second))
+    return np.array(columns).T
+
+
 def _readonly(a: np.ndarray) -> np.ndarray:
     a = np.ascontiguousarray(a, dtype=np.float64)
     a.flags.writeable = False
