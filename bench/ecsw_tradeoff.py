@@ -2,14 +2,18 @@
 positions, beside the Galerkin model on every element (issue 18).
 
     python bench/ecsw_tradeoff.py CAMPAIGN.toml CAMPAIGN_DIR [--modes 20] [--pressure-modes 10]
-        [--basis campaign|bumps|both] [--supremizers] [--split linear|none] [--held-out 6]
-        [--steps 2,5,10] [--tolerances 0.1,0.03,0.01,0.003] [--out FILE.json]
+        [--basis campaign|bumps|both|derivatives] [--linear-modes 20] [--derivatives-of 20]
+        [--campaign-modes 0] [--supremizers] [--split linear|none] [--held-out 6] [--steps 2,5,10]
+        [--tolerances 0.1,0.03,0.01,0.003] [--out FILE.json]
 
 1. Bases from the training positions (all but every ``len/held-out``-th): the leading
    ``--modes`` left singular vectors of their stored states (``--basis campaign``), of the
    linear responses to smooth tool loads centred at every node their loads touch
-   (``bumps``, as ``bench/basis_span.py``) or of both, and ``--pressure-modes`` of the
-   element pressures of the same; ``--supremizers``
+   (``bumps``, as ``bench/basis_span.py``), of both, or ``--linear-modes`` of those
+   responses, the POD of their modal derivatives and ``--campaign-modes`` of the states,
+   ``--modes`` in all (``derivatives``: corrections right to second order,
+   ``offline/reduce/ecsw_model.modal_derivatives``),
+   and ``--pressure-modes`` of the element pressures of the same; ``--supremizers``
    adds to the displacement basis A^-1 B^T psi for each pressure mode psi (A: the rest
    stiffness without its volumetric part, B: the divergence), the classical cure of a
    mixed reduced basis that is not inf-sup stable.
@@ -47,6 +51,7 @@ from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
     mesh_elements,
+    modal_derivatives,
     rest_operators,
     rest_tangents,
     supremizers,
@@ -57,7 +62,9 @@ from hapticrom.offline.reduce.ecsw_model import (
 def bases(store, training, args, mesh, rest, config):
     """(Phi, Psi) from the training positions: the POD of the campaign's states, of the
     linear responses to smooth tool loads at every loaded node (``bench/basis_span.py``),
-    or of both; the pressure modes of the same; supremizers if asked."""
+    of both, or the leading ``--linear-modes`` of those responses with the POD of their
+    modal derivatives (``derivatives``); the pressure modes of the same (the condensed
+    pressures of the linear responses and derivatives); supremizers if asked."""
     data = [store.read_position(i)[0] for i in training]
     U = np.vstack([d["displacement"] for d in data]).T
     P = np.vstack([d["pressure"] for d in data]).T
@@ -65,9 +72,21 @@ def bases(store, training, args, mesh, rest, config):
     operators = rest_operators(mesh, rest)
     if args.basis != "campaign":
         K = operators.condensed()
-        loads = training_bumps(config, store, training, K.shape[0])
-        responses = np.zeros(loads.shape)
-        responses[free] = scipy.sparse.linalg.splu(K[free][:, free].tocsc()).solve(loads[free])
+        factor = scipy.sparse.linalg.splu(K[free][:, free].tocsc())
+
+        def solve(F):
+            out = np.zeros(F.shape)
+            out[free] = factor.solve(F[free])
+            return out
+
+        responses = solve(training_bumps(config, store, training, K.shape[0]))
+        if args.basis == "derivatives":
+            linear = pod(responses)[:, : args.linear_modes]
+            derivatives = modal_derivatives(mesh, linear, solve)
+            Phi = np.hstack([linear, pod(derivatives)[:, : args.modes - args.linear_modes]])
+            pressures = operators.Bt.T @ np.hstack([responses, derivatives])
+            Psi = pod(pressures / operators.compliance[:, None])[:, : args.pressure_modes]
+            return np.linalg.qr(Phi)[0], Psi
         pressures = (operators.Bt.T @ responses) / operators.compliance[:, None]
         if args.basis == "bumps":
             U, P = responses, pressures
@@ -78,6 +97,23 @@ def bases(store, training, args, mesh, rest, config):
     if args.supremizers:
         Phi = np.linalg.qr(np.hstack([Phi, supremizers(operators, Psi, free)]))[0]
     return Phi, Psi
+
+
+def derivative_bases(args, mesh, operators, solve, responses, U, P, free):
+    """``--linear-modes`` of the responses, the POD of the modal derivatives of the
+    leading ``--derivatives-of`` of them and ``--campaign-modes`` of the campaign's states,
+    ``--modes`` in all (then supremizers if asked); the pressure modes of the condensed
+    pressures of the first two and the campaign's."""
+    linear = pod(responses)[:, : args.linear_modes]
+    derivatives = modal_derivatives(mesh, linear[:, : args.derivatives_of], solve)
+    count = args.modes - args.linear_modes - args.campaign_modes
+    Phi = np.hstack([linear, pod(derivatives)[:, :count], pod(U)[:, : args.campaign_modes]])
+    condensed = operators.Bt.T @ np.hstack([responses, derivatives]) / operators.compliance[:, None]
+    pressures = np.hstack([condensed, P]) if args.campaign_modes else condensed
+    Psi = pod(pressures)[:, : args.pressure_modes]
+    if args.supremizers:
+        Phi = np.hstack([Phi, supremizers(operators, Psi, free)])
+    return np.linalg.qr(Phi)[0], Psi
 
 
 def held_out_paths(store, held_out):
@@ -150,7 +186,14 @@ def main() -> None:
     parser.add_argument("campaign")
     parser.add_argument("--modes", type=int, default=20)
     parser.add_argument("--pressure-modes", type=int, default=10)
-    parser.add_argument("--basis", choices=("campaign", "bumps", "both"), default="campaign")
+    parser.add_argument("--basis", choices=("campaign", "bumps", "both", "derivatives"),
+                        default="campaign")  # fmt: skip
+    parser.add_argument("--linear-modes", type=int, default=20,
+                        help="derivatives: the linear modes, derivatives added")  # fmt: skip
+    parser.add_argument("--derivatives-of", type=int, default=20,
+                        help="derivatives: of the leading linear modes")  # fmt: skip
+    parser.add_argument("--campaign-modes", type=int, default=0,
+                        help="derivatives: campaign POD modes added")  # fmt: skip
     parser.add_argument("--supremizers", action="store_true")
     parser.add_argument("--split", choices=("none", "linear"), default="linear")
     parser.add_argument("--held-out", type=int, default=6)
