@@ -48,6 +48,14 @@ from hapticrom.offline.reduce.ecsw_model import (
 )
 
 
+def held_out_split(positions: list[int], count: int) -> tuple[list[int], list[int]]:
+    """(training, held-out): every ``len / count``-th position held out, from the middle of
+    the first stride."""
+    stride = max(len(positions) // max(count, 1), 1)
+    held_out = positions[stride // 2 :: stride][:count]
+    return [i for i in positions if i not in held_out], held_out
+
+
 def pod(columns: np.ndarray) -> np.ndarray:
     """Left singular vectors of the columns, each scaled to unit norm first."""
     norms = np.linalg.norm(columns, axis=0)
@@ -120,9 +128,7 @@ def main() -> None:
     operators = rest_operators(mesh, rest_tangents(mesh))
     K = operators.condensed()
     positions = store.completed()
-    stride = max(len(positions) // max(args.held_out, 1), 1)
-    held_out = positions[stride // 2 :: stride][: args.held_out]
-    training = [i for i in positions if i not in held_out]
+    training, held_out = held_out_split(positions, args.held_out)
     data = {i: store.read_position(i)[0] for i in positions}
     states = np.hstack([data[i]["displacement"].T for i in training])
     free = np.flatnonzero(np.abs(states).max(axis=1) > 0)  # the supports' rows stay zero

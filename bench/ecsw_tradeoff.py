@@ -43,7 +43,7 @@ from pathlib import Path
 import h5py  # noqa: F401  (before dolfinx: see the README)
 import numpy as np
 import scipy.sparse.linalg
-from basis_span import pod, training_bumps  # bench/, beside this script
+from basis_span import held_out_split, pod, training_bumps  # bench/, beside this script
 
 from hapticrom.offline.campaign.config import CampaignConfig
 from hapticrom.offline.campaign.store import SnapshotStore
@@ -207,9 +207,7 @@ def main() -> None:
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)
     positions = store.completed()
-    stride = max(len(positions) // max(args.held_out, 1), 1)
-    held_out = positions[stride // 2 :: stride][: args.held_out]
-    training = [i for i in positions if i not in held_out]
+    training, held_out = held_out_split(positions, args.held_out)
     Phi, Psi = bases(store, training, args, mesh, rest, config)
     n, split = Phi.shape[1], args.split == "linear"
     steps = [int(s) - 1 for s in args.steps.split(",")]

@@ -79,19 +79,28 @@ def _element_state(Phi, Psi, s, q, pi, u):
 
 
 @njit(inline="always")
-def _nonlinear_parts(K0, k0, s, u, p, r_u, K_uu, K_up, scalars, kappa):
-    """Subtract the rest tangent's part from the element's outputs in place; returns the
-    nonlinear part of Theta_e = int theta dV."""
+def _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, kappa):
+    """r_u -= K0 u + k0 p in place; returns the nonlinear part of Theta_e."""
     m = r_u.shape[0]
     theta = scalars[PRESSURE_RESIDUAL] + p * scalars[VOLUME] / kappa
     for row in range(m):
         linear = k0[s, row] * p
         for column in range(m):
             linear += K0[s, row, column] * u[column // 3, column % 3]
-            K_uu[row, column] -= K0[s, row, column]
         r_u[row] -= linear
-        K_up[row] -= k0[s, row]
         theta -= k0[s, row] * u[row // 3, row % 3]
+    return theta
+
+
+@njit(inline="always")
+def _nonlinear_parts(K0, k0, s, u, p, r_u, K_uu, K_up, scalars, kappa):
+    """:func:`_residual_nonlinear_part`, and K_uu -= K0, K_up -= k0 in place."""
+    theta = _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, kappa)
+    m = r_u.shape[0]
+    for row in range(m):
+        K_up[row] -= k0[s, row]
+        for column in range(m):
+            K_uu[row, column] -= K0[s, row, column]
     return theta
 
 
@@ -189,20 +198,6 @@ def sampled_residual_tangent(X, Phi, Psi, params, weights, K0, k0, gradients, qu
         theta = _nonlinear_parts(K0, k0, s, u, p, r_u, K_uu, K_up, scalars, params[s, KAPPA])
         _accumulate(Phi, Psi, s, weights[s], theta, r_u, K_uu, K_up, T, r, K)
     _symmetrize(K)
-
-
-@njit(inline="always")
-def _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, kappa):
-    """r_u -= K0 u + k0 p in place; returns the nonlinear part of Theta_e."""
-    m = r_u.shape[0]
-    theta = scalars[PRESSURE_RESIDUAL] + p * scalars[VOLUME] / kappa
-    for row in range(m):
-        linear = k0[s, row] * p
-        for column in range(m):
-            linear += K0[s, row, column] * u[column // 3, column % 3]
-        r_u[row] -= linear
-        theta -= k0[s, row] * u[row // 3, row % 3]
-    return theta
 
 
 @njit(f"void({_INPUTS}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_1D})", cache=True, nogil=True)
