@@ -136,6 +136,11 @@ def test_refuses_bad_samplings(campaign):
     for elements, weights in (([0, 1], [1.0]), ([0], [0.0]), ([0], [-1.0])):
         with pytest.raises(InputError, match="positive weight"):
             HyperReducedModel(mesh, Phi, Psi, elements, weights, rest=rest)
+    for elements in ([len(mesh.X)], [-1]):
+        with pytest.raises(InputError, match="indices of the mesh"):
+            HyperReducedModel(mesh, Phi, Psi, elements, [1.0], rest=rest)
+    with pytest.raises(InputError, match="listed twice"):
+        HyperReducedModel(mesh, Phi, Psi, [3, 3], [1.0, 1.0], rest=rest)
 
 
 def test_rest_operators_are_the_models_linear_part(campaign):

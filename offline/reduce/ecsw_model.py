@@ -192,6 +192,10 @@ class HyperReducedModel:
         elements, weights = np.asarray(elements, dtype=np.int64), np.asarray(weights, float)
         if elements.shape != weights.shape or not (weights > 0).all():
             raise InputError("elements and weights: one positive weight a sampled element")
+        if elements.ndim != 1 or not ((elements >= 0) & (elements < E)).all():
+            raise InputError(f"sampled elements must be indices of the mesh's {E} elements")
+        if len(np.unique(elements)) != len(elements):
+            raise InputError("a sampled element is listed twice: give it one weight")
         K0, k0, volumes = rest if rest is not None else rest_tangents(mesh)
         Phi_e = Phi[mesh.rows]  # (E, m, n)
         Psi_e = Psi[mesh.cell]  # (E, n_p)
