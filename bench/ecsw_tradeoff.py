@@ -81,12 +81,7 @@ def bases(store, training, args, mesh, rest, config):
 
         responses = solve(training_bumps(config, store, training, K.shape[0]))
         if args.basis == "derivatives":
-            linear = pod(responses)[:, : args.linear_modes]
-            derivatives = modal_derivatives(mesh, linear, solve)
-            Phi = np.hstack([linear, pod(derivatives)[:, : args.modes - args.linear_modes]])
-            pressures = operators.Bt.T @ np.hstack([responses, derivatives])
-            Psi = pod(pressures / operators.compliance[:, None])[:, : args.pressure_modes]
-            return np.linalg.qr(Phi)[0], Psi
+            return derivative_bases(args, mesh, operators, solve, responses, U, P, free)
         pressures = (operators.Bt.T @ responses) / operators.compliance[:, None]
         if args.basis == "bumps":
             U, P = responses, pressures
@@ -131,22 +126,25 @@ def held_out_paths(store, held_out):
 
 def solve_paths(model, Phi, paths) -> dict:
     """The reduced Newton along each held-out path: the worst depth error over the steps
-    that converged, the field error at the last of them, the fraction of steps converged."""
-    depth, field, iterations, converged, total = 0.0, 0.0, [], 0, 0
+    that converged, the field error at the last of them, the fraction of steps converged,
+    and per position the reduced over the full order's depth at each converged step."""
+    depth, field, iterations, converged, total, ratios = 0.0, 0.0, [], 0, 0, []
     for U, _, f, factors, depths, force in paths:
         Q, _, its = model.solve(Phi.T @ f, factors, tolerance=1e-8, partial=True)
         total += len(factors)
         converged += len(Q)
         if not len(Q):
+            ratios.append([])
             continue
         u = Q @ Phi.T
         k = len(Q)
+        ratios.append((u @ f / force / depths[:k]).tolist())
         depth = max(depth, float(np.abs(u @ f / force / depths[:k] - 1.0).max()))
         field = max(field, float(np.linalg.norm(u[-1] - U[k - 1]) / np.linalg.norm(U[k - 1])))
         iterations.append(float(np.mean(its)))
     newton = float(np.mean(iterations)) if iterations else None
     return {"depth_error": depth, "field_error": field, "newton": newton,
-            "converged": converged / total}  # fmt: skip
+            "converged": converged / total, "depth_ratios": ratios}  # fmt: skip
 
 
 def kernel_times(model, q, pi) -> tuple[float, float]:
@@ -257,6 +255,8 @@ def main() -> None:
               f"{solved['depth_error']:8.2e} {solved['field_error']:8.2e} {newton:>6s} "
               f"{solved['converged']:6.0%} "
               f"{1e3 * p50:7.2f} {1e3 * p99:7.2f}", flush=True)  # fmt: skip
+        ends = [f"{r[0]:.2f}/{r[-1]:.2f}" if r else "-" for r in solved["depth_ratios"]]
+        print(f"{'':9s} depth ratio, first/last step per position: {' '.join(ends)}")
     if args.out:
         record = {"arguments": vars(args), "held_out": held_out, "results": results}
         Path(args.out).write_text(json.dumps(record, indent=1))
