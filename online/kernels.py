@@ -44,6 +44,8 @@ import math
 import numpy as np
 from numba import njit
 
+from hapticrom.shared.lattice import lattice_subdivisions
+
 FLAG_BEYOND_DEPTH = 1
 FLAG_NO_CONTACT = 2
 FLAG_OUTSIDE_REGION = 4
@@ -94,7 +96,8 @@ FRICTION = 47  # (3) step_position's Coulomb friction: static and dynamic coeffi
 # frictionless), the tangential stiffness as a multiple of the normal one (see proxy)
 SLIPPING = 50  # 1 if the last step_position slid with friction (0: stuck, or frictionless)
 SECTION_KNOTS = 51  # POD-ANM: the knots of each section's table (below)
-CURVE = 52  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
+FORCE_WEIGHTS = 52  # (3) the weights the force curves are blended with: w_i k(x) / k_i
+CURVE = 55  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
 # POD-ANM (response "anm"), at buf[ANM_BASE] = CURVE + 2 K: three neighbour blocks, each a
 # header then SMAX section records (the neighbour's sections, artifact order).
 BLOCK_WEIGHT, BLOCK_COUNT, BLOCK_SAMPLE, BLOCK_RECORDS = 0, 1, 2, 3
@@ -160,13 +163,15 @@ def tabulate_series(depth, force, a_max, budget: int = MAX_TABLE_FLOATS
 # -- the table: what set_contact and the scalpel read of the model ---------------------------
 # One read-only float64 array per simulator (indices stored as floats: exact), a header
 T_SAMPLES, T_KNOTS, T_TRIANGLES, T_STRIDE, T_SECTIONS, T_SCALPEL, T_VERTICES, T_EDGES = range(8)
-T_HEADER = 8
+T_LATTICE = 8
+T_HEADER = 9
 GRID_ORIGIN, GRID_CELL, GRID_DIMS, GRID_STARTS = 0, 3, 4, 7  # a point_grid's parts
 # (P samples, K knots, S sample triangles, the section records' stride or 0, Z sections,
-# where the scalpel's part starts, V surface vertices or 0 without it, E border edges),
+# where the scalpel's part starts, V surface vertices or 0 without it, E border edges,
+# m the tool stiffness lattice's subdivisions or 0 without it),
 # then the contact's part: sample points (P, 3), sample normals (P, 3), forces (P, K),
 # slopes (P, K), sample triangles (S, 3), their planes (S, PLANE), the triangulation's
-# border edges (E, 3),
+# border edges (E, 3), the tool's stiffness on each triangle's lattice (S, L; L = 0 if m = 0),
 # POD-ANM section records (Z, stride) and section offsets (P + 1, with the records); then
 # the scalpel's part: reach, region reach, the surface vertices' point_grid, the vertices
 # (V, 3), their normals (V, 3), their region nodes (V; -1 outside the region). Row-major.
@@ -203,16 +208,20 @@ def triangle_planes(points, triangles) -> np.ndarray:
 
 
 def contact_table(points, normals, forces, slopes, triangles, records=None,
-                  offsets=None) -> np.ndarray:  # fmt: skip
-    """The model's arrays :func:`prepare_contact` reads, packed into one read-only array."""
+                  offsets=None, tool_stiffness=None) -> np.ndarray:  # fmt: skip
+    """The model's arrays :func:`prepare_contact` reads, packed into one read-only array
+    (``tool_stiffness`` (S, L): the lattice values, or None)."""
     P, K = np.shape(forces)
     stride, Z = (0, 0) if records is None else np.shape(records)[::-1]
     edges = border_edges(triangles)
-    parts = [points, normals, forces, slopes, triangles, triangle_planes(points, triangles), edges]
+    lattice = np.zeros((len(triangles), 0)) if tool_stiffness is None else tool_stiffness
+    m = lattice_subdivisions(np.shape(lattice)[1]) or 0
+    parts = [points, normals, forces, slopes, triangles, triangle_planes(points, triangles), edges,
+             lattice]  # fmt: skip
     if records is not None:
         parts += [records, offsets]
     body = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in parts])
-    header = [P, K, len(triangles), stride, Z, T_HEADER + len(body), 0, len(edges)]
+    header = [P, K, len(triangles), stride, Z, T_HEADER + len(body), 0, len(edges), m]
     return _frozen(np.concatenate([header, body]))
 
 
@@ -237,9 +246,11 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 def contact_views(table):
     """The contact's parts of the table as flat views (row-major; a reshape costs more
     than the index arithmetic): sample points, normals, forces, slopes, sample
-    triangles, their planes, border edges, section records, section offsets."""
+    triangles, their planes, border edges, the stiffness lattices, section records,
+    section offsets."""
     P, K, S = int(table[T_SAMPLES]), int(table[T_KNOTS]), int(table[T_TRIANGLES])
     Z, stride, E = int(table[T_SECTIONS]), int(table[T_STRIDE]), int(table[T_EDGES])
+    m = int(table[T_LATTICE])
     o = T_HEADER
     a = o + 3 * P
     b = a + 3 * P
@@ -248,10 +259,11 @@ def contact_views(table):
     r = e + 3 * S
     q = r + PLANE * S
     t = q + 3 * E
-    u = t + Z * stride
+    w = t + (S * (m + 1) * (m + 2) // 2 if m > 0 else 0)
+    u = w + Z * stride
     v = u + (P + 1 if stride > 0 else 0)
     return (table[o:a], table[a:b], table[b:c], table[c:e], table[e:r], table[r:q],
-            table[q:t], table[t:u], table[u:v])  # fmt: skip
+            table[q:t], table[t:w], table[w:u], table[u:v])  # fmt: skip
 
 
 @njit(inline="always")
@@ -915,21 +927,83 @@ def clamp_to_border(p, points, normals, edges, out_weights, out_samples, out_whe
     return FLAG_OUTSIDE_REGION
 
 
+@njit(inline="always")
+def lattice_at(values, start, m, i, j):
+    """Point (i, j) of the lattice stored from ``start`` (``shared/lattice.py``)."""
+    return values[start + i * (m + 1) - i * (i - 1) // 2 + j]
+
+
+@njit(inline="always")
+def lattice_value(values, start, m, bu, bv):
+    """The lattice's value (m subdivisions, stored from ``start``) at the weights
+    (1 - bu - bv, bu, bv): linear on the sub-triangle that holds them."""
+    x, y = min(max(bu, 0.0), 1.0) * m, min(max(bv, 0.0), 1.0) * m
+    i, j = min(int(x), m - 1), min(int(y), m - 1)
+    if i + j > m - 1:  # on the far edge (i + j = m): the last sub-triangle of row i
+        j = m - 1 - i
+    fx, fy = x - i, y - j
+    if fx + fy <= 1.0 or i + j == m - 1:  # the sub-triangle (i, j), (i + 1, j), (i, j + 1)
+        return ((1.0 - fx - fy) * lattice_at(values, start, m, i, j)
+                + fx * lattice_at(values, start, m, i + 1, j)
+                + fy * lattice_at(values, start, m, i, j + 1))  # fmt: skip
+    return ((fx + fy - 1.0) * lattice_at(values, start, m, i + 1, j + 1)
+            + (1.0 - fy) * lattice_at(values, start, m, i + 1, j)
+            + (1.0 - fx) * lattice_at(values, start, m, i, j + 1))  # fmt: skip
+
+
+@njit(inline="always")
+def triangle_rotation(triangles, samples):
+    """(t, r): the sample triangle whose corner (r + k) % 3 is samples[k] (a border
+    clamp names an edge's samples in their triangle's cyclic order), or (-1, 0)."""
+    for t in range(triangles.shape[0] // 3):
+        for r in range(3):
+            if (triangles[3 * t + r] == samples[0] and triangles[3 * t + (r + 1) % 3] == samples[1]
+                    and triangles[3 * t + (r + 2) % 3] == samples[2]):  # fmt: skip
+                return t, r
+    return -1, 0
+
+
+@njit(inline="always")
+def force_weights(weights, samples, triangle, triangles, lattice, m, out):
+    """The force curves' weights w_k k(x) / k_k into ``out`` (``FORCE_WEIGHTS``): k(x) from
+    the lattice of the contact's triangle at its weights, k_k at the corner of sample k.
+    Without a lattice, or at a sample (a closed triangulation's nearest corner), w_k."""
+    for k in range(3):
+        out[k] = weights[k]
+    if m == 0 or weights[0] == 1.0:
+        return
+    t, r = triangle, 0
+    if t < 0:  # clamped to the border: the edge's triangle
+        t, r = triangle_rotation(triangles, samples)
+        if t < 0:
+            return
+    size = (m + 1) * (m + 2) // 2
+    start = t * size
+    # corner c holds sample (c - r) % 3: the lattice's weights are the triangle's corners'
+    stiffness = lattice_value(lattice, start, m, weights[(4 - r) % 3], weights[(5 - r) % 3])
+    for k in range(3):
+        corner = (r + k) % 3
+        at_corner = lattice[start + (0 if corner == 0 else (size - 1 if corner == 1 else m))]
+        out[k] = weights[k] * stiffness / at_corner
+
+
 @njit(cache=True, nogil=True)
-def prepare_curves(weights, samples, normals, forces, slopes, out_normal, out_force, out_slope):
-    """Interpolated outward normal and force-depth curve (values and slopes) at the contact
-    (normals (3 P), forces and slopes (K P), row-major; K = len(out_force))."""
+def prepare_curves(weights, curve_weights, samples, normals, forces, slopes, out_normal,
+                   out_force, out_slope):  # fmt: skip
+    """Interpolated outward normal (``weights``) and force-depth curve (values and slopes,
+    ``curve_weights``) at the contact (normals (3 P), forces and slopes (K P), row-major;
+    K = len(out_force))."""
     knots = out_force.shape[0]
     out_normal[:] = 0.0
     out_force[:] = 0.0
     out_slope[:] = 0.0
     for j in range(3):
-        w, i = weights[j], int(samples[j])
+        w, c_w, i = weights[j], curve_weights[j], int(samples[j])
         for c in range(3):
             out_normal[c] += w * normals[3 * i + c]
         for k in range(knots):
-            out_force[k] += w * forces[knots * i + k]
-            out_slope[k] += w * slopes[knots * i + k]
+            out_force[k] += c_w * forces[knots * i + k]
+            out_slope[k] += c_w * slopes[knots * i + k]
     norm = math.sqrt(out_normal[0] ** 2 + out_normal[1] ** 2 + out_normal[2] ** 2)
     for c in range(3):
         out_normal[c] /= norm
@@ -937,8 +1011,8 @@ def prepare_curves(weights, samples, normals, forces, slopes, out_normal, out_fo
 
 @njit(cache=True, nogil=True)
 def load_sections(weights, samples, offsets, records, buf):
-    """The three neighbours' weights into the POD-ANM blocks, and their section records
-    (``records``: Z stride, row-major) unless a block holds that sample's already."""
+    """The three neighbours' force weights into the POD-ANM blocks, and their section
+    records (``records``: Z stride, row-major) unless a block holds that sample's already."""
     base, _, stride, block = anm_layout(buf)
     for j in range(3):
         b = base + j * block
@@ -960,19 +1034,23 @@ def contact_at(point, table, buf):
     sample triangle, its weights (buf[SAMPLES], buf[WEIGHTS]) and the height above it,
     the normal, the curves, buf[FLAGS] and, for the POD-ANM response, the neighbours'
     sections at the current depth."""
-    points, normals, forces, slopes, triangles, planes, edges, records, offsets = contact_views(
-        table
+    points, normals, forces, slopes, triangles, planes, edges, lattice, records, offsets = (
+        contact_views(table)
     )
     weights, samples = buf[WEIGHTS : WEIGHTS + 3], buf[SAMPLES : SAMPLES + 3]
     where, scratch = buf[TRIANGLE : TRIANGLE + 2], buf[LOCATE_SCRATCH : LOCATE_SCRATCH + 3]
     flag = locate(point, points, normals, triangles, planes, edges, weights, samples, where,
                   scratch)  # fmt: skip
+    curve_weights = buf[FORCE_WEIGHTS : FORCE_WEIGHTS + 3]
+    force_weights(weights, samples, int(buf[TRIANGLE]), triangles, lattice,
+                  int(table[T_LATTICE]), curve_weights)  # fmt: skip
     knots = int(buf[KNOTS])
-    prepare_curves(weights, samples, normals, forces, slopes, buf[NORMAL : NORMAL + 3],
-                   buf[CURVE : CURVE + knots], buf[CURVE + knots : CURVE + 2 * knots])  # fmt: skip
+    prepare_curves(weights, curve_weights, samples, normals, forces, slopes,
+                   buf[NORMAL : NORMAL + 3], buf[CURVE : CURVE + knots],
+                   buf[CURVE + knots : CURVE + 2 * knots])  # fmt: skip
     buf[FLAGS] = flag
     if buf[ANM_N1] > 0:
-        load_sections(weights, samples, offsets, records, buf)
+        load_sections(curve_weights, samples, offsets, records, buf)
         anm_force(buf, buf[DEPTH])  # the slope and beyond flag of the new contact
     buf[CONTACTS] += 1.0
 

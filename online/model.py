@@ -53,6 +53,9 @@ class ReducedModel:
         (:class:`~hapticrom.online.surface_chart.SurfaceChart`), built at load; None where
         one plan view cannot hold the samples (then the surface is PODI's blend).
         anm: the POD-ANM sections (artifact 1.1) as kernel records, or None.
+        tool_stiffness (S, L): the tool's linear stiffness on each sample triangle's
+        lattice (artifact 2.1, ``shared/lattice.py``), N/mm, or None: the force curves
+        are blended with the weights w_i k(x) / k_i.
     """
 
     path: Path
@@ -71,6 +74,7 @@ class ReducedModel:
     grassmann: dict | None
     anm: dict | None = None  # POD-ANM series: offsets, records, coefficients, n1, smax
     cut_region: object = None  # online.coupled_patch.CutRegion of its cuttable region
+    tool_stiffness: np.ndarray | None = None  # (S, L) N/mm, the curves' scaling (2.1)
 
     def __post_init__(self):
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
@@ -131,6 +135,7 @@ class ReducedModel:
             grassmann=grassmann,
             anm=anm,
             cut_region=cut_region,
+            tool_stiffness=_f8(samples["tool_stiffness"]) if "tool_stiffness" in samples else None,
         )
 
     @property

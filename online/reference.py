@@ -9,6 +9,7 @@ import numpy as np
 from hapticrom.online import kernels
 from hapticrom.online.model import ReducedModel
 from hapticrom.shared.errors import StepInputError
+from hapticrom.shared.lattice import lattice_corners, lattice_subdivisions, lattice_weights
 
 
 def barycentric(model: ReducedModel, point) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -35,6 +36,42 @@ def barycentric(model: ReducedModel, point) -> tuple[np.ndarray, np.ndarray, boo
         if dist < best[0]:
             best = (dist, np.array([a, b, c]), np.array([1 - s, s, 0.0]))
     return best[1], best[2], True
+
+
+def curve_weights(model: ReducedModel, vertices: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The force curves' weights w_k k(x) / k_k (artifact 2.1), by another route than the
+    kernel's: the sample triangle found by its corners (any rotation), and k(x) from the
+    lattice's sub-triangle found by brute force over all of them."""
+    if model.tool_stiffness is None:
+        return weights
+    for t, corners in enumerate(model.sample_triangles):
+        for r in range(3):
+            if np.array_equal(np.roll(corners, -r), vertices):
+                order = (np.arange(3) + r) % 3  # sample k sits at corner order[k]
+                b = np.zeros(3)
+                b[order] = weights
+                values = model.tool_stiffness[t]
+                m = lattice_subdivisions(len(values))
+                corner_values = values[lattice_corners(m)]
+                return weights * _lattice_interpolation(values, m, b) / corner_values[order]
+    raise AssertionError(f"no sample triangle has the corners {vertices}")
+
+
+def _lattice_interpolation(values: np.ndarray, m: int, b: np.ndarray) -> float:
+    """The piecewise-linear interpolant of the lattice at barycentric weights b."""
+    points = lattice_weights(m)
+    index = {(int(a[1]), int(a[2])): i for i, a in enumerate(points)}
+    q = np.clip(b[1:], 0.0, 1.0) * m
+    for i in range(m):
+        for j in range(m - i):
+            for tri in (((i, j), (i + 1, j), (i, j + 1)), ((i + 1, j + 1), (i + 1, j), (i, j + 1))):
+                if tri[0] not in index:
+                    continue
+                corner = np.array(tri, dtype=float)
+                lam = np.linalg.solve(np.vstack([corner.T, np.ones(3)]), np.r_[q, 1.0])
+                if lam.min() >= -1e-9:
+                    return float(lam @ values[[index[c] for c in tri]])
+    raise AssertionError(f"weights {b} are in no sub-triangle")
 
 
 def _fixed_point(p, x, n, iterations: int = 200):
@@ -122,6 +159,7 @@ class NumpySimulator:
         self.model, self.response, self.root = model, response, root
         # The contact (set_contact): samples, weights, clamped?, normal, curve and slopes.
         self.vertices, self.weights, self.outside = np.zeros(3, dtype=np.int64), np.zeros(3), False
+        self.curve_weights = np.zeros(3)  # the force curves' (w_k k(x) / k_k, artifact 2.1)
         self.normal, self.curve, self.slope = np.zeros(3), np.zeros(0), np.zeros(0)
         self.depth = 0.0
         if response == "anm":
@@ -137,8 +175,10 @@ class NumpySimulator:
         self.vertices, self.weights, self.outside = barycentric(m, point)
         normal = self.weights @ m.sample_normals[self.vertices]
         self.normal = normal / np.linalg.norm(normal)
-        self.curve = self.weights @ m.force[self.vertices]
-        self.slope = self.weights @ m.stiffness[self.vertices]
+        scaled = curve_weights(m, self.vertices, self.weights)
+        self.curve = scaled @ m.force[self.vertices]
+        self.slope = scaled @ m.stiffness[self.vertices]
+        self.curve_weights = scaled
         self.depth = 0.0
 
     def step_displacement(self, d) -> np.ndarray:
@@ -186,7 +226,7 @@ class NumpySimulator:
     def _anm(self, depth: float) -> tuple[float, list]:
         P = np.polynomial.polynomial
         total, found = 0.0, []
-        for w, i in zip(self.weights, self.vertices, strict=True):
+        for w, i in zip(self.curve_weights, self.vertices, strict=True):
             if self.root == "table":
                 total += w * self._tabulated_force(i, depth)
                 continue

@@ -256,7 +256,8 @@ class Simulator:
         self._table = k.contact_table(
             model.sample_points, model.sample_normals, model.force, model.stiffness,
             model.sample_triangles,
-            *((anm["records"], anm["offsets"]) if anm else ()),
+            *((anm["records"], anm["offsets"]) if anm else (None, None)),
+            tool_stiffness=model.tool_stiffness,
         )  # fmt: skip
         # bound once: no lookups per step
         self._step_displacement = k.step_displacement_anm if anm else k.step_displacement_curves

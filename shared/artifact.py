@@ -44,8 +44,9 @@ __all__ = ["SCHEMA", "ROOT_ATTRS", "Artifact", "ArtifactError", "read_artifact",
 FORMAT = "hapticrom"
 # 1.1: the anm group; 1.2: the cutting group; 1.3: its pressure coupling;
 # 1.4: the integrity envelope (whole-file digest in the user block), required by this reader;
-# 2.0: the samples' triangulation on the surface replaces the plane chart (samples 2.0).
-FORMAT_VERSION = (2, 0)
+# 2.0: the samples' triangulation on the surface replaces the plane chart (samples 2.0);
+# 2.1: the tool's linear stiffness on a lattice of each sample triangle (samples 2.1).
+FORMAT_VERSION = (2, 1)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -154,7 +155,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "samples",
         "contact-samples",
-        (2, 0),
+        (2, 1),
         _fields(
             ("points", "f", ("P", 3), "mm", "tool positions of the training samples"),
             ("normals", "f", ("P", 3), "1", "outward unit surface normals there", "unit"),
@@ -174,6 +175,12 @@ SCHEMA: tuple[Group, ...] = (
              "symmetric"),
             ("contact_rows", "f", ("P", 3, "n"), "1", "mean basis rows at the contact nodes"),
             ("eigenvalues", "f", ("P", "M"), "mm^2", "POD eigenvalues (M snapshots)"),
+        ) + _fields(
+            # group version 2.1 (format 2.1): what the force curves are scaled by
+            ("tool_stiffness", "f", ("S", "L"), "N/mm",
+             "the tool's linear stiffness at each sample triangle's lattice points",
+             "positive"),
+            required=False,
         ),
         attrs=(
             Attr("pressure_modes", "ints", "size of each reduced pressure basis"),

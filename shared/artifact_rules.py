@@ -28,6 +28,7 @@ import numpy as np
 from numpy.polynomial import polynomial as poly
 
 from hapticrom.shared.errors import ArtifactError
+from hapticrom.shared.lattice import lattice_corners, lattice_subdivisions
 
 # Bounds on attributes (the writer's are a few hundred bytes; a JSON campaign a few kB).
 MAX_ATTRIBUTE_ITEMS = 1 << 14
@@ -304,6 +305,42 @@ def _sample_triangulation(artifact) -> None:
         )
 
 
+MAX_STIFFNESS_RATIO = 10.0  # within one sample triangle's lattice (see below)
+TOOL_STIFFNESS_RANGE = (1e-9, 1e9)  # N/mm: no product of two overflows, no weight underflows
+
+
+def _tool_stiffness(artifact) -> None:
+    """The tool's stiffness lattice (optional): a lattice of m = 1..64 subdivisions
+    (``shared/lattice.py``); at a sample, the same value in every triangle of that sample
+    (the runtime then reproduces the sample's own curve, and the force is continuous);
+    values in 1e-9..1e9 N/mm (a red team's 1.8e308 overflowed the interpolant to inf, its
+    5e-324 underflowed every weight to 0); within a triangle, values within a factor of 10
+    (the runtime scales the neighbours' curves by their ratios, so the force stays within
+    the simulator's limit, 10x the largest trained force; the demo liver's triangles vary
+    by less than 2x)."""
+    s = artifact["samples"]
+    if "tool_stiffness" not in s:
+        return
+    k, t = s["tool_stiffness"], s["triangles"]
+    m = lattice_subdivisions(k.shape[1])
+    if m is None:
+        raise _fail(artifact, f"samples/tool_stiffness has {k.shape[1]} points per triangle, "
+                              "not those of a lattice (m + 1)(m + 2)/2, m = 1..64")  # fmt: skip
+    corners = k[:, lattice_corners(m)]  # (S, 3), as the triangles' corners
+    ends = np.zeros(len(s["points"]))
+    np.maximum.at(ends, t.ravel(), corners.ravel())
+    starts = np.full(len(s["points"]), np.inf)
+    np.minimum.at(starts, t.ravel(), corners.ravel())
+    used = np.isfinite(starts)
+    if np.any(ends[used] - starts[used] > 1e-12 * ends[used]):
+        raise _fail(artifact, "samples/tool_stiffness differs at a sample between its triangles")
+    low, high = TOOL_STIFFNESS_RANGE
+    if np.any(k < low) or np.any(k > high):
+        raise _fail(artifact, f"samples/tool_stiffness has values outside {low:g} to {high:g} N/mm")
+    if np.any(k.max(axis=1) > MAX_STIFFNESS_RATIO * k.min(axis=1)):
+        raise _fail(artifact, "samples/tool_stiffness varies more than 10-fold in a triangle")
+
+
 def _surface(artifact) -> None:
     s = artifact["surface"]
     v, t = s["vertices"], s["triangles"]
@@ -425,6 +462,7 @@ CROSS_RULES = (
     _depth_grid,
     _force_curves,
     _sample_triangulation,
+    _tool_stiffness,
     _surface,
     _anm_sections,
     _anm_against_curves,

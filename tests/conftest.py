@@ -124,6 +124,62 @@ def small_artifact(small_campaign, tmp_path_factory) -> Path:
     return out
 
 
+FORCE_CAMPAIGN = """
+[campaign]
+name = "{name}"
+[mesh]
+file = "{mesh}"
+[material]
+law = "hgo"
+[load]
+mode = "force"
+magnitude = 0.03
+direction = "normal"
+contact_radius = 0.6
+steps = 4
+[positions]
+points = {points}
+"""
+FORCE_TRAINING = [[0.0, 0.0, 0.0]] + [[2.8 * np.cos(a), 2.8 * np.sin(a), 0.0] for a in
+                                      np.arange(4) * np.pi / 2 + np.pi / 4]  # fmt: skip
+FORCE_HELD_OUT = [[1.3, 0.4, 0.0], [-0.5, -1.3, 0.0]]  # inside two of its sample triangles
+
+
+def _force_campaign(mesh_dir, root: Path, name: str, points) -> tuple:
+    from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
+    from hapticrom.offline.campaign.store import SnapshotStore
+
+    path = root / f"{name}.toml"
+    points = np.round(np.asarray(points, dtype=float), 6).tolist()
+    text = FORCE_CAMPAIGN.format(name=name, mesh=mesh_dir / "cornea-coarse.msh", points=points)
+    path.write_text(text)
+    config = CampaignConfig.from_toml(path)
+    run_campaign(config, root / name, verbose=False)
+    return config, SnapshotStore(root / name)
+
+
+@pytest.fixture(scope="session")
+def force_campaign(mesh_dir, tmp_path_factory):
+    """A force-controlled HGO campaign on the coarse cornea (the centre and a ring of 4),
+    and 2 held-out positions solved alike: (config, store, held-out store)."""
+    root = tmp_path_factory.mktemp("force-campaign")
+    config, store = _force_campaign(mesh_dir, root, "training", FORCE_TRAINING)
+    _, held_out = _force_campaign(mesh_dir, root, "held-out", FORCE_HELD_OUT)
+    return config, store, held_out
+
+
+@pytest.fixture(scope="session")
+def force_artifact(force_campaign, tmp_path_factory) -> Path:
+    """The artifact of ``force_campaign`` (with the tool's stiffness lattice, format 2.1)."""
+    from mpi4py import MPI
+
+    from hapticrom.offline.reduce.reduction import reduce_campaign
+
+    out = tmp_path_factory.mktemp("force-artifact") / "force.h5"
+    reduce_campaign(force_campaign[1].root, out, MPI.COMM_SELF, verbose=False)
+    return out
+
+
 def reseed(generator: np.random.Generator, name: str) -> None:
     """Restart a generator from a seed of ``name``: a test (or a module fixture) draws the
     same numbers whatever ran before it (pytest-xdist changes the order)."""

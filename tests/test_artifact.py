@@ -14,20 +14,26 @@ from hapticrom.shared.envelope import seal
 pytestmark = pytest.mark.serial
 
 
-def test_artifact_has_every_schema_field(small_artifact):
-    a = read_artifact(small_artifact)
+@pytest.mark.parametrize("artifact", ["small_artifact", "force_artifact"])
+def test_artifact_has_every_schema_field(artifact, request):
+    """Every required field; the optional tool_stiffness where the campaign is force-
+    controlled (force_artifact) and not where it is not (small_artifact)."""
+    path = request.getfixturevalue(artifact)
+    a = read_artifact(path)
     assert a.attrs["format"] == "hapticrom" and a.version == FORMAT_VERSION
     for group in SCHEMA:
         if group.required:
             assert group.name in a.groups
         for spec in group.fields if group.name in a.groups else ():
-            assert spec.name in a[group.name]
-    with h5py.File(small_artifact) as f:
+            assert spec.name in a[group.name] or not spec.required
+    assert ("tool_stiffness" in a["samples"]) == (artifact == "force_artifact")
+    with h5py.File(path) as f:
         for group in SCHEMA:
             if group.name in f:
                 assert f[group.name].attrs["type"] == group.type
                 for spec in group.fields:
-                    assert f[group.name][spec.name].attrs["units"] == spec.units
+                    if spec.name in f[group.name]:
+                        assert f[group.name][spec.name].attrs["units"] == spec.units
 
 
 def test_missing_file(tmp_path):

@@ -485,3 +485,258 @@ def test_absurd_but_consistent_scales_are_refused(small_artifact, tmp_path):
     for name in ("samples/force", "samples/stiffness", "anm/force"):
         rewrite(path, name, lambda a: a * 1e305)
     refused(path, r"largest force not in \(0, 100000\] N")
+
+
+# -- the tool's stiffness lattice (samples/tool_stiffness, format 2.1) --------------------------
+TOOL_STIFFNESS = "samples/tool_stiffness"
+
+
+def _lattice_point(k: np.ndarray, *weights: int) -> int:
+    """The column of ``k`` (S, L) holding the lattice point of weights (m - i - j, i, j)."""
+    from hapticrom.shared.lattice import lattice_subdivisions, lattice_weights
+
+    return [tuple(w) for w in lattice_weights(lattice_subdivisions(k.shape[1]))].index(weights)
+
+
+def _inner_point(k: np.ndarray) -> int:
+    """A lattice point next to corner 0 inside the triangle, away from every point the load
+    sweep touches (corners, edge midpoints, centroid): (m - 2, 1, 1)."""
+    from hapticrom.shared.lattice import lattice_subdivisions
+
+    m = lattice_subdivisions(k.shape[1])
+    assert m >= 4  # (m - 2, 1, 1) is then in none of the sweep's sub-triangles
+    return _lattice_point(k, m - 2, 1, 1)
+
+
+@pytest.mark.parametrize("columns", [1, 2, 44, 66 * 67 // 2])  # m = 0, none, none, 65
+def test_tool_stiffness_of_no_lattice_size_is_refused(force_artifact, tmp_path, columns):
+    path = copy(force_artifact, tmp_path)
+    rewrite(path, TOOL_STIFFNESS, lambda k: np.resize(k, (len(k), columns)))
+    refused(path, f"{TOOL_STIFFNESS} has {columns} points per triangle, not those of a lattice")
+
+
+@pytest.mark.parametrize("value", [0.0, -0.1])
+def test_tool_stiffness_that_is_not_positive_is_refused(force_artifact, tmp_path, value):
+    path = copy(force_artifact, tmp_path)
+
+    def put(k):
+        k[0, _inner_point(k)] = value
+        return k
+
+    rewrite(path, TOOL_STIFFNESS, put)
+    refused(path, f"{TOOL_STIFFNESS} has values that are not positive")
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("where", ["corner", "inner"])
+def test_tool_stiffness_that_is_not_finite_is_refused(force_artifact, tmp_path, value, where):
+    """The generic finite test runs on small_artifact, which has no tool_stiffness."""
+    path = copy(force_artifact, tmp_path)
+
+    def put(k):
+        k[-1, 0 if where == "corner" else _inner_point(k)] = value
+        return k
+
+    rewrite(path, TOOL_STIFFNESS, put)
+    refused(path, f"{TOOL_STIFFNESS} has NaN or infinite values")
+
+
+@pytest.mark.parametrize("factor", [1.5, 1 + 1e-9])
+@pytest.mark.parametrize("corner", [0, 1, 2])
+def test_tool_stiffness_of_a_sample_that_differs_between_its_triangles_is_refused(
+    force_artifact, tmp_path, corner, factor
+):
+    """One triangle's value at one of its corners changed: the sample's own curve is then no
+    longer reproduced from that triangle, and the force jumps across its edges."""
+    from hapticrom.shared.lattice import lattice_corners, lattice_subdivisions
+
+    t = read_artifact(force_artifact)["samples"]["triangles"]
+    sample = t[0, corner]
+    assert np.count_nonzero(t == sample) >= 2  # the sample has another triangle
+    path = copy(force_artifact, tmp_path)
+
+    def change(k):
+        k[0, lattice_corners(lattice_subdivisions(k.shape[1]))[corner]] *= factor
+        return k
+
+    rewrite(path, TOOL_STIFFNESS, change)
+    refused(path, f"{TOOL_STIFFNESS} differs at a sample between its triangles")
+
+
+@pytest.mark.parametrize("factor", [1000.0, 10.5])
+def test_tool_stiffness_that_varies_over_10_fold_in_a_triangle_is_refused(
+    force_artifact, tmp_path, factor
+):
+    """A value ``factor`` times the triangle's smallest, at a lattice point the sweep does not
+    touch (with every other value unchanged, the corners stay consistent)."""
+    path = copy(force_artifact, tmp_path)
+
+    def spike(k):
+        k[1, _inner_point(k)] = factor * k[1].min()
+        return k
+
+    rewrite(path, TOOL_STIFFNESS, spike)
+    refused(path, f"{TOOL_STIFFNESS} varies more than 10-fold in a triangle")
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda k: np.vstack([k, k[:1]]), r"has shape \(\d+, \d+\), expected \(\d+, \d+\)"),
+        (lambda k: k[:-1].copy(), r"has shape \(\d+, \d+\), expected \(\d+, \d+\)"),
+        (lambda k: k[0].copy(), r"has shape \(\d+,\), expected rank 2"),
+        (lambda k: k[..., None].copy(), r"has shape \(\d+, \d+, 1\), expected rank 2"),
+    ],
+    ids=["S+1 rows", "S-1 rows", "rank 1", "rank 3"],
+)
+def test_tool_stiffness_of_the_wrong_shape_is_refused(force_artifact, tmp_path, change, match):
+    path = copy(force_artifact, tmp_path)
+    rewrite(path, TOOL_STIFFNESS, change)
+    refused(path, f"{TOOL_STIFFNESS} {match}")
+
+
+def test_without_tool_stiffness_a_2_0_file_loads_and_blends_the_curves_plainly(
+    force_artifact, tmp_path
+):
+    """The dataset removed (and the versions set back to 2.0): the file loads, and its
+    forces are those of the plain blend w_i, bit for bit; they differ from the scaled ones."""
+    import dataclasses
+
+    from hapticrom.online.simulator import Simulator
+
+    path = copy(force_artifact, tmp_path)
+
+    def strip(f):
+        del f[TOOL_STIFFNESS]
+        f.attrs["format_version"] = np.array([2, 0], dtype=np.int64)
+        f["samples"].attrs["version"] = np.array([2, 0], dtype=np.int64)
+
+    mutate(path, strip)
+    old = load(path, isolate=False)
+    assert old.tool_stiffness is None
+    scaled = load(force_artifact, isolate=False)
+    assert scaled.tool_stiffness is not None
+    plain = dataclasses.replace(scaled, tool_stiffness=None)
+    rng = np.random.default_rng(21)
+    p, t = scaled.sample_points, scaled.sample_triangles
+    for response in ["curves"] + (["anm"] if scaled.anm else []):
+        sims = [Simulator(m, response=response) for m in (old, plain, scaled)]
+        largest_difference = 0.0
+        for _ in range(20):
+            point = rng.dirichlet(np.ones(3)) @ p[t[rng.integers(len(t))]]
+            forces = []
+            for sim in sims:
+                sim.set_contact(point)
+                n = np.array(sim.contact_normal)
+                forces.append(np.array(sim.step_displacement(-0.5 * scaled.trained_depth * n)))
+            assert np.all(np.isfinite(forces[0])) and np.linalg.norm(forces[0]) > 0
+            np.testing.assert_array_equal(forces[0], forces[1])
+            largest_difference = max(largest_difference, np.max(np.abs(forces[2] - forces[0])))
+        assert largest_difference > 1e-3 * scaled.force[:, -1].max(), response
+
+
+# -- the red team's, on values the rules pass (each loaded, then misbehaved at the runtime) ----
+def _contacts_in_triangles(model, count: int, seed: int):
+    rng = np.random.default_rng(seed)
+    p, t = model.sample_points, model.sample_triangles
+    for _ in range(count):
+        yield rng.dirichlet(np.ones(3)) @ p[t[rng.integers(len(t))]]
+
+
+def test_tool_stiffness_at_the_largest_double_is_refused_or_gives_finite_forces(
+    force_artifact, tmp_path
+):
+    """Every value 1.797e308 (finite, positive, equal): the lattice interpolant rounds to
+    inf at some contacts, the curve weights are inf and the force NaN (about 5 % of the
+    contacts inside the triangles; the sweep's points happen to be exact)."""
+    from hapticrom.online.simulator import Simulator
+
+    path = copy(force_artifact, tmp_path)
+    rewrite(path, TOOL_STIFFNESS, lambda k: np.full_like(k, np.finfo(np.float64).max))
+    try:
+        model = load(path, isolate=False)
+    except ArtifactError as exc:
+        assert TOOL_STIFFNESS in str(exc)
+        return
+    sim = Simulator(model, response="curves")
+    for point in _contacts_in_triangles(model, 400, seed=1):
+        sim.set_contact(point)
+        n = np.array(sim.contact_normal)
+        force = sim.step_displacement(-0.5 * model.trained_depth * n)
+        assert np.all(np.isfinite(force)), (point.tolist(), force)
+
+
+def test_tool_stiffness_that_underflows_in_a_sub_triangle_is_refused_or_still_pushes_back(
+    force_artifact, tmp_path
+):
+    """The three lattice points of one sub-triangle at the smallest subnormal (5e-324), the
+    others 99x that (within the factor 100): at the sub-triangle's centroid each of the
+    interpolant's terms rounds to 0, so every curve weight is 0. The force in contact is then
+    zero, and step_force (response "curves") raised ZeroDivisionError, not a SimulatorError."""
+    from hapticrom.online.simulator import Simulator
+    from hapticrom.shared.errors import SimulatorError
+    from hapticrom.shared.lattice import lattice_subdivisions
+
+    m = lattice_subdivisions(read_artifact(force_artifact)["samples"]["tool_stiffness"].shape[1])
+    tiny = [(m - 2, 1, 1), (m - 3, 2, 1), (m - 3, 1, 2)]  # away from the sweep's points
+    path = copy(force_artifact, tmp_path)
+
+    def underflow(k):
+        v = np.full_like(k, 99 * 5e-324)
+        v[:, [_lattice_point(k, *w) for w in tiny]] = 5e-324
+        return v
+
+    rewrite(path, TOOL_STIFFNESS, underflow)
+    try:
+        model = load(path, isolate=False)
+    except ArtifactError as exc:
+        assert TOOL_STIFFNESS in str(exc)
+        return
+    weights = np.mean(tiny, axis=0) / m  # the sub-triangle's centroid, in triangle 0
+    point = weights @ model.sample_points[model.sample_triangles[0]]
+    for response in ["curves"] + (["anm"] if model.anm else []):
+        sim = Simulator(model, response=response)
+        sim.set_contact(point)
+        n = np.array(sim.contact_normal)
+        try:
+            sim.step_force(-0.5 * model.trained_force * n)
+        except SimulatorError:
+            pass  # a refusal the runtime documents (the state is unchanged)
+        except Exception as exc:  # noqa: BLE001 - what the runtime must never raise
+            pytest.fail(f"{response}: step_force raised {type(exc).__name__}: {exc}")
+        force = sim.step_displacement(-0.5 * model.trained_depth * n)
+        assert np.linalg.norm(force) > 0, response
+
+
+def test_tool_stiffness_peak_between_the_sweep_points_is_refused_or_within_the_force_limit(
+    force_artifact, tmp_path
+):
+    """One lattice point 99x the others (the rule allows 100x): the load's sweep, which
+    vouches for forces within the simulator's limit (10x the trained force) inside the
+    trained region, touches only corners, edge midpoints and centroids; at the peak the
+    force is about 99x the plain blend."""
+    from hapticrom.online.simulator import Simulator
+    from hapticrom.shared.lattice import lattice_subdivisions, lattice_weights
+
+    path = copy(force_artifact, tmp_path)
+
+    def peak(k):
+        v = np.ones_like(k)
+        v[:, _inner_point(k)] = 99.0
+        return v
+
+    rewrite(path, TOOL_STIFFNESS, peak)
+    try:
+        model = load(path, isolate=False)
+    except ArtifactError as exc:
+        assert TOOL_STIFFNESS in str(exc) or "simulator's limit" in str(exc)
+        return
+    m = lattice_subdivisions(model.tool_stiffness.shape[1])
+    sim = Simulator(model, response="curves")
+    p, t = model.sample_points, model.sample_triangles
+    for corners in t:
+        for w in lattice_weights(m) / m:  # every lattice point
+            sim.set_contact(w @ p[corners])
+            n = np.array(sim.contact_normal)
+            force = sim.step_displacement(-model.trained_depth * n)
+            assert np.linalg.norm(force) <= sim.max_force, (w, np.linalg.norm(force))

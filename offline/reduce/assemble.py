@@ -53,6 +53,7 @@ class ReducedModel:
     global_basis: np.ndarray
     series: list[SampleSeries] | None = None
     cut: CutOperators | None = None
+    tool_stiffness: np.ndarray | None = None  # (S, L) N/mm on each sample triangle's lattice
 
 
 def artifact_content(model: ReducedModel, region: CutRegion | None = None) -> dict:
@@ -120,6 +121,7 @@ def samples_group(model: ReducedModel, dofs: np.ndarray) -> dict:
         "contact_rows": np.array([r.contact_rows for r in reduced]),
         "eigenvalues": np.array([r.pod.eigenvalues[: len(grid.depth) - 1] for r in reduced]),
         "attrs": {"pressure_modes": [r.pressure_modes for r in reduced]},
+        **({} if model.tool_stiffness is None else {"tool_stiffness": model.tool_stiffness}),
     }
 
 

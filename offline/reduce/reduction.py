@@ -62,6 +62,7 @@ from hapticrom.offline.reduce.inputs import (
 from hapticrom.offline.reduce.interpolation import common_depth_grid, grassmann_tangents
 from hapticrom.offline.reduce.operators import PODSettings, reduce_globally, reduce_samples
 from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
+from hapticrom.offline.reduce.tool_stiffness import stiffness_lattice
 from hapticrom.shared.artifact import write_artifact
 
 
@@ -122,6 +123,10 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
     grid = common_depth_grid(samples, reduced)
     where = neighbourhoods
     indicator = on_rank_zero(comm, leave_one_out, where.points, where.normals, surface, grid.force)
+    tool_stiffness = None
+    if config.load.mode == "force":  # the depth the campaign measures is the linear solve's
+        tool_stiffness = on_rank_zero(comm, stiffness_lattice, config, store, where, surface,
+                                      say=say)  # fmt: skip
     return ReducedModel(
         config=config,
         manifest=manifest,
@@ -139,6 +144,7 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
         global_basis=allgather_rows(comm, global_reduction.pod.basis_local),
         series=series,
         cut=cut,
+        tool_stiffness=tool_stiffness,
     )
 
 
