@@ -181,3 +181,37 @@ def test_held_out_forces_are_closer_to_the_full_order(model, force_campaign):
     # measured: 1.2 and 0.9 % against 2.4 and 1.6 % (the liver and the demo cornea gain more:
     # README, "Force between samples")
     assert np.all(np.array(errors["scaled"]) < 0.6 * np.array(errors["plain"])), errors
+
+
+def test_the_indicator_blends_as_the_runtime_does(model, force_campaign):
+    """Leave-one-out with the samples' stiffness: sample i predicted by k_i sum w_j F_j / k_j
+    of the others, or k_i / k_n F_n of the nearest where they make no triangle (against
+    those formulas evaluated here); a uniform stiffness changes nothing; the reduction
+    stored this indicator."""
+    from hapticrom.offline.campaign.greedy import organ_surface
+    from hapticrom.offline.reduce.indicator import leave_one_out
+    from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
+    from hapticrom.offline.reduce.tool_stiffness import sample_stiffness
+    from hapticrom.online.model import locate_points
+
+    config, store, _ = force_campaign
+    p, n, F = model.sample_points, model.sample_normals, model.force
+    surface = organ_surface(store, config.problem.mesh.file)
+    k = sample_stiffness(config, store, p, -n, surface)
+    indicator = leave_one_out(p, n, surface, F, k)
+    uniform = leave_one_out(p, n, surface, F, np.full(len(p), 3.0))
+    assert uniform == pytest.approx(leave_one_out(p, n, surface, F), rel=1e-12)
+    assert indicator == pytest.approx(model.indicator, rel=1e-6)
+    # sample 1 (on the ring): the others still make triangles (the centre and three)
+    rest = np.delete(np.arange(len(p)), 1)
+    others = triangulate_samples(p[rest], n[rest], surface.vertices, surface.triangles,
+                                 surface.groups)  # fmt: skip
+    corners, weights, _ = locate_points(others.points, others.normals, others.triangles, p[1:2])
+    j = rest[corners[0]]
+    predicted = k[1] * (weights[0] / k[j]) @ F[j]
+    assert indicator[1] == pytest.approx(np.max(np.abs(predicted - F[1])) / F[1].max(), rel=1e-10)
+    # sample 0 (the centre): the ring alone makes no triangle, the nearest predicts
+    nearest = 1 + np.argmin(np.linalg.norm(p[1:] - p[0], axis=1))
+    predicted = k[0] / k[nearest] * F[nearest]
+    assert indicator[0] == pytest.approx(np.max(np.abs(predicted - F[0])) / F[0].max(), rel=1e-10)
+    assert not indicator == pytest.approx(leave_one_out(p, n, surface, F), rel=1e-3)

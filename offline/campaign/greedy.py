@@ -51,6 +51,7 @@ from hapticrom.offline.reduce.indicator import leave_one_out
 from hapticrom.offline.reduce.inputs import nominal_steps, surface_mesh
 from hapticrom.offline.reduce.interpolation import on_common_grid
 from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
+from hapticrom.offline.reduce.tool_stiffness import sample_stiffness
 from hapticrom.online.model import locate_points
 from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.errors import InputError
@@ -282,7 +283,10 @@ def assess_round(config: CampaignConfig, store: SnapshotStore, seconds: float) -
     solves = len(manifest["positions"])
     curves = read_force_curves(store, solved_indices(store, range(solves)), config.load.steps)
     surface = organ_surface(store, config.problem.mesh.file)
-    indicator = leave_one_out(curves.points, curves.normals, surface, curves.force)
+    stiffness = None  # force control: the indicator of the runtime's scaled blend (2.1)
+    if config.load.mode == "force":
+        stiffness = sample_stiffness(config, store, curves.points, -curves.normals, surface)
+    indicator = leave_one_out(curves.points, curves.normals, surface, curves.force, stiffness)
     entry = _round_entry(curves, indicator, solves)
     entry["stop"] = stop_reason(greedy, solves, indicator)
     entry["added"] = []

@@ -29,11 +29,17 @@ from hapticrom.online.model import locate_points
 from hapticrom.shared.errors import InputError
 
 
-def leave_one_out(points, normals, surface, force) -> np.ndarray:
+def leave_one_out(points, normals, surface, force, stiffness=None) -> np.ndarray:
     """The indicator e_i (P,) of every sample (``force``: (P, K) N on one depth grid;
-    ``surface``: vertices, triangles and groups of the organ's surface)."""
+    ``surface``: vertices, triangles and groups of the organ's surface; ``stiffness``: (P,)
+    the tool's linear stiffness at the samples (N/mm), or None). With ``stiffness`` the
+    curves are blended as the runtime blends them when the artifact has ``tool_stiffness``,
+    with the weights w_j k_i / k_j (k_i sample i's own); without, with w_j."""
     points, normals = np.asarray(points, float), np.asarray(normals, float)
     force = np.asarray(force, float)
+    if stiffness is not None:
+        # The relative error of sample i is the same for F / k_i: blend the F_j / k_j.
+        force = force / np.asarray(stiffness, float)[:, None]
     P = len(points)
     indicator = np.zeros(P)
     for i in range(P):

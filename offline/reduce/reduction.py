@@ -122,11 +122,12 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
     grassmann = grassmann_tangents(comm, reduced, neighbourhoods.reference)
     grid = common_depth_grid(samples, reduced)
     where = neighbourhoods
-    indicator = on_rank_zero(comm, leave_one_out, where.points, where.normals, surface, grid.force)
-    tool_stiffness = None
+    tool_stiffness = at_samples = None
     if config.load.mode == "force":  # the depth the campaign measures is the linear solve's
-        tool_stiffness = on_rank_zero(comm, stiffness_lattice, config, store, where, surface,
-                                      say=say)  # fmt: skip
+        tool_stiffness, at_samples = on_rank_zero(comm, stiffness_lattice, config, store, where,
+                                                  surface, say=say)  # fmt: skip
+    indicator = on_rank_zero(comm, leave_one_out, where.points, where.normals, surface,
+                             grid.force, at_samples)  # fmt: skip
     return ReducedModel(
         config=config,
         manifest=manifest,

@@ -246,19 +246,28 @@ def _solve(solver, G: np.ndarray) -> np.ndarray:
 
 
 def stiffness_lattice(config, store, neighbourhoods, surface, subdivisions=DEFAULT_SUBDIVISIONS,
-                      say=print):  # fmt: skip
-    """(S, L) N/mm: the tool's linear stiffness at the lattice points of every sample
-    triangle (rank 0; the campaign's K0 from its store)."""
-    from hapticrom.offline.campaign.store import csr_from
-
+                      say=print) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """((S, L), (P,)) N/mm: the tool's linear stiffness at the lattice points of every
+    sample triangle, and at the samples themselves (rank 0; the campaign's K0 from its
+    store)."""
     t0 = time.perf_counter()
-    centres, pushes, index = lattice_points(
-        neighbourhoods.points, neighbourhoods.normals, neighbourhoods.triangles, subdivisions
-    )
-    data, _ = store.read_operators()
-    points, pushes = onto_loadable_surface(centres, pushes, surface)
-    k = linear_stiffness(csr_from(data, "K0"), data["supported_nodes"], ToolLoads(config),
-                         points, pushes)  # fmt: skip
+    where = neighbourhoods
+    centres, pushes, index = lattice_points(where.points, where.normals, where.triangles,
+                                            subdivisions)  # fmt: skip
+    k = sample_stiffness(config, store, np.vstack([centres, where.points]),
+                         np.vstack([pushes, -where.normals]), surface)  # fmt: skip
     say(f"the tool's linear stiffness at {len(centres)} lattice points ({k.min():.4g} to "
         f"{k.max():.4g} N/mm) in {time.perf_counter() - t0:.1f} s")  # fmt: skip
-    return k[index]
+    return k[index], k[len(centres) :]
+
+
+def sample_stiffness(config, store, points, pushes, surface) -> np.ndarray:
+    """(Q,) N/mm: the tool's linear stiffness at ``points``, each moved onto the loadable
+    surface along its push (the surface's normal there then the push), the campaign's K0
+    from its store (rank 0)."""
+    from hapticrom.offline.campaign.store import csr_from
+
+    on_surface, pushes = onto_loadable_surface(points, pushes, surface)
+    data, _ = store.read_operators()
+    return linear_stiffness(csr_from(data, "K0"), data["supported_nodes"], ToolLoads(config),
+                            on_surface, pushes)  # fmt: skip
