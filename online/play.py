@@ -83,19 +83,20 @@ def scripted_tips(model, ticks: int, radius: float | None = None, depth_fraction
     along = model.plan_axes[0] - (model.plan_axes[0] @ normal) * normal
     along /= np.linalg.norm(along)
     depth = depth_fraction * model.trained_depth
+    above = radius + 5.0  # mm: outside the offset sheet (the sphere's centres), as rays start
     n_press, n_slide = int(0.3 * ticks), int(0.4 * ticks)
     n_lift = ticks - n_press - n_slide
     slide = []
     for s in np.linspace(-0.5 * slide_mm, 0.5 * slide_mm, max(n_slide, 2)):
-        x, n = sheet_point(sheet, centre + s * along + 5.0 * normal, -normal)
+        x, n = sheet_point(sheet, centre + s * along + above * normal, -normal)
         slide.append(x - depth * n)
     slide = np.array(slide)
-    _, n_a = sheet_point(sheet, slide[0] + 5.0 * normal, -normal)
+    _, n_a = sheet_point(sheet, slide[0] + above * normal, -normal)
     angle = math.radians(angle_deg)
     inward = -(math.cos(angle) * n_a + math.sin(angle) * along)  # pressing towards the slide
     start = slide[0] - (depth + 1.0) / math.cos(angle) * inward
     press = start + np.linspace(0.0, 1.0, n_press)[:, None] * (slide[0] - start)
-    _, n_b = sheet_point(sheet, slide[-1] + 5.0 * normal, -normal)
+    _, n_b = sheet_point(sheet, slide[-1] + above * normal, -normal)
     lift = slide[-1] + np.linspace(0.0, depth + 1.0, n_lift)[:, None] * n_b
     return np.vstack([press, slide[:n_slide], lift])[:ticks]
 

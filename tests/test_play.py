@@ -41,6 +41,21 @@ def test_the_scripted_path_presses_obliquely_slides_and_lifts(model):
     assert 1.8 < length < 2.3  # 2 mm along the curved surface (at the tip's depth)
 
 
+def test_the_scripted_path_fits_a_tool_wider_than_its_approach_height(model):
+    """A sphere of 6 mm (the liver's tip is 10 mm): the rays that place the path start
+    outside the sheet of the sphere's centres (they started 5 mm above the surface: inside
+    it, so `hapticrom play` refused the liver model). The slide keeps the asked depth."""
+    ticks = 400
+    tips = scripted_tips(model, ticks, radius=6.0)
+    sim = model.simulator(tool_radius=6.0)
+    depths = np.zeros(ticks)
+    for i, tip in enumerate(tips):
+        sim.step_position(tip)
+        depths[i] = sim.depth
+    slide = depths[int(0.3 * ticks) + 1 : int(0.7 * ticks) - 1]
+    np.testing.assert_allclose(slide, 0.8 * model.trained_depth, rtol=0.05)
+
+
 def test_a_csv_path_is_played_and_its_history_written(model, tmp_path):
     tips = scripted_tips(model, 300)
     csv = tmp_path / "path.csv"

@@ -36,7 +36,8 @@ from hapticrom.online.proxy import closest_on_triangle
 from hapticrom.shared.errors import InputError
 from hapticrom.shared.lattice import lattice_weights
 
-DEFAULT_SUBDIVISIONS = 8
+# The liver at 12 held-out positions: worst force error 2.5 % with 8, 0.93 % with 16.
+DEFAULT_SUBDIVISIONS = 16
 LOADABLE = 1  # RenderSurface.groups
 
 
@@ -70,8 +71,11 @@ def lattice_points(points, normals, triangles, subdivisions: int):
 @njit(cache=True)
 def _along_normals(queries, directions, vertices, triangles):
     """(triangle (Q,), barycentric weights (Q, 3)): each query q's point q + h n on the
-    triangles with the smallest |h| (the line through q along n, both ways; Moller-Trumbore),
-    or its nearest point on them if the line meets none."""
+    triangles facing against the push n with the smallest |h| (the line through q along n,
+    both ways; Moller-Trumbore), or its nearest point on them if the line meets none. Only
+    facing triangles: where the loadable surface wraps around a border (the liver's), the
+    line also meets the other face, sometimes nearer (measured: lattice values 2.7 N/mm
+    among 1.5-2.0, and 11.7 % force error at a held-out position)."""
     where, weights = np.full(len(queries), -1), np.zeros((len(queries), 3))
     for q in range(len(queries)):
         x, n = queries[q], directions[q]
@@ -80,9 +84,9 @@ def _along_normals(queries, directions, vertices, triangles):
             a = vertices[triangles[t, 0]]
             e1, e2 = vertices[triangles[t, 1]] - a, vertices[triangles[t, 2]] - a
             pvec = np.cross(n, e2)
-            det = np.dot(e1, pvec)
-            if abs(det) < 1e-14 * np.dot(e1, e1) * np.sqrt(np.dot(e2, e2)):
-                continue
+            det = np.dot(e1, pvec)  # = -(e1 x e2) . n: > 0 where the face looks against n
+            if det < 1e-14 * np.dot(e1, e1) * np.sqrt(np.dot(e2, e2)):
+                continue  # edge-on, or facing away: not the face the push n goes into
             s = x - a
             u = np.dot(s, pvec) / det
             qvec = np.cross(s, e1)
