@@ -308,6 +308,25 @@ def test_a_manifest_edited_by_hand_is_refused(greedy_run, tmp_path):
         run_greedy(config, root, MPI.COMM_SELF, verbose=False)
 
 
+@pytest.mark.parametrize("cover", [True, False])
+def test_a_target_met_at_the_start_still_covers_the_surface_when_asked(mesh_dir, tmp_path,
+                                                                      cover):  # fmt: skip
+    """A target every sample meets at once: with ``cover`` the rounds go on, adding only
+    nodes the samples do not cover, until none is left or the budget is spent; without, the
+    first round stops."""
+    data = with_greedy(base_campaign(mesh_dir / "hemisphere-coarse.msh"), target=0.99,
+                       max_solves=7, cover=cover)  # fmt: skip
+    report = run_greedy(CampaignConfig.from_dict(data), tmp_path / "store", MPI.COMM_SELF,
+                        verbose=False)  # fmt: skip
+    first = report.history[0]
+    assert first["max_indicator"] <= 0.99
+    if not cover:
+        assert len(report.history) == 1 and report.stop == "target reached"
+        return
+    assert first["added"] and all(a["triangle"] is None for a in first["added"])
+    assert report.history[-1]["solves"] > first["solves"]
+
+
 def test_run_greedy_needs_the_greedy_table(greedy_run, tmp_path):
     config, _, _ = greedy_run
     plain = replace(config, positions=replace(config.positions, greedy=None))

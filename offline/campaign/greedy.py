@@ -234,9 +234,20 @@ def _round_entry(curves: ForceCurves, indicator: np.ndarray, solves: int) -> dic
     }
 
 
-def _additions(config, manifest: dict, curves: ForceCurves, indicator, surface, count) -> list:
+def near_supports(config, nodes: np.ndarray) -> set[int]:
+    """The indices of ``nodes`` within the tool's radius of a clamped node: no position to
+    cover there (a rigid tip on the hemisphere's clamped rim does not move: zero depth, no
+    force curve, and the indicator's interpolation failed on it)."""
+    clamped = read_surface(config.problem.mesh.file, "clamped").nodes
+    gap = np.min(np.linalg.norm(nodes[:, None] - clamped[None], axis=2), axis=1)
+    return set(np.flatnonzero(gap < config.load.contact_radius).tolist())
+
+
+def _additions(config, manifest: dict, curves: ForceCurves, indicator, surface, count,
+               cover_only: bool = False) -> list:  # fmt: skip
     """The positions added after a round: up to ``count`` picks (history entries), on the
-    load's surface group, from the samples' triangles on the organ's ``surface``."""
+    load's surface group, from the samples' triangles on the organ's ``surface`` (only
+    uncovered nodes if ``cover_only``: the target holds inside)."""
     load_surface = read_surface(config.problem.mesh.file, config.load.surface)
     tags = [int(p["node_tag"]) for p in manifest["positions"]]
     taken = set(np.searchsorted(load_surface.node_tags, tags).tolist())
@@ -249,11 +260,13 @@ def _additions(config, manifest: dict, curves: ForceCurves, indicator, surface, 
     spacing = np.median(np.linalg.norm(curves.points[t] - curves.points[np.roll(t, 1, 1)], axis=2))
     picks = []
     if config.positions.greedy.cover:
-        picks = uncovered_nodes(samples, load_surface.nodes, taken, max(1, count // 2), spacing / 2)
+        share = count if cover_only else max(1, count // 2)
+        held = taken | near_supports(config, load_surface.nodes)
+        picks = uncovered_nodes(samples, load_surface.nodes, held, share, spacing / 2)
     taken |= {p.node for p in picks}
-    picks += worst_triangle_nodes(
-        curves.points, samples.triangles, indicator, load_surface.nodes, taken, count - len(picks)
-    )
+    if not cover_only:
+        picks += worst_triangle_nodes(curves.points, samples.triangles, indicator,
+                                      load_surface.nodes, taken, count - len(picks))  # fmt: skip
     first = len(manifest["positions"])
     return [
         {
@@ -290,10 +303,16 @@ def assess_round(config: CampaignConfig, store: SnapshotStore, seconds: float) -
     entry = _round_entry(curves, indicator, solves)
     entry["stop"] = stop_reason(greedy, solves, indicator)
     entry["added"] = []
-    if entry["stop"] is None:
+    # ``cover``: the target holds where there are samples; holes and rim still get positions
+    # (the liver stopped at 16 solves covering a quarter of its loadable surface without).
+    cover_only = entry["stop"] == "target reached" and greedy.cover and solves < greedy.max_solves
+    if entry["stop"] is None or cover_only:
         count = min(greedy.per_round, greedy.max_solves - solves)
-        entry["added"] = _additions(config, manifest, curves, indicator, surface, count)
-        if not entry["added"]:
+        entry["added"] = _additions(config, manifest, curves, indicator, surface, count,
+                                    cover_only)  # fmt: skip
+        if entry["added"]:
+            entry["stop"] = None
+        elif not cover_only:
             entry["stop"] = "no surface node left between the samples"
     history = [h for h in _history(manifest, store.manifest_path) if h["solves"] < solves]
     entry["round"] = len(history)
