@@ -216,6 +216,8 @@ def contact_table(points, normals, forces, slopes, triangles, records=None,
     edges = border_edges(triangles)
     lattice = np.zeros((len(triangles), 0)) if tool_stiffness is None else tool_stiffness
     m = lattice_subdivisions(np.shape(lattice)[1]) or 0
+    if np.shape(lattice) != (len(triangles), (m + 1) * (m + 2) // 2 if m else 0):
+        raise ValueError(f"tool stiffness of shape {np.shape(lattice)} is no lattice per triangle")
     parts = [points, normals, forces, slopes, triangles, triangle_planes(points, triangles), edges,
              lattice]  # fmt: skip
     if records is not None:
