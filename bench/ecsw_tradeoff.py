@@ -199,6 +199,10 @@ def main() -> None:
     parser.add_argument("--steps", default="2,5,10")
     parser.add_argument("--out")
     args = parser.parse_args()
+    derived = args.modes - args.linear_modes - args.campaign_modes
+    if args.basis == "derivatives" and (derived < 0 or args.derivatives_of > args.linear_modes):
+        parser.error("--basis derivatives: --modes must be at least --linear-modes + "
+                     "--campaign-modes, and --derivatives-of at most --linear-modes")  # fmt: skip
     t0 = time.perf_counter()
     config = CampaignConfig.from_toml(args.config)
     store = SnapshotStore(args.campaign)

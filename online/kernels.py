@@ -218,6 +218,8 @@ def contact_table(points, normals, forces, slopes, triangles, records=None,
     m = lattice_subdivisions(np.shape(lattice)[1]) or 0
     if np.shape(lattice) != (len(triangles), (m + 1) * (m + 2) // 2 if m else 0):
         raise ValueError(f"tool stiffness of shape {np.shape(lattice)} is no lattice per triangle")
+    if not np.all((np.asarray(lattice) > 0) & np.isfinite(lattice)):  # divided by at set_contact
+        raise ValueError("tool stiffness must be finite and positive")
     parts = [points, normals, forces, slopes, triangles, triangle_planes(points, triangles), edges,
              lattice]  # fmt: skip
     if records is not None:

@@ -215,3 +215,46 @@ def test_the_indicator_blends_as_the_runtime_does(model, force_campaign):
     predicted = k[0] / k[nearest] * F[nearest]
     assert indicator[0] == pytest.approx(np.max(np.abs(predicted - F[0])) / F[0].max(), rel=1e-10)
     assert not indicator == pytest.approx(leave_one_out(p, n, surface, F), rel=1e-3)
+
+
+@pytest.mark.parametrize("rotation", [0, 1, 2])
+def test_a_border_clamp_names_its_triangle_in_any_rotation(rotation):
+    """Clamped to the border, the contact's samples come in the edge's triangle's cyclic
+    order from any corner: the weights are w_k k(x) / k at the corner holding sample k,
+    k(x) the lattice's at the triangle's own weights."""
+    m = 4
+    corners = np.array([7, 3, 5])  # a triangle (samples 7, 3, 5) among others
+    triangles = np.array([[0, 1, 2], [7, 3, 5], [2, 3, 4]], dtype=float).ravel()
+    lattice = np.ones((3, lattice_size(m)))
+    lattice[1] = RNG.uniform(0.5, 2.0, size=lattice_size(m))
+    samples = np.roll(corners, -rotation).astype(float)  # sample k sits at corner (r + k) % 3
+    for _ in range(20):
+        b = RNG.dirichlet(np.ones(3))  # the triangle's own weights, corner order
+        weights = np.roll(b, -rotation)
+        out = np.zeros(3)
+        kernels.force_weights(weights, samples, -1, triangles, lattice.ravel(), m, out)
+        k = _lattice_interpolation(lattice[1], m, b)
+        at_corner = lattice[1][lattice_corners(m)]
+        expected = weights * k / np.roll(at_corner, -rotation)
+        np.testing.assert_allclose(out, expected, rtol=1e-12)
+
+
+def test_a_campaign_pushing_along_one_vector_gets_its_stiffness_along_it(force_campaign):
+    """``direction = [x, y, z]``: the lattice's k is along that vector, not the normal."""
+    from hapticrom.offline.campaign.greedy import organ_surface
+    from hapticrom.offline.reduce.tool_stiffness import onto_loadable_surface, sample_stiffness
+
+    config, store, _ = force_campaign
+    load = dataclasses.replace(config.load, direction=(0.3, 0.0, -1.0))
+    tilted = dataclasses.replace(config, load=load)
+    surface = organ_surface(store, config.problem.mesh.file)
+    points = np.array([[0.0, 0.0, 0.0], [1.79, 1.79, -0.42]])
+    got = sample_stiffness(tilted, store, points, np.array([[0, 0, -1.0]] * 2), surface)
+    data, _ = store.read_operators()
+    push = np.array([0.3, 0.0, -1.0]) / np.hypot(0.3, 1.0)
+    on_surface = onto_loadable_surface(points, np.array([[0, 0, -1.0]] * 2), surface)[0]
+    expected = linear_stiffness(csr_from(data, "K0"), data["supported_nodes"], ToolLoads(config),
+                                on_surface, np.tile(push, (2, 1)))  # fmt: skip
+    assert got == pytest.approx(expected, rel=1e-10)
+    along_normal = sample_stiffness(config, store, points, np.array([[0, 0, -1.0]] * 2), surface)
+    assert not got == pytest.approx(along_normal, rel=1e-3)

@@ -236,7 +236,7 @@ def _round_entry(curves: ForceCurves, indicator: np.ndarray, solves: int) -> dic
 
 def near_supports(config, nodes: np.ndarray) -> set[int]:
     """The indices of ``nodes`` within the tool's radius of a clamped node: no position to
-    cover there (a rigid tip on the hemisphere's clamped rim does not move: zero depth, no
+    add there (a rigid tip on the hemisphere's clamped rim does not move: zero depth, no
     force curve, and the indicator's interpolation failed on it)."""
     clamped = read_surface(config.problem.mesh.file, "clamped").nodes
     gap = np.min(np.linalg.norm(nodes[:, None] - clamped[None], axis=2), axis=1)
@@ -259,10 +259,10 @@ def _additions(config, manifest: dict, curves: ForceCurves, indicator, surface, 
     t = samples.triangles
     spacing = np.median(np.linalg.norm(curves.points[t] - curves.points[np.roll(t, 1, 1)], axis=2))
     picks = []
+    taken |= near_supports(config, load_surface.nodes)
     if config.positions.greedy.cover:
         share = count if cover_only else max(1, count // 2)
-        held = taken | near_supports(config, load_surface.nodes)
-        picks = uncovered_nodes(samples, load_surface.nodes, held, share, spacing / 2)
+        picks = uncovered_nodes(samples, load_surface.nodes, taken, share, spacing / 2)
     taken |= {p.node for p in picks}
     if not cover_only:
         picks += worst_triangle_nodes(curves.points, samples.triangles, indicator,

@@ -267,11 +267,16 @@ def stiffness_lattice(config, store, neighbourhoods, surface, subdivisions=DEFAU
 
 def sample_stiffness(config, store, points, pushes, surface) -> np.ndarray:
     """(Q,) N/mm: the tool's linear stiffness at ``points``, each moved onto the loadable
-    surface along its push (the surface's normal there then the push), the campaign's K0
-    from its store (rank 0)."""
+    surface along its push, then pushed as the campaign pushed: along the surface's normal
+    there, or along the campaign's fixed direction (along the normal instead, k was up to
+    14 % off on a ring of the test cornea: review); the campaign's K0 from its store
+    (rank 0)."""
     from hapticrom.offline.campaign.store import csr_from
 
     on_surface, pushes = onto_loadable_surface(points, pushes, surface)
+    if config.load.direction != "normal":  # the campaign pushed along one vector everywhere
+        fixed = np.asarray(config.load.direction, dtype=float)
+        pushes = np.tile(fixed / np.linalg.norm(fixed), (len(pushes), 1))
     data, _ = store.read_operators()
     return linear_stiffness(csr_from(data, "K0"), data["supported_nodes"], ToolLoads(config),
                             on_surface, pushes)  # fmt: skip
