@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import functools
 import json
 import sys
 import time
@@ -117,13 +116,14 @@ def training_curves(store: SnapshotStore, manifest: dict, config, solves: int) -
     }
 
 
-def round_errors(training: dict, held: dict, surface, stiffness=None) -> dict:
+def round_errors(training: dict, held: dict, surface, stiffness: dict | None = None) -> dict:
     """One round: the indicator of its samples, the true error at every held-out position,
     the blended indicator there and whether the runtime locates it inside the region.
-    ``stiffness``: None, or a function of (points, pushes) giving the tool's linear
-    stiffness there: the curves are then blended with the weights w_j k(x) / k_j, k(x) the
-    held-out position's own (the runtime reads it from its lattice, within 2.4 % on the
-    liver: ``hapticrom accuracy`` measures the runtime itself)."""
+    ``stiffness``: None, or the tool's linear stiffness of every training position (by
+    index; the held-out positions' in ``held["stiffness"]``): the curves are then blended
+    with the weights w_j k(x) / k_j, k(x) the held-out position's own (the runtime reads it
+    from its lattice, within 2.4 % on the liver: ``hapticrom accuracy`` measures the
+    runtime itself)."""
     n = len(training["indices"])
     grid, force = on_common_grid(
         training["depths"] + held["depths"], training["forces"] + held["forces"]
@@ -131,8 +131,8 @@ def round_errors(training: dict, held: dict, surface, stiffness=None) -> dict:
     samples, truth = force[:n], force[n:]
     k_samples, k_held = np.ones(n), np.ones(len(truth))
     if stiffness is not None:
-        k_samples = stiffness(training["points"], -training["normals"])
-        k_held = stiffness(held["points"], held["pushes"])
+        k_samples = np.array([stiffness[i] for i in training["indices"]])
+        k_held = held["stiffness"]
     indicator = leave_one_out(training["points"], training["normals"], surface, samples,
                               None if stiffness is None else k_samples)  # fmt: skip
     tri = triangulate_samples(
@@ -280,8 +280,12 @@ def compare_rounds(store, manifest, config, history, work: Path) -> list[dict]:
     }
     surface = organ_surface(store, manifest["mesh"]["file"])
     stiffness = None  # force control: the runtime's blend scaled by the tool's stiffness
-    if config.load.mode == "force":
-        stiffness = functools.partial(sample_stiffness, config, store, surface=surface)
+    if config.load.mode == "force":  # every position's once (one factorisation of K0)
+        last = training_curves(store, manifest, config, max(h["solves"] for h in history["rounds"]))
+        k = sample_stiffness(config, store, np.vstack([last["points"], held["points"]]),
+                             np.vstack([-last["normals"], held["pushes"]]), surface)  # fmt: skip
+        stiffness = dict(zip(last["indices"], k[: len(last["indices"])], strict=True))
+        held["stiffness"] = k[len(last["indices"]) :]
     rows = []
     for entry in history["rounds"]:
         training = training_curves(store, manifest, config, entry["solves"])
