@@ -47,6 +47,9 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --constraint constraints.txt --build-constraint constraints.txt -e '.[offline,test]'
 	@touch $@
 
+meshes/liver-4k.msh: $(STAMP) ## the liver at 4,117 nodes (examples/liver-4k-campaign.toml)
+	$(VENV)/bin/hapticrom mesh liver --set mesh_size=6.4 --out $@
+
 meshes/%.msh: $(STAMP)
 	$(VENV)/bin/hapticrom mesh $* --out $@
 

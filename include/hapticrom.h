@@ -108,9 +108,12 @@ enum hapticrom_flag {
 
 /* hapticrom_options.interpolation: how the rendered surface follows the tool. */
 enum hapticrom_interpolation {
-    HAPTICROM_INTERPOLATION_DEFAULT = 0,   /* transport where the model has a chart, else podi */
+    HAPTICROM_INTERPOLATION_DEFAULT = 0,   /* transport where the model has a chart, else
+                                              compliance where it has contact fields, else podi */
     HAPTICROM_INTERPOLATION_TRANSPORT = 1, /* each neighbour's field carried to the contact */
-    HAPTICROM_INTERPOLATION_PODI = 2       /* the fields blended where each was trained */
+    HAPTICROM_INTERPOLATION_PODI = 2,      /* the fields blended where each was trained */
+    HAPTICROM_INTERPOLATION_COMPLIANCE = 3 /* the tool's linear dent at the contact added
+                                              (artifact 2.2 contact fields; any organ) */
 };
 
 /* hapticrom_options.response: where the force comes from. */

@@ -86,8 +86,9 @@ _NOT_FINITE, _BEYOND, _DISPLACEMENT_LIMIT = (
 _NO_CONTACT, _INTERNAL = STATUS["NO_CONTACT"], STATUS["INTERNAL"]
 
 # The options' enumerations (hapticrom_options): 0 is the model's default.
-INTERPOLATIONS = {0: None, 1: "transport", 2: "podi"}
+INTERPOLATIONS = {0: None, 1: "transport", 2: "podi", 3: "compliance"}
 RESPONSES = {0: None, 1: "anm", 2: "curves"}
+CODES = {name: code for code, name in INTERPOLATIONS.items() if name}
 
 # read_state's output: normal (3), force (3), displacement (3), depth, flags, contacts prepared
 # so far (0: no contact point yet), in contact (1/0), step_position's proxy (3), its contact
@@ -283,12 +284,23 @@ SURFACE_ARRAYS = (
     "fields",  # (3, 3, N) float32 scratch
     "rectangles",  # (3, 5) int64 scratch
     "shifts",  # (3, 12) float64 scratch
+    "sample_points",  # compliance: (P, 3) float64
+    "surface_vertices",  # (V, 3) float64
+    "field_triangles",  # (TL, 3) int64, the loadable triangles
+    "contact_fields",  # (R, 3V) float32
+    "triangle_rows",  # (TL, 3) int64
+    "sample_rows",  # (P,) int64
+    "surface_weights",  # (3,) float64 scratch
+    "triangle_grid",  # (7,) float64: origin, cell size, dims of the triangles' grid
+    "grid_starts",  # (cells + 1,) int64
+    "grid_ids",  # (entries,) int64
 )
 DIMS = 4
 (A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_SAMPLE_PLAN,
  A_SAMPLE_NORMALS, A_SHAPE, A_ROWS, A_COLUMNS, A_SPACING, A_HALO, A_CHARTED, A_CHARTED_NODE,
- A_CHARTED_FRAC, A_UNCHARTED, A_FIELDS, A_RECTANGLES,
- A_SHIFTS) = range(len(SURFACE_ARRAYS))  # fmt: skip
+ A_CHARTED_FRAC, A_UNCHARTED, A_FIELDS, A_RECTANGLES, A_SHIFTS, A_SAMPLE_POINTS,
+ A_SURFACE_VERTICES, A_FIELD_TRIANGLES, A_CONTACT_FIELDS, A_TRIANGLE_ROWS, A_SAMPLE_ROWS,
+ A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS) = range(len(SURFACE_ARRAYS))  # fmt: skip
 
 
 @njit(inline="always")
@@ -347,6 +359,24 @@ def _transported(arrays, dims, buf, c, out):
     )  # fmt: skip
 
 
+@njit(inline="always")
+def _linear_dent(arrays, dims, buf, out):
+    """``surface_kernels.add_linear_dent`` on the packed arrays, the contact located on the
+    loadable surface at every call (a surface call keeps no state between calls)."""
+    weights = _view1(arrays, dims, A_SURFACE_WEIGHTS, np.float64)
+    triangle = sk.locate_on_surface(
+        buf, _view2(arrays, dims, A_SAMPLE_POINTS, np.float64),
+        _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
+        _view2(arrays, dims, A_SURFACE_VERTICES, np.float64),
+        _view2(arrays, dims, A_FIELD_TRIANGLES, np.int64),
+        _view1(arrays, dims, A_GRID, np.float64), _view1(arrays, dims, A_GRID_STARTS, np.int64),
+        _view1(arrays, dims, A_GRID_IDS, np.int64), weights,
+    )  # fmt: skip
+    sk.add_linear_dent(buf, triangle, weights, _view2(arrays, dims, A_CONTACT_FIELDS, np.float32),
+                       _view2(arrays, dims, A_TRIANGLE_ROWS, np.int64),
+                       _view1(arrays, dims, A_SAMPLE_ROWS, np.int64), out)  # fmt: skip
+
+
 _surface_signature = _status(_pointers, _i8p, _f8p, types.int64, _f8p, types.int64)
 
 
@@ -389,7 +419,31 @@ def surface_podi_curves(arrays, dims, buf, buf_size, out, vertices):
     return OK
 
 
+@cfunc(_surface_signature, cache=True)
+def surface_compliance_anm(arrays, dims, buf, buf_size, out, vertices):
+    """``Simulator.surface_displacement`` ("compliance", POD-ANM) into out (V, 3) mm."""
+    state = carray(buf, (buf_size,))
+    c = _anm_coefficients(arrays, dims, state)
+    field = carray(out, (vertices, 3))
+    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32), field)
+    _linear_dent(arrays, dims, state, field)
+    return OK
+
+
+@cfunc(_surface_signature, cache=True)
+def surface_compliance_curves(arrays, dims, buf, buf_size, out, vertices):
+    """``Simulator.surface_displacement`` ("compliance", stored curves) into out (V, 3) mm."""
+    state = carray(buf, (buf_size,))
+    c = _curves_coefficients(arrays, dims, state)
+    field = carray(out, (vertices, 3))
+    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32), field)
+    _linear_dent(arrays, dims, state, field)
+    return OK
+
+
 SURFACES = {
+    ("compliance", "anm"): surface_compliance_anm,
+    ("compliance", "curves"): surface_compliance_curves,
     ("transport", "anm"): surface_transport_anm,
     ("transport", "curves"): surface_transport_curves,
     ("podi", "anm"): surface_podi_anm,
@@ -410,7 +464,7 @@ HANDLE_FIELDS = (
     "sheet", "sheet_size", "proxy", "proxy_size", "proxy_head", "proxy_snapshot",
     "surface_arrays", "surface_dims", "vertices", "vertex_count", "triangles", "triangle_count",
     "sample_points", "modes",
-    # what the options resolved to: 1 transport / 2 podi, 1 anm / 2 curves
+    # what the options resolved to: 1 transport / 2 podi / 3 compliance, 1 anm / 2 curves
     "interpolation", "response",
     # float64 values, their bits: trained depth (mm), trained force (N), limits (mm, N)
     "trained_depth", "trained_force", "max_displacement", "max_force", "tool_radius",
@@ -467,6 +521,15 @@ def _surface_arrays(sim: Simulator) -> dict[str, np.ndarray]:
             "uncharted": ch.uncharted, "fields": np.zeros((3, 3, nodes), dtype=np.float32),
             "rectangles": np.zeros((3, 5), dtype=np.int64), "shifts": np.zeros((3, 12)),
         }  # fmt: skip
+    if sim.interpolation == "compliance":
+        f = m.contact_fields
+        arrays |= {
+            "sample_points": m.sample_points, "sample_normals": m.sample_normals,
+            "surface_vertices": m.vertices, "field_triangles": f["triangles"],
+            "contact_fields": f["fields"], "triangle_rows": f["triangle_rows"],
+            "sample_rows": f["sample_rows"], "surface_weights": np.zeros(3),
+            "triangle_grid": f["grid"], "grid_starts": f["grid_starts"], "grid_ids": f["grid_ids"],
+        }  # fmt: skip
     return arrays
 
 
@@ -514,7 +577,7 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
         "vertices": _address(m.vertices), "vertex_count": len(m.vertices),
         "triangles": _address(m.triangles), "triangle_count": len(m.triangles),
         "sample_points": _address(points), "modes": m.num_modes,
-        "interpolation": 1 if sim.interpolation == "transport" else 2,
+        "interpolation": CODES[sim.interpolation],
         "response": 1 if anm else 2,
         "trained_depth": _bits(m.trained_depth), "trained_force": _bits(m.trained_force),
         "max_displacement": _bits(sim.max_displacement), "max_force": _bits(sim.max_force),
@@ -534,7 +597,8 @@ def _limit(value: float) -> float | None:
 def _options(interpolation: int, response: int) -> tuple[str | None, str | None]:
     if interpolation not in INTERPOLATIONS:
         raise InputError(
-            f"interpolation must be 0 (the model's default), 1 (transport) or 2 (podi); got "
+            f"interpolation must be 0 (the model's default), 1 (transport), 2 (podi) or 3 "
+            f"(compliance); got "
             f"{interpolation} (Grassmann and the scalpel are not in this ABI)"
         )
     if response not in RESPONSES:

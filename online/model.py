@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticrom.online.proxy import contact_surface
+from hapticrom.online.proxy import contact_surface, triangle_grid
 from hapticrom.online.surface_chart import surface_chart
 from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
 from hapticrom.shared.artifact_rules import MAX_LENGTH
@@ -17,7 +17,7 @@ from hapticrom.shared.geometry import plan_view
 
 # "transport" (the default): each neighbour's field carried to the contact before the blend
 # (online/surface_chart.py); "podi": blended where each was trained; "grassmann": the bases.
-INTERPOLATIONS = ("transport", "podi", "grassmann")
+INTERPOLATIONS = ("transport", "podi", "grassmann", "compliance")
 RESPONSES = ("anm", "curves")
 MAX_SHEETS = 8  # contact sheets (tool radii) a model keeps for new simulators
 
@@ -56,6 +56,8 @@ class ReducedModel:
         tool_stiffness (S, L): the tool's linear stiffness on each sample triangle's
         lattice (artifact 2.1, ``shared/lattice.py``), N/mm, or None: the force curves
         are blended with the weights w_i k(x) / k_i.
+        contact_fields: the tool's linear surface field per unit depth at every loadable
+        vertex (artifact 2.2, :func:`_contact_fields`), or None: the "compliance" surface.
     """
 
     path: Path
@@ -75,6 +77,7 @@ class ReducedModel:
     anm: dict | None = None  # POD-ANM series: offsets, records, coefficients, n1, smax
     cut_region: object = None  # online.coupled_patch.CutRegion of its cuttable region
     tool_stiffness: np.ndarray | None = None  # (S, L) N/mm, the curves' scaling (2.1)
+    contact_fields: dict | None = None  # the tool's linear fields (2.2): _contact_fields
 
     def __post_init__(self):
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
@@ -95,7 +98,8 @@ class ReducedModel:
     def _freeze(self) -> None:
         """Every array read-only: simulators share the model, none may change it."""
         chart = vars(self.chart) if self.chart is not None else {}
-        tables = [vars(self), chart, self.grassmann or {}, self.anm or {}]
+        tables = [vars(self), chart, self.grassmann or {}, self.anm or {},
+                  self.contact_fields or {}]  # fmt: skip
         for table in tables:
             for value in table.values():
                 if isinstance(value, np.ndarray):
@@ -136,6 +140,9 @@ class ReducedModel:
             anm=anm,
             cut_region=cut_region,
             tool_stiffness=_f8(samples["tool_stiffness"]) if "tool_stiffness" in samples else None,
+            contact_fields=(
+                _contact_fields(artifact) if "contact_fields" in artifact.groups else None
+            ),
         )
 
     @property
@@ -258,6 +265,31 @@ def _cut_region(artifact: Artifact):
         raise ArtifactError(f"{artifact.path}: {exc}") from None
 
 
+def _contact_fields(artifact: Artifact) -> dict:
+    """The kernel's view of ``contact_fields``: ``fields`` (R, 3V) float32, ``sample_rows``
+    (P,), the loadable triangles (TL, 3) as vertex indices and as rows (``triangle_rows``),
+    and a uniform grid of them (``grid``, ``grid_starts``, ``grid_ids``: where the surface
+    looks for the triangle under the contact)."""
+    c, s = artifact["contact_fields"], artifact["surface"]
+    triangles = _i8(s["triangles"][np.asarray(s["groups"]) == 1])
+    row_of = np.full(len(s["vertices"]), -1, dtype=np.int64)
+    row_of[np.asarray(c["vertices"])] = np.arange(len(c["vertices"]))
+    # The grid spans the loadable triangles only: a far vertex elsewhere would stretch it into
+    # thousands of empty cells, each searched (red team: 0.6 s a contact, against 30 us).
+    used = np.unique(triangles)
+    local = np.searchsorted(used, triangles)
+    origin, size, dims, starts, ids = triangle_grid(_f8(s["vertices"])[used], local, 200_000)
+    return {
+        "fields": _f4(c["fields"]),
+        "sample_rows": _i8(c["sample_rows"]),
+        "triangles": triangles,
+        "triangle_rows": np.ascontiguousarray(row_of[triangles]),
+        "grid": np.array([*origin, size, *dims], dtype=np.float64),  # the triangles' grid
+        "grid_starts": _i8(starts),
+        "grid_ids": _i8(ids),
+    }
+
+
 def _anm_records(artifact: Artifact) -> dict:
     """The kernels' per-section records (see online/kernels.py) from the artifact's series:
     each section tabulated for the steps' Hermite interpolation."""
@@ -312,17 +344,28 @@ def sweep_points(model: ReducedModel) -> np.ndarray:
     return np.vstack([p, p[t].mean(axis=1), 0.5 * (p[edges[:, 0]] + p[edges[:, 1]])])
 
 
+def field_interpolations(model: ReducedModel) -> list[str]:
+    """The rendered surfaces a model offers with either response (Grassmann aside): the
+    transported field where it has a chart, the compliance field where it has contact
+    fields, and PODI's blend always."""
+    chart = ["transport"] if model.chart is not None else []
+    fields = ["compliance"] if model.contact_fields is not None else []
+    return chart + fields + ["podi"]
+
+
 def sweep(model: ReducedModel) -> None:
     """Every response at every sweep point, at the trained depth and force and 1.5x them:
     forces, displacements and surfaces finite and within the simulator's limits (10x the
     trained depth and force). Catches what no rule on single datasets sees (a field that
     overflows in the blend of two samples, a force that runs away beyond the trained depth)."""
-    fields = ["transport", "podi"] if model.chart is not None else ["podi"]
+    fields = field_interpolations(model)
     combos = [(field, "curves") for field in fields]
     if model.grassmann:
         combos.append(("grassmann", "curves"))
     if model.anm:
         combos += [(field, "anm") for field in fields]
+    if model.contact_fields is not None:
+        _bound_contact_fields(model)
     surface = np.empty_like(model.vertices)
     for interpolation, response in combos:
         sim = model.simulator(interpolation, response)
@@ -336,6 +379,37 @@ def sweep(model: ReducedModel) -> None:
                         sim.max_displacement)  # fmt: skip
                 d = sim.step_force(-scale * model.trained_force * n)
                 _within(model, response, "displacement", d, sim.max_displacement)
+
+
+# The simulator's displacement limit is 10x the trained depth, and the sweep goes to 1.5x it:
+# the correction d (phi(x) - sum_j w_j phi_j) stays within it where a row read in the trained
+# region plus a sample's row stay within 10 / 1.5 per unit depth (honest: 3.5 on the liver).
+MAX_FIELD_SUM = 10.0 / 1.5
+
+
+def _bound_contact_fields(model: ReducedModel) -> None:
+    """ArtifactError unless the rows a contact in the trained region can read (those of the
+    loadable triangles within two rings of a vertex inside it) and the samples' rows keep
+    the correction within the simulator's limit: the sweep's points read few of the rows (the
+    red team's 999 at one row loaded, and drew 362 mm against a 3.9 mm limit)."""
+    f = model.contact_fields
+    triangles, rows = f["triangles"], f["triangle_rows"]
+    loadable = np.unique(triangles)
+    inside = inside_trained_region(model.sample_points, model.sample_normals,
+                                   model.sample_triangles, model.vertices[loadable])  # fmt: skip
+    near = np.zeros(len(model.vertices), dtype=bool)
+    near[loadable[inside]] = True
+    for _ in range(2):  # two rings of triangles around them
+        near[triangles[np.any(near[triangles], axis=1)]] = True
+    read = np.unique(rows[np.any(near[triangles], axis=1)])
+    largest = np.abs(f["fields"]).max(axis=1)
+    total = float(largest[read].max(initial=0.0) + largest[f["sample_rows"]].max(initial=0.0))
+    if not total <= MAX_FIELD_SUM:
+        raise ArtifactError(
+            f"{model.path}: contact_fields/fields: a row read in the trained region plus a "
+            f"sample's reach {total:.4g} per unit depth (at most {MAX_FIELD_SUM:.4g}: the "
+            "rendered dent would pass the simulator's limit, 10x the trained depth)"
+        )
 
 
 def _within(model: ReducedModel, response: str, what: str, value: np.ndarray, limit: float):

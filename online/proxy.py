@@ -114,7 +114,7 @@ def contact_surface(vertices, triangles, groups, radius: float, max_cells: int =
     face = np.cross(offset[tri[:, 1]] - offset[tri[:, 0]], offset[tri[:, 2]] - offset[tri[:, 0]])
     face /= np.maximum(np.linalg.norm(face, axis=1), 1e-300)[:, None]
     incident_starts, incident = _incident(tri, len(x))
-    grid = _triangle_grid(offset, tri, max_cells)
+    grid = triangle_grid(offset, tri, max_cells)
     header = np.zeros(S_HEADER)
     header[S_TRIANGLES], header[S_VERTICES], header[S_RADIUS] = len(tri), len(x), radius
     header[S_ORIGIN : S_ORIGIN + 3], header[S_CELL] = grid[0], grid[1]
@@ -167,7 +167,7 @@ def _incident(tri: np.ndarray, V: int) -> tuple[np.ndarray, np.ndarray]:
     return starts, order // 3
 
 
-def _triangle_grid(points: np.ndarray, tri: np.ndarray, max_cells: int,
+def triangle_grid(points: np.ndarray, tri: np.ndarray, max_cells: int,
                    max_entries: int = 4_000_000):  # fmt: skip
     """A uniform grid over the triangles' boxes: (origin, cell, dims, starts, ids); each
     triangle listed in every cell its bounding box meets. The cell starts at twice the

@@ -261,3 +261,48 @@ class NumpySimulator:
         ]
         fields = np.einsum("irm,im->ir", m.surface_basis[self.vertices].astype(float), coefficients)
         return (self.weights @ fields).reshape(-1, 3)
+
+
+def _segment_nearest(p, a, b):
+    """(parameter t (T,), squared distance (T,)) of p's nearest point on segments a + t (b - a)."""
+    ab = b - a
+    t = np.clip(np.einsum("tx,tx->t", p - a, ab) / np.einsum("tx,tx->t", ab, ab), 0.0, 1.0)
+    gap = a + t[:, None] * ab - p
+    return t, np.einsum("tx,tx->t", gap, gap)
+
+
+def nearest_on_triangles(point, vertices, triangles) -> tuple[int, np.ndarray]:
+    """(triangle, barycentric weights (3,)) of the point of ``triangles`` nearest ``point``:
+    the plane's foot where it is inside, else the nearest point of the three edges (numpy,
+    all triangles at once; the kernels use Ericson's region tests instead)."""
+    p = np.asarray(point, dtype=float)
+    a, b, c = (vertices[triangles[:, k]] for k in range(3))
+    n = np.cross(b - a, c - a)
+    nn = np.einsum("tx,tx->t", n, n)
+    height = np.einsum("tx,tx->t", p - a, n) / nn
+    foot = p - height[:, None] * n
+    wb = np.einsum("tx,tx->t", np.cross(a - foot, c - a), n) / -nn  # areas: (a, foot, c)
+    wc = np.einsum("tx,tx->t", np.cross(b - a, foot - a), n) / nn
+    wa = 1.0 - wb - wc
+    inside = (wa >= 0) & (wb >= 0) & (wc >= 0)
+    best = np.where(inside, height**2 * nn, np.inf)
+    weights = np.stack([wa, wb, wc], axis=1)
+    for (i, j), (x, y) in zip(((0, 1), (1, 2), (2, 0)), ((a, b), (b, c), (c, a)), strict=True):
+        t, d2 = _segment_nearest(p, x, y)
+        closer = d2 < best
+        best = np.where(closer, d2, best)
+        edge = np.zeros((len(t), 3))
+        edge[:, i], edge[:, j] = 1.0 - t, t
+        weights = np.where(closer[:, None], edge, weights)
+    k = int(np.argmin(best))
+    return k, weights[k]
+
+
+def linear_dent(model: ReducedModel, point, samples, weights, depth: float) -> np.ndarray:
+    """The compliance surface's correction d (phi(x) - sum_j w_j phi_j) (V, 3) mm at the
+    contact ``point`` (on the loadable surface) with its samples and weights."""
+    f = model.contact_fields
+    t, beta = nearest_on_triangles(point, model.vertices, f["triangles"])
+    phi = beta @ f["fields"][f["triangle_rows"][t]].astype(float)
+    blend = np.asarray(weights) @ f["fields"][f["sample_rows"][samples]].astype(float)
+    return (depth * (phi - blend)).reshape(-1, 3)

@@ -40,6 +40,10 @@ class SurfaceWork:
         self.frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
         self.frames_of = -1.0  # the contact (buf[CONTACTS]) the frames are of
         self.scratch = np.zeros(3 + 3 * n)  # (unused) + three n-vectors
+        # compliance: the loadable triangle under the contact and the weights there
+        self.surface_weights = np.zeros(3)
+        self.surface_triangle = 0
+        self.located_of = -1.0  # the contact (buf[CONTACTS]) they are of
 
 
 def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork, out) -> None:
@@ -70,6 +74,19 @@ def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork,
         )  # fmt: skip
     else:
         surface_kernels.blended_surface(buf, c, m.surface_basis_t, out)
+    if interpolation == "compliance":
+        f = m.contact_fields
+        contacts = float(buf[kernels.CONTACTS])
+        if work.located_of != contacts:  # located once per contact
+            work.surface_triangle = surface_kernels.locate_on_surface(
+                buf, m.sample_points, m.sample_normals, m.vertices, f["triangles"], f["grid"],
+                f["grid_starts"], f["grid_ids"], work.surface_weights,
+            )  # fmt: skip
+            work.located_of = contacts
+        surface_kernels.add_linear_dent(
+            buf, work.surface_triangle, work.surface_weights, f["fields"], f["triangle_rows"],
+            f["sample_rows"], out,
+        )  # fmt: skip
 
 
 def check_surface_out(model, out) -> None:

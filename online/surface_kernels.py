@@ -4,8 +4,11 @@ A surface is two steps. First the three neighbours' reduced coordinates at the l
 unweighted, into a (3, n) array: from the stored curves' coefficients
 (:func:`curves_coefficients`) or from the POD-ANM series (:func:`anm_coefficients`).
 Then the field from them: blended where each neighbour was trained
-(:func:`blended_surface`, PODI) or carried to the contact first
-(:func:`transported_surface`, the chart of :mod:`hapticrom.online.surface_chart`).
+(:func:`blended_surface`, PODI), carried to the contact first
+(:func:`transported_surface`, the chart of :mod:`hapticrom.online.surface_chart`), or
+blended with the tool's linear dent at the contact added and its blend at the neighbours
+taken off (:func:`add_linear_dent`, the "compliance" surface of
+:mod:`hapticrom.offline.reduce.contact_fields`).
 The Grassmann field (``kernels.surface_grassmann``) interpolates the bases themselves.
 
 Every kernel has an explicit signature (compiled or loaded from the cache at import) and
@@ -21,6 +24,7 @@ from numba import njit
 
 from hapticrom.online.kernels import (
     DEPTH,
+    HEIGHT,
     NORMAL,
     SAMPLES,
     STEP,
@@ -35,6 +39,7 @@ from hapticrom.online.kernels import (
     ro_f8_3d,
     ro_i8_1d,
 )
+from hapticrom.online.proxy import closest_on_triangle
 
 
 # -- the neighbours' reduced coordinates -------------------------------------------------------
@@ -262,3 +267,102 @@ def transported_surface(buf, coefficients, node_basis, sample_plan, sample_norma
         read_neighbours(fields, charted, charted_node, charted_frac, n_cols, offsets, shifts,
                         count, out)  # fmt: skip
     blended_vertices(buf, coefficients, basis_t, uncharted, out)
+
+
+# -- the compliance field: PODI plus the linear dent at the contact -------------------------
+@njit(inline="always")
+def _covered(p, grid, cell, r):
+    """How far around p the cells within r of p's ``cell`` reach (mm): the distance from p
+    to the block's nearest face inside the grid (beyond the grid there are no triangles)."""
+    size, reach = grid[3], np.inf
+    for a in range(3):
+        lo = grid[a] + (cell[a] - r) * size
+        hi = grid[a] + (cell[a] + r + 1) * size
+        if cell[a] - r > 0:
+            reach = min(reach, p[a] - lo)
+        if cell[a] + r < int(grid[4 + a]) - 1:
+            reach = min(reach, hi - p[a])
+    return max(reach, 0.0)
+
+
+@njit(inline="always")
+def _nearest_in_cell(p, cell, vertices, triangles, starts, ids, best, found, out_weights):
+    """(best squared distance, triangle) after the triangles listed in grid ``cell``."""
+    for i in range(starts[cell], starts[cell + 1]):
+        t = ids[i]
+        a, b, c = vertices[triangles[t, 0]], vertices[triangles[t, 1]], vertices[triangles[t, 2]]
+        u, v, w, d2 = closest_on_triangle(p, (a[0], a[1], a[2]), (b[0], b[1], b[2]),
+                                          (c[0], c[1], c[2]))  # fmt: skip
+        if d2 < best:
+            best, found = d2, t
+            out_weights[0], out_weights[1], out_weights[2] = u, v, w
+    return best, found
+
+
+@njit(
+    "int64(float64[::1], Array(float64, 2, 'C', readonly=True), "
+    "Array(float64, 2, 'C', readonly=True), Array(float64, 2, 'C', readonly=True), "
+    "Array(int64, 2, 'C', readonly=True), Array(float64, 1, 'C', readonly=True), "
+    "Array(int64, 1, 'C', readonly=True), Array(int64, 1, 'C', readonly=True), float64[::1])",
+    cache=True,
+    nogil=True,
+)
+def locate_on_surface(buf, sample_points, sample_normals, vertices, triangles, grid, starts, ids,
+                      out_weights):  # fmt: skip
+    """The loadable triangle nearest the contact (its index; its barycentric weights into
+    ``out_weights`` (3)). The contact p = sum_j w_j (x_j + h n_j) is rebuilt from the state
+    (``kernels.locate``'s map; the border clamp's point outside the trained region).
+
+    The triangles are listed by the cells of a uniform grid their boxes meet (``grid``:
+    origin (3), cell size, dims (3); ``starts``/``ids``: ``proxy.triangle_grid``'s lists):
+    the cells are searched in rings around p's, until the nearest point found is nearer
+    than the searched block's nearest face (any nearer point lies in the block). The
+    liver's 1,079 triangles searched one by one took 37 us a contact."""
+    p0 = p1 = p2 = 0.0
+    h = buf[HEIGHT]
+    for j in range(3):
+        w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
+        p0 += w * (sample_points[i, 0] + h * sample_normals[i, 0])
+        p1 += w * (sample_points[i, 1] + h * sample_normals[i, 1])
+        p2 += w * (sample_points[i, 2] + h * sample_normals[i, 2])
+    p = (p0, p1, p2)
+    size = grid[3]
+    n0, n1, n2 = int(grid[4]), int(grid[5]), int(grid[6])
+    c0 = min(max(int(math.floor((p0 - grid[0]) / size)), 0), n0 - 1)
+    c1 = min(max(int(math.floor((p1 - grid[1]) / size)), 0), n1 - 1)
+    c2 = min(max(int(math.floor((p2 - grid[2]) / size)), 0), n2 - 1)
+    best, found = np.inf, 0
+    for r in range(max(n0, n1, n2)):
+        for i0 in range(max(c0 - r, 0), min(c0 + r, n0 - 1) + 1):
+            for i1 in range(max(c1 - r, 0), min(c1 + r, n1 - 1) + 1):
+                for i2 in range(max(c2 - r, 0), min(c2 + r, n2 - 1) + 1):
+                    if max(abs(i0 - c0), abs(i1 - c1), abs(i2 - c2)) != r:
+                        continue  # an inner ring's cell, searched already
+                    best, found = _nearest_in_cell(p, (i0 * n1 + i1) * n2 + i2, vertices,
+                                                   triangles, starts, ids, best, found,
+                                                   out_weights)  # fmt: skip
+        if best <= _covered(p, grid, (c0, c1, c2), r) ** 2:
+            break
+    return found
+
+
+@njit(
+    "void(float64[::1], int64, float64[::1], Array(float32, 2, 'C', readonly=True), "
+    "Array(int64, 2, 'C', readonly=True), Array(int64, 1, 'C', readonly=True), float64[:, ::1])",
+    cache=True,
+    nogil=True,
+    fastmath=True,
+)
+def add_linear_dent(buf, triangle, weights, fields, triangle_rows, sample_rows, out):
+    """out (V, 3) += d (phi(x) - sum_j w_j phi_j): the tool's linear field at the contact
+    (``weights`` on the loadable ``triangle``'s vertices' rows) minus its blend at the three
+    neighbours, times the last depth d (mm). Zero at a sample."""
+    flat = out.reshape(out.size)
+    d = buf[DEPTH]
+    for k in range(3):
+        if weights[k] != 0.0:
+            axpy(d * weights[k], fields[triangle_rows[triangle, k]], flat)
+    for j in range(3):
+        w = buf[WEIGHTS + j]
+        if w != 0.0:
+            axpy(-d * w, fields[sample_rows[int(buf[SAMPLES + j])]], flat)

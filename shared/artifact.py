@@ -45,8 +45,9 @@ FORMAT = "hapticrom"
 # 1.1: the anm group; 1.2: the cutting group; 1.3: its pressure coupling;
 # 1.4: the integrity envelope (whole-file digest in the user block), required by this reader;
 # 2.0: the samples' triangulation on the surface replaces the plane chart (samples 2.0);
-# 2.1: the tool's linear stiffness on a lattice of each sample triangle (samples 2.1).
-FORMAT_VERSION = (2, 1)
+# 2.1: the tool's linear stiffness on a lattice of each sample triangle (samples 2.1);
+# 2.2: the tool's linear surface field at the loadable vertices (contact_fields).
+FORMAT_VERSION = (2, 2)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -255,6 +256,19 @@ SCHEMA: tuple[Group, ...] = (
             Attr("cut_force", "float", "blade force that cuts (N)", True, ("positive",)),
             Attr("cells_in_region", "int", "region cells", checks=("positive",)),
         ),
+    ),
+    Group(
+        "contact_fields",
+        "linear-contact-fields",
+        (1, 0),
+        _fields(
+            ("vertices", "i", ("Lv",), "1", "the surface vertex the tool is centred at, a row",
+             "index:V", "distinct"),
+            ("fields", "f", ("Lv", "3V"), "1",
+             "the linear surface displacement per unit depth of the tool there"),
+            ("sample_rows", "i", ("P",), "1", "the row of each sample", "index:Lv", "distinct"),
+        ),
+        required=False,
     ),
     Group(
         "global",

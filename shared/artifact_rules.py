@@ -341,6 +341,35 @@ def _tool_stiffness(artifact) -> None:
         raise _fail(artifact, "samples/tool_stiffness varies more than 10-fold in a triangle")
 
 
+MAX_FIELD_PER_DEPTH = 1e3  # mm/mm: see _contact_fields
+
+
+def _contact_fields(artifact) -> None:
+    """The tool's linear fields (optional): one row for exactly each vertex of a loadable
+    triangle (the runtime reads the rows of the loadable triangle under the contact); each
+    sample's row at the sample's point, the only loadable vertex there (the correction then
+    vanishes at a sample; a second vertex there was the red team's 1.1 mm off); values
+    within +-MAX_FIELD_PER_DEPTH (a vertex moving 1,000 times the depth is no tissue's
+    linear response, and 1e300 would overflow the rendered field)."""
+    if "contact_fields" not in artifact.groups:
+        return
+    c, s = artifact["contact_fields"], artifact["surface"]
+    loadable = np.unique(s["triangles"][np.asarray(s["groups"]) == 1])
+    if not np.array_equal(np.sort(c["vertices"]), loadable):
+        raise _fail(artifact, "contact_fields/vertices are not the loadable triangles' vertices")
+    x = s["vertices"][c["vertices"]]
+    extent = max(np.ptp(s["vertices"], axis=0).max(initial=0.0), 1e-300)
+    points = artifact["samples"]["points"]
+    if np.any(np.linalg.norm(x[c["sample_rows"]] - points, axis=1) > 1e-9 * extent):
+        raise _fail(artifact, "contact_fields/sample_rows name a vertex that is not at its sample")
+    for p in points:  # another vertex there: the contact's triangle may not be the row's
+        if np.count_nonzero(np.linalg.norm(x - p, axis=1) <= 1e-9 * extent) != 1:
+            raise _fail(artifact, "contact_fields: a sample's point is at more than one "
+                                  "loadable vertex")  # fmt: skip
+    if np.any(np.abs(c["fields"]) > MAX_FIELD_PER_DEPTH):
+        raise _fail(artifact, f"contact_fields/fields has values beyond +-{MAX_FIELD_PER_DEPTH:g}")
+
+
 def _surface(artifact) -> None:
     s = artifact["surface"]
     v, t = s["vertices"], s["triangles"]
@@ -464,6 +493,7 @@ CROSS_RULES = (
     _sample_triangulation,
     _tool_stiffness,
     _surface,
+    _contact_fields,
     _anm_sections,
     _anm_against_curves,
 )

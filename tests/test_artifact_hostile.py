@@ -740,3 +740,211 @@ def test_tool_stiffness_peak_between_the_sweep_points_is_refused_or_within_the_f
             n = np.array(sim.contact_normal)
             force = sim.step_displacement(-model.trained_depth * n)
             assert np.linalg.norm(force) <= sim.max_force, (w, np.linalg.norm(force))
+
+
+# -- the contact fields (format 2.2), on values the generic rules pass --------------------------
+FIELDS = "contact_fields"
+
+
+def _a_vertex_that_is_not_loadable(artifact_path) -> int:
+    s = read_artifact(artifact_path)["surface"]
+    loadable = np.unique(s["triangles"][s["groups"] == 1])
+    return int(np.setdiff1d(np.arange(len(s["vertices"])), loadable)[0])
+
+
+def test_contact_field_rows_that_are_not_the_loadable_vertices_are_refused(
+    small_artifact, tmp_path
+):
+    """A row moved to a vertex of no loadable triangle: the runtime reads the rows of the
+    loadable triangle under the contact, so one of those would be missing."""
+    other = _a_vertex_that_is_not_loadable(small_artifact)
+    path = copy(small_artifact, tmp_path)
+
+    def move(v):
+        v[len(v) // 2] = other
+        return v
+
+    rewrite(path, f"{FIELDS}/vertices", move)
+    refused(path, f"{FIELDS}/vertices are not the loadable triangles' vertices")
+
+
+def test_contact_field_sample_rows_at_other_vertices_are_refused(small_artifact, tmp_path):
+    """Two samples' rows swapped (still distinct, in range): the correction would no longer
+    vanish at a sample, and the trained field would not be drawn there."""
+    path = copy(small_artifact, tmp_path)
+
+    def swap(rows):
+        rows[[0, 1]] = rows[[1, 0]]
+        return rows
+
+    rewrite(path, f"{FIELDS}/sample_rows", swap)
+    refused(path, f"{FIELDS}/sample_rows name a vertex that is not at its sample")
+
+
+@pytest.mark.parametrize("value", [1e30, -2e3, 1e3 * (1 + 1e-6)])
+def test_contact_fields_beyond_a_thousand_per_unit_depth_are_refused(
+    small_artifact, tmp_path, value
+):
+    path = copy(small_artifact, tmp_path)
+
+    def put(f):
+        f[-1, f.shape[1] // 3] = value
+        return f
+
+    rewrite(path, f"{FIELDS}/fields", put)
+    refused(path, f"{FIELDS}/fields has values beyond")
+
+
+def test_without_contact_fields_a_2_1_file_loads_with_its_old_default(small_artifact, tmp_path):
+    """The group removed (the version set back to 2.1): the file loads, asks for no
+    compliance surface, and draws what it drew before."""
+    from hapticrom.online.simulator import Simulator
+    from hapticrom.shared.errors import InputError
+
+    path = copy(small_artifact, tmp_path)
+
+    def strip(f):
+        del f[FIELDS]
+        f.attrs["format_version"] = np.array([2, 1], dtype=np.int64)
+
+    mutate(path, strip)
+    old = load(path, isolate=False)
+    assert old.contact_fields is None
+    assert Simulator(old).interpolation == ("transport" if old.chart is not None else "podi")
+    with pytest.raises(InputError, match="no contact fields"):
+        Simulator(old, "compliance")
+
+
+# -- the red team's, on the contact fields: each file passes every rule -------------------------
+def _field_rows_at(model, point):
+    """The rows and weights of the loadable triangle nearest ``point`` (the numpy reference)."""
+    from hapticrom.online.reference import nearest_on_triangles
+
+    f = model.contact_fields
+    t, beta = nearest_on_triangles(point, model.vertices, f["triangles"])
+    return f["triangle_rows"][t], beta
+
+
+def test_a_contact_field_row_the_sweep_misses_is_refused_or_within_the_displacement_limit(
+    force_artifact, tmp_path
+):
+    """One row at 999 (the rule allows 1000): the vertex of a loadable triangle that contacts
+    inside the trained region read (at weight ~0.9), but no sweep point (samples, centroids,
+    edge midpoints) does. The file loads, and a contact there draws 999 d at that vertex:
+    350 mm at the trained depth against the simulator's 3.9 mm limit."""
+    from hapticrom.online.model import sweep_points
+    from hapticrom.online.simulator import Simulator
+
+    honest = load(force_artifact, isolate=False)
+    swept = set(honest.contact_fields["sample_rows"].tolist())
+    for point in sweep_points(honest):
+        rows, beta = _field_rows_at(honest, point)
+        swept |= set(rows[beta > 0].tolist())
+    weight, row, at = 0.0, -1, None
+    for point in _contacts_in_triangles(honest, 400, seed=5):
+        for r, w in zip(*_field_rows_at(honest, point), strict=True):
+            if int(r) not in swept and w > weight:
+                weight, row, at = w, int(r), point
+    assert weight > 0.5, "a row the contacts read with weight, the sweep never"
+    path = copy(force_artifact, tmp_path)
+
+    def put(fields):
+        fields[row] = 999.0
+        return fields
+
+    rewrite(path, f"{FIELDS}/fields", put)
+    try:
+        model = load(path, isolate=False)
+    except ArtifactError as exc:
+        assert FIELDS in str(exc) or "simulator's limit" in str(exc)
+        return
+    sim = Simulator(model, "compliance", response="curves")
+    sim.set_contact(at)
+    sim.step_displacement(-model.trained_depth * np.array(sim.contact_normal))
+    surface = sim.surface_displacement(np.zeros_like(model.vertices))
+    assert np.max(np.abs(surface)) <= sim.max_displacement, np.max(np.abs(surface))
+
+
+def test_a_far_vertex_of_no_loadable_triangle_does_not_stall_the_contact_field_surface(
+    force_artifact, tmp_path
+):
+    """A vertex of no loadable triangle moved 1e4 mm above the organ (within MAX_LENGTH; no
+    rule bounds such vertices, and no loadable one moves): the triangles' grid is built over
+    every surface vertex, so it grows to 6 x 6 x 4,439 cells of empty space, and a contact
+    set above the organ searches ring after ring of them: 0.6 s a surface (the Python
+    renderer once per contact, the C ABI's surface at every call), against 30 us."""
+    import time
+
+    from hapticrom.online.simulator import Simulator
+
+    s = read_artifact(force_artifact)["surface"]
+    v, t, g = s["vertices"], s["triangles"], s["groups"]
+    other = np.setdiff1d(np.arange(len(v)), np.unique(t[g == 1]))
+    k, far = int(other[np.argmin(v[other, 2])]), 1e4
+    path = copy(force_artifact, tmp_path)
+
+    def move(x):
+        x[k, 2] = far
+        return x
+
+    rewrite(path, "surface/vertices", move)
+    try:
+        model = load(path, isolate=False)
+    except ArtifactError as exc:
+        assert "surface" in str(exc)
+        return
+    sim = Simulator(model, "compliance", response="curves")
+    out = np.zeros_like(model.vertices)
+    took = []
+    for x in (0.0, 1.0, -1.0):  # a new contact each: located again
+        sim.set_contact(np.array([x, 0.0, far]))
+        sim.step_displacement(-0.5 * model.trained_depth * np.array(sim.contact_normal))
+        start = time.perf_counter()
+        sim.surface_displacement(out)
+        took.append(time.perf_counter() - start)
+    assert np.all(np.isfinite(out))
+    assert min(took) < 0.05, took
+
+
+def test_a_contact_field_sample_row_at_a_second_vertex_is_refused_or_draws_the_trained_field(
+    force_artifact, tmp_path
+):
+    """A loadable vertex far from sample 0 (no neighbour of its vertex, at no sample) moved
+    onto sample 0's point, and sample 0's row pointed at it: still "the vertex at the
+    sample's point". The runtime's triangle there is the sample's own vertex's, so the
+    correction d (phi_B - phi_A) does not vanish at the sample: 1.1 mm off the trained
+    field (whose largest value is 0.46 mm), within the sweep's limit."""
+    from hapticrom.online.simulator import Simulator
+
+    a = read_artifact(force_artifact)
+    s, c = a["surface"], a["contact_fields"]
+    rows, sample_rows = c["vertices"], c["sample_rows"]
+    b = int(rows[sample_rows[0]])
+    neighbours = np.unique(s["triangles"][np.any(s["triangles"] == b, axis=1)])
+    pool = np.setdiff1d(rows, np.r_[neighbours, rows[sample_rows]])
+    moved = int(pool[np.argmax(np.linalg.norm(s["vertices"][pool] - s["vertices"][b], axis=1))])
+    path = copy(force_artifact, tmp_path)
+
+    def onto_the_sample(x):
+        x[moved] = x[b]
+        return x
+
+    def to_the_moved_row(r):
+        r[0] = int(np.flatnonzero(rows == moved)[0])
+        return r
+
+    rewrite(path, "surface/vertices", onto_the_sample)
+    rewrite(path, f"{FIELDS}/sample_rows", to_the_moved_row)
+    try:
+        model = load(path, isolate=False)
+    except ArtifactError as exc:
+        assert FIELDS in str(exc) or "surface/vertices" in str(exc)
+        return
+    fields = []
+    for interpolation in ("compliance", "podi"):
+        sim = Simulator(model, interpolation)
+        sim.set_contact(model.sample_points[0])
+        sim.step_displacement(-model.trained_depth * model.sample_normals[0])
+        fields.append(sim.surface_displacement(np.zeros_like(model.vertices)).copy())
+    got, expected = fields
+    assert np.max(np.abs(got - expected)) <= 1e-6 * np.max(np.abs(expected))

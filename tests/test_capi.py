@@ -228,7 +228,8 @@ def test_the_header_declares_what_the_python_side_returns(lib):
     assert flags == {"BEYOND_DEPTH": kernels.FLAG_BEYOND_DEPTH,
                      "NO_CONTACT": kernels.FLAG_NO_CONTACT,
                      "OUTSIDE_REGION": kernels.FLAG_OUTSIDE_REGION}  # fmt: skip
-    names = {"transport": "TRANSPORT", "podi": "PODI", "anm": "ANM", "curves": "CURVES"}
+    names = {"transport": "TRANSPORT", "podi": "PODI", "compliance": "COMPLIANCE", "anm": "ANM",
+             "curves": "CURVES"}  # fmt: skip
     interpolations = header_values("HAPTICROM_INTERPOLATION_")
     responses = header_values("HAPTICROM_RESPONSE_")
     for code, name in cabi.INTERPOLATIONS.items():
@@ -248,12 +249,14 @@ def test_the_header_declares_what_the_python_side_returns(lib):
 
 # -- the same numbers as the Python runtime -------------------------------------------------------
 def combinations(model) -> list[tuple[str, str]]:
-    interpolations = ["transport", "podi"] if model.chart is not None else ["podi"]
+    from hapticrom.online.model import field_interpolations
+
+    interpolations = field_interpolations(model)
     responses = ["anm", "curves"] if model.anm is not None else ["curves"]
     return [(i, r) for i in interpolations for r in responses]
 
 
-CODES = {"transport": 1, "podi": 2, "anm": 1, "curves": 2}
+CODES = {"transport": 1, "podi": 2, "compliance": 3, "anm": 1, "curves": 2}
 
 
 def test_every_call_gives_the_python_runtimes_numbers(lib, model, small_artifact):
@@ -559,7 +562,7 @@ def test_loading_refuses_bad_paths_artifacts_and_options(lib, small_artifact, tm
             "damaged.h5", "checksum")  # fmt: skip
     assert sim.value == 0
     bad_options = [({"size": 8}, "options.size"), ({"isolate": 2}, "isolate"),
-                   ({"interpolation": 3}, "interpolation"), ({"response": -1}, "response"),
+                   ({"interpolation": 4}, "interpolation"), ({"response": -1}, "response"),
                    ({"max_force": -1.0}, "max_force"),
                    ({"max_displacement": float("nan")}, "max_displacement"),
                    ({"tool_radius": -1.0}, "tool_radius"),

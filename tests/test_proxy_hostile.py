@@ -263,7 +263,7 @@ def test_the_grid_build_ends_when_the_triangles_outnumber_its_budget():
         "import numpy as np; from hapticrom.online import proxy\n"
         "from test_proxy import cap\n"
         "v, t, g = cap()\n"
-        "o, c, d, s, ids = proxy._triangle_grid(v, t, 200_000, max_entries=len(t) // 2)\n"
+        "o, c, d, s, ids = proxy.triangle_grid(v, t, 200_000, max_entries=len(t) // 2)\n"
         "assert set(ids.tolist()) == set(range(len(t))) and len(ids) <= len(t)\n"
     )
     env = dict(os.environ, PYTHONPATH=os.path.dirname(__file__))

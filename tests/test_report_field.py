@@ -9,6 +9,7 @@ the figure's step is checked against the held-out check's own comparison
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import re
@@ -20,13 +21,15 @@ import pytest
 from hapticrom.cli import main
 from hapticrom.online.model import load
 from hapticrom.report.field_comparison import (
-    FIELDS,
     PNG_NAME,
     PlanView,
+    caption,
+    field_figure,
     held_out_comparison,
     locate_on_sheet,
     write_field_comparison,
 )
+from hapticrom.report.page import _field_section
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial
@@ -35,7 +38,7 @@ pytestmark = pytest.mark.serial
 # sample's POD modes (and, with the POD-ANM response, the series' coefficients): a few
 # percent at most; measured on the small model: PODI 0.003 %, transport 0.3 %.
 AT_TRAINING = 0.01
-PERCENT = re.compile(r"(transport|PODI) (\S+) %")
+PERCENT = re.compile(r"(transport|compliance|PODI) (\S+) %")
 
 
 @pytest.fixture(scope="module")
@@ -54,7 +57,9 @@ def comparison(model, work):
 
 
 def test_training_position_is_reproduced_by_both_interpolations(comparison, model):
-    assert comparison.fields.keys() == set(FIELDS)
+    assert model.chart is not None and comparison.runtime == "transport"
+    assert comparison.panels == ("full order", "transport", "podi")
+    assert comparison.fields.keys() == set(comparison.panels)
     for field in comparison.fields.values():
         assert field.shape == model.vertices.shape and np.isfinite(field).all()
     assert np.linalg.norm(comparison.fields["full order"]) > 0
@@ -95,6 +100,41 @@ def test_writes_a_readable_figure_and_its_caption(small_artifact, work, tmp_path
     errors = PERCENT.findall(caption)
     assert len(errors) == 4, caption  # over the surface, then along the cross-section
     assert all(np.isfinite(float(value)) for _, value in errors)
+
+
+def test_a_model_without_a_chart_shows_its_compliance_field(model, work, comparison):
+    """No chart but contact fields: the runtime panel is "compliance" (the runtime's default
+    then), in the fields, the caption, the figure's alt text and the page; at a training
+    position its correction vanishes (the sample's own field less its blend, itself), so it
+    reproduces the full order as PODI does. Neither chart nor fields: PODI alone."""
+    assert model.contact_fields is not None
+    no_chart = dataclasses.replace(model)
+    no_chart.chart = None
+    shown = held_out_comparison(no_chart, work)
+    assert shown.runtime == "compliance"
+    assert shown.panels == ("full order", "compliance", "podi")
+    assert shown.fields.keys() == set(shown.panels)
+    assert (shown.index, shown.step) == (comparison.index, comparison.step)  # PODI's worst
+    np.testing.assert_array_equal(shown.fields["podi"], comparison.fields["podi"])
+    assert shown.error("compliance") < AT_TRAINING, shown.error("compliance")
+    text = caption(no_chart, shown)
+    errors = PERCENT.findall(text)
+    assert [name for name, _ in errors] == ["compliance", "PODI"] * 2, text
+    assert "transport" not in text
+    png = field_figure(no_chart, shown)
+    assert "full order, compliance and PODI" in png.alt and len(png.data) > 10_000
+    page = _field_section(text, work, png, no_chart)
+    assert "<i>compliance</i> (the tool's linear dent at the contact" in page
+    assert "transport" not in page
+
+    bare = dataclasses.replace(model, contact_fields=None)
+    bare.chart = None
+    alone = held_out_comparison(bare, work)
+    assert alone.runtime == "podi" and alone.panels == ("full order", "podi")
+    assert alone.fields.keys() == {"full order", "podi"}
+    errors = PERCENT.findall(caption(bare, alone))
+    assert [name for name, _ in errors] == ["PODI", "PODI"]
+    assert "full order and PODI in plan view" in field_figure(bare, alone).alt
 
 
 def test_the_upper_sheet_is_read_where_two_overlap():

@@ -18,7 +18,7 @@
  *
  *   servo_loop MODEL [--tips FILE.csv] [--seconds S] [--rate HZ] [--render-rate HZ]
  *              [--forces FILE.csv] [--surfaces FILE.bin] [--response anm|curves]
- *              [--interpolation transport|podi] [--tool-radius MM]
+ *              [--interpolation transport|podi|compliance] [--tool-radius MM]
  *              [--friction MU_S,MU_D[,K_T]]
  *   servo_loop MODEL [--tips FILE.csv] [--friction MU_S,MU_D[,K_T]] --bench N
  *              [--bench-surfaces M] [--cpu K]
@@ -551,7 +551,7 @@ static int bench(struct run *r, size_t steps, size_t surfaces) {
 static int usage(void) {
     fprintf(stderr, "usage: servo_loop MODEL [--tips FILE.csv] [--seconds S] [--rate HZ] "
                     "[--render-rate HZ] [--forces FILE.csv] [--surfaces FILE.bin] "
-                    "[--response anm|curves] [--interpolation transport|podi] "
+                    "[--response anm|curves] [--interpolation transport|podi|compliance] "
                     "[--tool-radius MM] [--friction MU_S,MU_D[,K_T]]\n"
                     "       servo_loop MODEL [--tips FILE.csv] [--friction MU_S,MU_D[,K_T]] "
                     "--bench N [--bench-surfaces M] [--cpu K]\n");
@@ -633,7 +633,9 @@ static int parse(int argc, char **argv, struct arguments *a) {
         else if (!strcmp(key, "--interpolation"))
             a->options.interpolation = !strcmp(value, "transport") ? HAPTICROM_INTERPOLATION_TRANSPORT
                                        : !strcmp(value, "podi")    ? HAPTICROM_INTERPOLATION_PODI
-                                                                   : -1;
+                                       : !strcmp(value, "compliance")
+                                           ? HAPTICROM_INTERPOLATION_COMPLIANCE
+                                           : -1;
         else return 1;
     }
     return 0;
@@ -665,7 +667,9 @@ int main(int argc, char **argv) {
            "modes; %s, %s; tool radius %g mm\n", version, abi, a.model,
            (double)(now_ns() - t0) * 1e-9, (unsigned long long)r.info.vertex_count,
            (unsigned long long)r.info.sample_count, (unsigned long long)r.info.mode_count,
-           r.info.interpolation == HAPTICROM_INTERPOLATION_TRANSPORT ? "transport" : "podi",
+           r.info.interpolation == HAPTICROM_INTERPOLATION_TRANSPORT    ? "transport"
+           : r.info.interpolation == HAPTICROM_INTERPOLATION_COMPLIANCE ? "compliance"
+                                                                         : "podi",
            r.info.response == HAPTICROM_RESPONSE_ANM ? "POD-ANM series" : "stored curves",
            r.info.tool_radius);
     int failed = 0;

@@ -21,6 +21,7 @@ from hapticrom.offline.cutting.export import CutOperators, CutRegion
 from hapticrom.offline.fe.materials import make_law
 from hapticrom.offline.fe.sanity import dumps
 from hapticrom.offline.reduce.anm_reduction import SampleSeries
+from hapticrom.offline.reduce.contact_fields import ContactFields
 from hapticrom.offline.reduce.inputs import RenderSurface, Sample
 from hapticrom.offline.reduce.interpolation import DepthGrid, GrassmannTangents
 from hapticrom.offline.reduce.operators import GlobalReduction, ReducedSample
@@ -54,6 +55,7 @@ class ReducedModel:
     series: list[SampleSeries] | None = None
     cut: CutOperators | None = None
     tool_stiffness: np.ndarray | None = None  # (S, L) N/mm on each sample triangle's lattice
+    contact_fields: ContactFields | None = None  # the tool's linear field at loadable vertices
 
 
 def artifact_content(model: ReducedModel, region: CutRegion | None = None) -> dict:
@@ -66,6 +68,10 @@ def artifact_content(model: ReducedModel, region: CutRegion | None = None) -> di
         "grassmann": grassmann_group(model, dofs),
         "global": global_group(model, dofs),
     }
+    if model.contact_fields is not None:
+        f = model.contact_fields
+        content["contact_fields"] = {"vertices": f.vertices, "fields": f.fields,
+                                     "sample_rows": f.sample_rows}  # fmt: skip
     if model.series is not None:
         content["anm"] = anm_group(model.series, model.config)
     if model.cut is not None and region is not None:

@@ -52,6 +52,7 @@ from hapticrom.offline.cutting.export import cut_operators, cut_region
 from hapticrom.offline.mpi import allgather_rows, on_rank_zero, print0
 from hapticrom.offline.reduce.anm_reduction import sample_series
 from hapticrom.offline.reduce.assemble import ReducedModel, artifact_content, root_attributes
+from hapticrom.offline.reduce.contact_fields import contact_fields
 from hapticrom.offline.reduce.indicator import leave_one_out
 from hapticrom.offline.reduce.inputs import (
     OperatorRows,
@@ -126,6 +127,8 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
     if config.load.mode == "force":  # the depth the campaign measures is the linear solve's
         tool_stiffness, at_samples = on_rank_zero(comm, stiffness_lattice, config, store, where,
                                                   surface, say=say)  # fmt: skip
+    fields = on_rank_zero(comm, contact_fields, config, store, surface, where.points,
+                          where.normals, say=say)  # fmt: skip
     indicator = on_rank_zero(comm, leave_one_out, where.points, where.normals, surface,
                              grid.force, at_samples)  # fmt: skip
     return ReducedModel(
@@ -146,6 +149,7 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
         series=series,
         cut=cut,
         tool_stiffness=tool_stiffness,
+        contact_fields=fields,
     )
 
 

@@ -189,14 +189,21 @@ BATCH = 128  # right-hand sides per solve: MUMPS's multi-RHS solve is 7x faster 
 
 
 def linear_stiffness(K0, supported_nodes, loads: ToolLoads, centres, pushes) -> np.ndarray:
-    """k = W^2 / (g^T K0^-1 g) (N/mm) at each centre, the supports' DOFs held: one sparse
-    Cholesky factorisation (MUMPS; options prefix ``tool_stiffness_``), then the points'
-    loads solved ``BATCH`` at a time."""
-    fixed = np.zeros(K0.shape[0], dtype=bool)
-    fixed[(3 * np.asarray(supported_nodes)[:, None] + np.arange(3)).ravel()] = True
-    free = np.flatnonzero(~fixed)
-    solver = _factorised(scipy.sparse.csr_matrix(K0)[free][:, free].tocsr())
+    """k = W^2 / (g^T K0^-1 g) (N/mm) at each centre, the supports' DOFs held (see
+    :func:`linear_responses`)."""
     out = np.empty(len(centres))
+    for chunk, G, X, W in linear_responses(K0, supported_nodes, loads, centres, pushes):
+        out[chunk.start : chunk.stop] = W**2 / np.einsum("ij,ij->j", G, X)
+    return out
+
+
+def linear_responses(K0, supported_nodes, loads: ToolLoads, centres, pushes):
+    """Yield (range of the centres, G, X = K0^-1 G, W) for ``BATCH`` centres at a time: the
+    tool's loads g (free DOFs, columns) and weights W, and the linear responses (free DOFs;
+    :func:`free_dofs` says which): one sparse Cholesky factorisation (MUMPS; options prefix
+    ``tool_stiffness_``), then multi-RHS solves."""
+    free = free_dofs(K0.shape[0], supported_nodes)
+    solver = _factorised(scipy.sparse.csr_matrix(K0)[free][:, free].tocsr())
     try:
         for first in range(0, len(centres), BATCH):
             chunk = range(first, min(first + BATCH, len(centres)))
@@ -209,10 +216,16 @@ def linear_stiffness(K0, supported_nodes, loads: ToolLoads, centres, pushes) -> 
                         "no face of the loadable surface: a sample triangle strays from it"
                     )
                 G[:, j] = g[free]
-            out[chunk.start : chunk.stop] = W**2 / np.einsum("ij,ij->j", G, _solve(solver, G))
+            yield chunk, G, _solve(solver, G), W
     finally:
         solver.destroy()
-    return out
+
+
+def free_dofs(num_dofs: int, supported_nodes) -> np.ndarray:
+    """The DOFs that are not held by a support (canonical order)."""
+    fixed = np.zeros(num_dofs, dtype=bool)
+    fixed[(3 * np.asarray(supported_nodes)[:, None] + np.arange(3)).ravel()] = True
+    return np.flatnonzero(~fixed)
 
 
 def _factorised(A: scipy.sparse.csr_matrix):

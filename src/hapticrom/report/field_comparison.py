@@ -7,9 +7,12 @@ trained depth, where PODI's field is farthest from the full order (relative L2 o
 surface vertices, as the check measures it), and draws there:
 
 - |u| in plan view (the samples' mean normal towards the viewer, as
-  :func:`~hapticrom.shared.geometry.plan_view`): full order | the runtime's "transport" field
-  | its "podi" field, on one colour scale, only the triangles facing the viewer (a cornea or
-  a liver has a lower sheet too, which would show through);
+  :func:`~hapticrom.shared.geometry.plan_view`): full order | the runtime's default field
+  (:func:`~hapticrom.online.simulator.default_interpolation`: "transport" where the model
+  has a chart, "compliance" where it has contact fields) | its "podi" field, on one colour
+  scale, only the triangles facing the viewer (a cornea or a liver has a lower sheet too,
+  which would show through). A model whose default is PODI itself (neither chart nor
+  contact fields) gets two panels, full order | podi;
 - a cross-section: the displacement into the organ (along the contact's inward normal) on
   the straight plan-view line through the tool and the nearest other training sample, where
   PODI's blend leaves a dent of its own.
@@ -29,14 +32,26 @@ import h5py
 import numpy as np
 
 from hapticrom.online.model import ReducedModel, load
+from hapticrom.online.simulator import default_interpolation
 from hapticrom.report.content import RESPONSE_LABELS
 from hapticrom.report.figures import Png, new_figure, render, require_matplotlib
 from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.errors import InputError, StepInputError
 from hapticrom.shared.geometry import face_area_vectors
 
-FIELDS = ("full order", "transport", "podi")  # the panels, left to right
-RUNTIME = ("transport", "podi")  # the runtime's interpolations compared
+# What each runtime field is, in the words of the report page (page._field_section).
+DESCRIPTIONS = {
+    "transport": "each neighbouring sample's field carried to the contact",
+    "compliance": "the tool's linear dent at the contact plus PODI's blend of the nonlinear rest",
+    "podi": "blended where each was trained",
+}
+# The lines of the cross-section: colour, style, width.
+STYLES = {
+    "full order": ("k", "-", 2.4),
+    "transport": ("C0", "-", 1.6),
+    "compliance": ("C2", "-", 1.6),
+    "podi": ("C1", "--", 1.6),
+}
 PNG_NAME = "held-out-field.png"
 # A triangle steeper than this to the line of sight is seen edge-on: it belongs to no sheet
 # of the plan view (the cornea's rim, the liver's flanks).
@@ -149,6 +164,12 @@ def _finite_vector(value, path: Path, name: str) -> np.ndarray:
     return vector
 
 
+def panels(runtime: str) -> tuple[str, ...]:
+    """The fields shown, left to right: the full order, the runtime's default interpolation
+    ``runtime`` and PODI; PODI once when it is the default itself."""
+    return ("full order", "podi") if runtime == "podi" else ("full order", runtime, "podi")
+
+
 def _checked(f: h5py.File, name: str, path: Path) -> np.ndarray:
     data = f[name][()]
     if array_digest(data) != f[name].attrs.get("sha256"):
@@ -168,8 +189,19 @@ class FieldComparison:
     depth: float  # mm
     normal: np.ndarray  # (3,) the outward normal at the contact (the runtime's)
     response: str  # the runtime's force response ("anm" or "curves")
-    fields: dict[str, np.ndarray]  # FIELDS -> (V, 3) mm
+    runtime: str  # the model's default interpolation: "transport", "compliance" or "podi"
+    fields: dict[str, np.ndarray]  # self.panels -> (V, 3) mm
     outside: bool  # the runtime clamped the contact to its trained region
+
+    @property
+    def panels(self) -> tuple[str, ...]:
+        """The fields compared, left to right (:func:`panels`)."""
+        return panels(self.runtime)
+
+    @property
+    def runtime_fields(self) -> tuple[str, ...]:
+        """The runtime's fields compared: the default interpolation, then PODI (once)."""
+        return self.panels[1:]
 
     def error(self, name: str) -> float:
         """Relative L2 error of a runtime field against the full order (surface vertices)."""
@@ -210,11 +242,14 @@ def worst_podi_step(model: ReducedModel, solves: list[HeldOutSolve], response: s
     return best
 
 
-def compare_fields(model: ReducedModel, solve: HeldOutSolve, step: int, response: str):
-    """The full-order field and the runtime's transport and PODI fields at ``step``."""
+def compare_fields(model: ReducedModel, solve: HeldOutSolve, step: int, response: str,
+                   runtime: str | None = None):  # fmt: skip
+    """The full-order field and the runtime's ``runtime`` (default: the model's default
+    interpolation) and PODI fields at ``step``."""
+    runtime = default_interpolation(model) if runtime is None else runtime
     fields = {"full order": solve.surface[step]}
     normal, outside = None, False
-    for name in RUNTIME:
+    for name in panels(runtime)[1:]:
         sim = model.simulator(name, response)
         sim.set_contact(solve.point)
         normal = sim.contact_normal.copy()
@@ -223,12 +258,13 @@ def compare_fields(model: ReducedModel, solve: HeldOutSolve, step: int, response
         outside = sim.outside_trained_region
     return FieldComparison(
         solve.index, solve.point, step, len(solve.depths), float(solve.depths[step]), normal,
-        response, fields, outside,
+        response, runtime, fields, outside,
     )  # fmt: skip
 
 
 def held_out_comparison(model: ReducedModel, work: str | Path) -> FieldComparison:
-    """The comparison the figure shows: the held-out step where PODI's field is worst."""
+    """The comparison the figure shows: the held-out step where PODI's field is worst, the
+    runtime's default interpolation and PODI there."""
     solves = solved_positions(model, work)
     response = "anm" if model.anm else "curves"  # the runtime's default force
     solve, step = worst_podi_step(model, solves, response)
@@ -286,7 +322,7 @@ class Section:
     tool: np.ndarray  # (2,) mm, the tool in plan view
     direction: np.ndarray  # (2,) the line's unit direction in plan view
     distance: np.ndarray  # (N,) mm along the line from the tool
-    inward: dict[str, np.ndarray]  # FIELDS -> (N,) mm, NaN off the facing sheet
+    inward: dict[str, np.ndarray]  # the comparison's panels -> (N,) mm, NaN off the sheet
     sample: int  # the training sample the line runs towards
     sample_distance: float  # mm from the tool in plan view
 
@@ -321,7 +357,8 @@ def cross_section(model: ReducedModel, view: PlanView, comparison: FieldComparis
 
 # -- the figure --------------------------------------------------------------------------------
 def field_figure(model: ReducedModel, comparison: FieldComparison) -> Png:
-    """Three plan views of |u| on one colour scale above the cross-section through the tool."""
+    """Plan views of |u| (full order, the runtime's default, PODI) on one colour scale above
+    the cross-section through the tool."""
     from matplotlib import colormaps
     from matplotlib.colors import Normalize
 
@@ -332,13 +369,14 @@ def field_figure(model: ReducedModel, comparison: FieldComparison) -> Png:
     top = max(float(m[shown].max()) for m in magnitudes.values())
     norm, cmap = Normalize(0.0, top or 1.0), colormaps["viridis"]
     fig = new_figure(13, 8.6)
-    grid = fig.add_gridspec(2, 3, height_ratios=[1.3, 1])
-    panels = [fig.add_subplot(grid[0, j]) for j in range(3)]
-    for ax, name in zip(panels, FIELDS, strict=True):
+    names = comparison.panels
+    grid = fig.add_gridspec(2, len(names), height_ratios=[1.3, 1])
+    axes = [fig.add_subplot(grid[0, j]) for j in range(len(names))]
+    for ax, name in zip(axes, names, strict=True):
         _plan_panel(ax, model, view, magnitudes[name], norm, cmap, section)
         error = "" if name == "full order" else f" (error {100 * comparison.error(name):.1f} %)"
         ax.set_title(("" if name == "full order" else "runtime ") + name + error, fontsize=10)
-    fig.colorbar(panels[0].collections[0], ax=panels, shrink=0.85, label="|u| (mm)")
+    fig.colorbar(axes[0].collections[0], ax=axes, shrink=0.85, label="|u| (mm)")
     _section_panel(fig.add_subplot(grid[1, :]), section, comparison)
     fig.suptitle(
         f"Held-out position {comparison.index}, indentation {comparison.depth:.3g} mm "
@@ -346,9 +384,11 @@ def field_figure(model: ReducedModel, comparison: FieldComparison) -> Png:
         "full order",
         fontsize=11,
     )
+    words = [name if name != "podi" else "PODI" for name in names]
     alt = (
-        "surface displacement at a held-out position: full order, transport and PODI in plan "
-        "view, and a cross-section through the tool"
+        "surface displacement at a held-out position: "
+        + (" and ".join(words) if len(words) < 3 else f"{words[0]}, {words[1]} and {words[2]}")
+        + " in plan view, and a cross-section through the tool"
     )
     return render(fig, PNG_NAME, alt)
 
@@ -374,14 +414,9 @@ def _plan_panel(ax, model, view: PlanView, magnitude, norm, cmap, section: Secti
 
 
 def _section_panel(ax, section: Section, comparison: FieldComparison) -> None:
-    """The inward displacement of the three fields along the line through the tool."""
-    styles = {
-        "full order": ("k", "-", 2.4),
-        "transport": ("C0", "-", 1.6),
-        "podi": ("C1", "--", 1.6),
-    }
-    for name in FIELDS:
-        colour, line, width = styles[name]
+    """The inward displacement of the fields compared along the line through the tool."""
+    for name in comparison.panels:
+        colour, line, width = STYLES[name]
         label = name if name == "full order" else f"runtime {name}"
         ax.plot(section.distance, section.inward[name], line, color=colour, lw=width, label=label)
     ax.axvline(0.0, color="C3", lw=1, label="tool (+)")
@@ -407,16 +442,18 @@ def caption(model: ReducedModel, comparison: FieldComparison) -> str:
     section = cross_section(model, plan_view_of(model), comparison)
     x, y, z = comparison.point
     clamped = " (outside the trained region: the runtime clamps the contact there)"
+    names = comparison.runtime_fields
+    label = {name: "PODI" if name == "podi" else name for name in names}
+    surface = ", ".join(f"{label[n]} {100 * comparison.error(n):.2f} %" for n in names)
+    along = ", ".join(f"{label[n]} {100 * section.error(n):.2f} %" for n in names)
     return (
         f"Held-out position {comparison.index} at ({x:.3g}, {y:.3g}, {z:.3g}) mm, step "
         f"{comparison.step + 1} of {comparison.steps}, indentation {comparison.depth:.3g} mm "
         f"(trained to {model.trained_depth:.3g} mm){clamped if comparison.outside else ''}: "
         "of the steps within the trained depth, the one where PODI's surface field is "
         "farthest from the full order. Relative L2 error of the field over all surface "
-        f"vertices: transport {100 * comparison.error('transport'):.2f} %, PODI "
-        f"{100 * comparison.error('podi'):.2f} %; of the displacement into the organ along "
-        f"the cross-section: transport {100 * section.error('transport'):.2f} %, PODI "
-        f"{100 * section.error('podi'):.2f} %. The plan views show |u| of the sheet facing "
+        f"vertices: {surface}; of the displacement into the organ along the cross-section: "
+        f"{along}. The plan views show |u| of the sheet facing "
         f"the viewer within {WINDOW * section.distance[-1]:.3g} mm of the tool; the errors "
         "count every component of every vertex."
     )

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from hapticrom.online.model import ReducedModel
+from hapticrom.online.simulator import default_interpolation
 from hapticrom.report.content import (
     RESPONSE_LABELS,
     dataset_rows,
@@ -19,7 +20,7 @@ from hapticrom.report.content import (
     sanity_rows,
     summary_rows,
 )
-from hapticrom.report.field_comparison import HELD_OUT_COMMAND
+from hapticrom.report.field_comparison import DESCRIPTIONS, HELD_OUT_COMMAND
 from hapticrom.report.figures import Png
 from hapticrom.report.heldout import (
     ACCURACY_COMMAND,
@@ -258,16 +259,26 @@ def _field_section(caption: str | None, source: Path | None, png, model) -> str:
                 "<code>hapticrom report MODEL.h5 --out DIR --held-out MODEL.heldout-8</code>."
             ),
         )
+    runtime = default_interpolation(model)  # the figure's runtime panel (field_comparison)
+    if runtime == "podi":
+        shown = (
+            "the runtime's interpolation of the surface field, <i>podi</i> "
+            f"({DESCRIPTIONS['podi']}, the default: the model has neither a surface "
+            "chart nor contact fields)"
+        )
+    else:
+        shown = (
+            f"the runtime's two interpolations of the surface field, <i>{_esc(runtime)}</i> "
+            f"({DESCRIPTIONS[runtime]}, the default) and <i>podi</i> "
+            f"({DESCRIPTIONS['podi']})"
+        )
     return _section(
         FIELD,
         _paragraph(
             f"From the full-order solves in <code>{_esc(source)}</code>. Top: |u| in plan "
             "view (along the samples' mean normal; white dots: the training samples; red +: "
-            "the tool; dashed: the cross-section), the full order and the runtime's two "
-            "interpolations of the surface field, <i>transport</i> (each neighbouring "
-            "sample's field carried to the contact, the default) and <i>podi</i> (blended "
-            "where each was trained). Bottom: the displacement into the organ along the "
-            "dashed line."
+            f"the tool; dashed: the cross-section), the full order and {shown}. Bottom: the "
+            "displacement into the organ along the dashed line."
         ),
         _image(png),
         _paragraph(_esc(caption)),

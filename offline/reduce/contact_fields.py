@@ -1,0 +1,104 @@
+"""The tool's linear surface field at every loadable vertex: what the runtime's "compliance"
+surface puts the dent under the tool with (artifact group ``contact_fields``, format 2.2).
+
+Why: between samples PODI blends the three neighbours' fields, each a dent where that
+neighbour was trained, so an untrained contact draws three shallow dents around the tool.
+The linear response to the tool's own load, K0 u = g(x), is a dent exactly under the tool at
+any x, and one back-substitution per point once K0 is factorised. The runtime renders
+
+    u(x, d) = sum_j w_j A_j c_j(d) + d (phi(x) - sum_j w_j phi_j)
+
+the PODI blend plus the linear dent at the contact minus the blend of the linear dents at the
+neighbours: the linear part comes from the solve at x, only the nonlinear remainder is
+blended. phi is per unit depth (the campaign's depth measure, the tool's weighted mean
+displacement), so at a sample the correction vanishes and the trained field is drawn.
+Measured with the campaigns' own held-out solves (prototype, README "The rendered
+surface"): the liver's surface field 38 % -> 0.8 %, the cornea's 14 % -> 3 %.
+
+phi(x) is linear between the vertices of the surface triangle under the contact (their
+fields are a few per cent of the dent's width apart). The fields are stored whole, V x 3
+floats a loadable vertex, so a model whose fields pass ``MAX_BYTES`` gets none (the cornea
+demo: 2,161 vertices x 4,514, 117 MB; it keeps the transported field).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from hapticrom.offline.reduce.tool_stiffness import (
+    LOADABLE,
+    ToolLoads,
+    free_dofs,
+    linear_responses,
+)
+from hapticrom.shared.geometry import vertex_normals
+
+MAX_BYTES = 32_000_000  # float32 fields beyond this are not written (see module)
+SAME_POINT = 1e-9  # mm: a sample this close to a loadable vertex is that vertex
+
+
+@dataclass(frozen=True)
+class ContactFields:
+    """The ``contact_fields`` group: per row, a surface vertex and its field per unit depth."""
+
+    vertices: np.ndarray  # (R,) int64 surface vertex of each row
+    fields: np.ndarray  # (R, 3V) float32, mm per mm of depth, surface DOF order
+    sample_rows: np.ndarray  # (P,) int64 the row of each sample
+
+
+def field_points(surface, sample_points, sample_normals, direction) -> tuple:
+    """(rows' vertices (R,), pushes (R, 3), sample_rows (P,)): every vertex of a loadable
+    triangle, pushed as the campaign pushes (minus the outward vertex normal, or the campaign's
+    fixed ``direction``); a sample's vertex pushed exactly as that sample was, so that the
+    runtime's correction vanishes there. ValueError if a sample is at no loadable vertex."""
+    loadable = surface.triangles[surface.groups == LOADABLE]
+    vertices = np.unique(loadable).astype(np.int64)
+    if direction == "normal":
+        pushes = -vertex_normals(surface.vertices, loadable)[vertices]
+    else:
+        fixed = np.asarray(direction, dtype=float)
+        pushes = np.tile(fixed / np.linalg.norm(fixed), (len(vertices), 1))
+    sample_rows = np.empty(len(sample_points), dtype=np.int64)
+    for i, (p, n) in enumerate(zip(sample_points, sample_normals, strict=True)):
+        gap = np.linalg.norm(surface.vertices[vertices] - p, axis=1)
+        row = int(np.argmin(gap))
+        if gap[row] > SAME_POINT:
+            raise ValueError(f"sample {i} at {np.round(p, 4).tolist()} mm is at no loadable vertex")
+        sample_rows[i] = row
+        pushes[row] = -n  # a sample's normal is minus its push, in either mode
+    return vertices, pushes, sample_rows
+
+
+def contact_fields(config, store, surface, sample_points, sample_normals,
+                   say=print) -> ContactFields | None:  # fmt: skip
+    """The linear field of the tool centred at every loadable vertex (rank 0; K0 from the
+    campaign's store), or None where they would pass MAX_BYTES."""
+    from hapticrom.offline.campaign.store import csr_from
+
+    vertices, pushes, sample_rows = field_points(surface, sample_points, sample_normals,
+                                                 config.load.direction)  # fmt: skip
+    size = 4 * len(vertices) * surface.dofs.size
+    if size > MAX_BYTES:
+        say(f"no contact fields: {len(vertices)} loadable vertices would take "
+            f"{size / 1e6:.0f} MB (at most {MAX_BYTES / 1e6:.0f})")  # fmt: skip
+        return None
+    t0 = time.perf_counter()
+    data, _ = store.read_operators()
+    K0 = csr_from(data, "K0")
+    free = free_dofs(K0.shape[0], data["supported_nodes"])
+    rows = np.searchsorted(free, surface.dofs)  # a surface DOF's row among the free ones
+    held = free[np.minimum(rows, len(free) - 1)] != surface.dofs  # a support's: stays 0
+    fields = np.zeros((len(vertices), surface.dofs.size), dtype=np.float32)
+    points = surface.vertices[vertices]
+    for chunk, G, X, W in linear_responses(K0, data["supported_nodes"], ToolLoads(config),
+                                           points, pushes):  # fmt: skip
+        depth = np.einsum("ij,ij->j", G, X) / W  # the campaign's measure: g^T u / W
+        surface_rows = X[np.minimum(rows, len(free) - 1)] / depth
+        surface_rows[held] = 0.0
+        fields[chunk.start : chunk.stop] = surface_rows.T
+    say(f"the tool's linear field at {len(vertices)} loadable vertices "
+        f"({fields.nbytes / 1e6:.1f} MB) in {time.perf_counter() - t0:.1f} s")  # fmt: skip
+    return ContactFields(vertices, fields, sample_rows)

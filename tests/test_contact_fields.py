@@ -1,0 +1,186 @@
+"""The tool's linear surface field at every loadable vertex (artifact 2.2), and the
+"compliance" surface that renders with it: u = PODI + d (phi(x) - sum_j w_j phi_j).
+
+Checked here: the fields against an independent solve of the tool's load (scipy's LU, not
+MUMPS), the runtime's correction against the numpy reference (another nearest-triangle
+search), the trained field reproduced at a sample, continuity as the contact slides, and
+the field at held-out positions against the full order (closer than PODI's blend).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import scipy.sparse.linalg
+
+import hapticrom.offline  # noqa: F401 - h5py and MPI first
+from hapticrom.offline.campaign.store import csr_from
+from hapticrom.offline.reduce.contact_fields import MAX_BYTES, field_points
+from hapticrom.offline.reduce.inputs import surface_mesh
+from hapticrom.offline.reduce.tool_stiffness import ToolLoads, free_dofs
+from hapticrom.online import load
+from hapticrom.online.reference import linear_dent, nearest_on_triangles
+from hapticrom.online.simulator import Simulator
+from hapticrom.shared.errors import InputError
+
+pytestmark = pytest.mark.serial
+RNG = np.random.default_rng(3)
+
+
+@pytest.fixture(scope="module")
+def model(force_artifact):
+    return load(force_artifact)
+
+
+def _surface_field(sim, out=None):
+    out = np.zeros_like(sim.model.vertices) if out is None else out
+    return sim.surface_displacement(out).copy()
+
+
+def _contacts(model, count):
+    """Random points of the trained region, on the loadable surface (a sample triangle's
+    blend of its corners, pushed back onto the surface by the nearest triangle)."""
+    f = model.contact_fields
+    for _ in range(count):
+        t = model.sample_triangles[RNG.integers(len(model.sample_triangles))]
+        x = RNG.dirichlet(np.ones(3)) @ model.sample_points[t]
+        k, beta = nearest_on_triangles(x, model.vertices, f["triangles"])
+        yield beta @ model.vertices[f["triangles"][k]]
+
+
+# -- the fields --------------------------------------------------------------------------------
+def test_the_fields_are_the_tools_linear_response_per_unit_depth(model, force_campaign):
+    """Rows at random vertices and at every sample against K0^-1 g by scipy's LU, g the tool's
+    load there (ToolLoads) and the depth its weighted mean g^T u / W."""
+    config, store, _ = force_campaign
+    data, _ = store.read_operators()
+    K0 = csr_from(data, "K0")
+    free = free_dofs(K0.shape[0], data["supported_nodes"])
+    factor = scipy.sparse.linalg.splu(K0[free][:, free].tocsc())
+    surface = surface_mesh(config.problem.mesh.file, data["node_coordinates"])
+    vertices, pushes, sample_rows = field_points(surface, model.sample_points,
+                                                 model.sample_normals, "normal")  # fmt: skip
+    a = model.artifact["contact_fields"]
+    assert np.array_equal(a["vertices"], vertices)
+    assert np.array_equal(a["sample_rows"], sample_rows)
+    loads = ToolLoads(config)
+    rows = list(RNG.choice(len(vertices), size=6, replace=False)) + list(sample_rows)
+    for r in rows:
+        g, W = loads.at(surface.vertices[vertices[r]], pushes[r])
+        u = np.zeros(K0.shape[0])
+        u[free] = factor.solve(g[free])
+        expected = u[surface.dofs] / (g @ u / W)
+        got = model.contact_fields["fields"][r]
+        assert np.max(np.abs(got - expected)) <= 1e-6 * np.max(np.abs(expected)), r
+    for r in sample_rows:  # the dent is under the tool: the sample's vertex moves in about d
+        moved = model.contact_fields["fields"][r].reshape(-1, 3)[vertices[r]] @ pushes[r]
+        assert 0.5 < moved < 2.0, (r, moved)
+
+
+def test_a_surface_too_large_gets_no_fields(force_campaign, monkeypatch):
+    from hapticrom.offline.reduce import contact_fields as module
+
+    config, store, _ = force_campaign
+    data, _ = store.read_operators()
+    surface = surface_mesh(config.problem.mesh.file, data["node_coordinates"])
+    points = surface.vertices[np.unique(surface.triangles[surface.groups == 1])[:1]]
+    monkeypatch.setattr(module, "MAX_BYTES", 100)
+    said = []
+    assert module.contact_fields(config, store, surface, points, np.zeros_like(points),
+                                 say=said.append) is None  # fmt: skip
+    assert "no contact fields" in said[0] and MAX_BYTES > 100
+
+
+def test_a_sample_at_no_loadable_vertex_is_refused(force_campaign):
+    config, store, _ = force_campaign
+    data, _ = store.read_operators()
+    surface = surface_mesh(config.problem.mesh.file, data["node_coordinates"])
+    with pytest.raises(ValueError, match="sample 0 .* at no loadable vertex"):
+        field_points(surface, np.array([[0.01, 0.02, 0.0]]) + surface.vertices[0],
+                     np.array([[0, 0, 1.0]]), "normal")  # fmt: skip
+
+
+# -- the runtime -------------------------------------------------------------------------------
+@pytest.mark.parametrize("response", ["anm", "curves"])
+def test_the_correction_equals_the_numpy_reference(model, response):
+    """compliance - podi at random contacts and depths against linear_dent (numpy's nearest
+    triangle, the reference's weights)."""
+    from hapticrom.online.reference import barycentric
+
+    compliance = Simulator(model, "compliance", response=response)
+    podi = Simulator(model, "podi", response=response)
+    for point in _contacts(model, 12):
+        samples, weights, _ = barycentric(model, point)
+        for sim in (compliance, podi):
+            sim.set_contact(point)
+        for depth in RNG.uniform(0.0, model.trained_depth, size=2):
+            for sim in (compliance, podi):
+                sim.step_displacement(-depth * sim.contact_normal)
+            got = _surface_field(compliance) - _surface_field(podi)
+            expected = linear_dent(model, point, samples, weights, compliance.depth)
+            assert np.max(np.abs(got - expected)) <= 1e-9 + 1e-6 * np.max(np.abs(expected))
+
+
+def test_at_a_sample_the_trained_field_is_drawn(model):
+    compliance, podi = Simulator(model, "compliance"), Simulator(model, "podi")
+    for i, point in enumerate(model.sample_points):
+        for sim in (compliance, podi):
+            sim.set_contact(point)
+            sim.step_displacement(-model.trained_depth * model.sample_normals[i])
+        got, expected = _surface_field(compliance), _surface_field(podi)
+        assert np.max(np.abs(got - expected)) <= 1e-6 * np.max(np.abs(expected)), i
+
+
+def test_the_field_is_continuous_as_the_contact_slides(model):
+    """Along a line across the samples' triangles at a fixed depth, the field moves by steps
+    of the order of the spacing: no jump where the contact changes triangle."""
+    sim = Simulator(model, "compliance", response="curves")
+    depth = 0.5 * model.trained_depth
+    top = model.sample_points[:, 2].max()
+    start, end = np.array([-1.2, -0.1, top]), np.array([1.2, 0.2, top])
+    fields = []
+    for s in np.linspace(0.0, 1.0, 400):
+        sim.set_contact(start + s * (end - start))
+        sim.step_displacement(-depth * sim.contact_normal)
+        fields.append(_surface_field(sim))
+    steps = np.array([np.linalg.norm(b - a) for a, b in zip(fields, fields[1:], strict=False)])
+    assert steps.max() <= 5 * np.median(steps) + 1e-9 * np.linalg.norm(fields[0])
+
+
+def test_held_out_fields_are_closer_to_the_full_order(model, force_campaign):
+    """At positions no sample was trained on: the surface field's relative L2 error, and the
+    dent under the tool, against PODI's blend."""
+    _, _, held_out = force_campaign
+    nodes = model.artifact["surface"]["nodes"]
+    errors = {"compliance": [], "podi": []}
+    for i in held_out.completed():
+        data, attrs = held_out.read_position(i)
+        point, push = np.asarray(attrs["point"]), np.asarray(attrs["direction"])
+        for name in errors:
+            sim = Simulator(model, name, response="curves")
+            sim.set_contact(point)
+            for u, c in zip(data["displacement"], data["contact_displacement"], strict=True):
+                depth = float(c @ push)
+                if depth > model.trained_depth:
+                    continue
+                sim.step_displacement(-depth * sim.contact_normal)
+                exact = u.reshape(-1, 3)[nodes]
+                got = _surface_field(sim)
+                errors[name].append(np.linalg.norm(got - exact) / np.linalg.norm(exact))
+    compliance, podi = np.array(errors["compliance"]), np.array(errors["podi"])
+    assert len(compliance) >= 4
+    # measured on this coarse cornea: 1.2-3.8 % against PODI's 40-47 %
+    assert compliance.max() < 0.05 and np.all(compliance < 0.2 * podi), errors
+
+
+# -- the simulator's choice --------------------------------------------------------------------
+def test_the_default_and_refusals(model):
+    no_fields = dataclasses.replace(model, contact_fields=None)
+    with pytest.raises(InputError, match="no contact fields"):
+        Simulator(no_fields, "compliance")
+    no_chart = dataclasses.replace(model)
+    no_chart.chart = None
+    assert Simulator(no_chart).interpolation == "compliance"
+    assert Simulator(dataclasses.replace(no_fields)).interpolation in ("transport", "podi")
