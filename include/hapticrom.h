@@ -113,7 +113,9 @@ enum hapticrom_interpolation {
     HAPTICROM_INTERPOLATION_TRANSPORT = 1, /* each neighbour's field carried to the contact */
     HAPTICROM_INTERPOLATION_PODI = 2,      /* the fields blended where each was trained */
     HAPTICROM_INTERPOLATION_COMPLIANCE = 3 /* the tool's linear dent at the contact added
-                                              (artifact 2.2 contact fields; any organ) */
+                                              (artifact 2.2 contact fields; any organ). New
+                                              in hapticrom 0.1 at ABI 3: a host built before
+                                              it can see this value in info.interpolation */
 };
 
 /* hapticrom_options.response: where the force comes from. */

@@ -364,8 +364,6 @@ def sweep(model: ReducedModel) -> None:
         combos.append(("grassmann", "curves"))
     if model.anm:
         combos += [(field, "anm") for field in fields]
-    if model.contact_fields is not None:
-        _bound_contact_fields(model)
     surface = np.empty_like(model.vertices)
     for interpolation, response in combos:
         sim = model.simulator(interpolation, response)
@@ -379,37 +377,6 @@ def sweep(model: ReducedModel) -> None:
                         sim.max_displacement)  # fmt: skip
                 d = sim.step_force(-scale * model.trained_force * n)
                 _within(model, response, "displacement", d, sim.max_displacement)
-
-
-# The simulator's displacement limit is 10x the trained depth, and the sweep goes to 1.5x it:
-# the correction d (phi(x) - sum_j w_j phi_j) stays within it where a row read in the trained
-# region plus a sample's row stay within 10 / 1.5 per unit depth (honest: 3.5 on the liver).
-MAX_FIELD_SUM = 10.0 / 1.5
-
-
-def _bound_contact_fields(model: ReducedModel) -> None:
-    """ArtifactError unless the rows a contact in the trained region can read (those of the
-    loadable triangles within two rings of a vertex inside it) and the samples' rows keep
-    the correction within the simulator's limit: the sweep's points read few of the rows (the
-    red team's 999 at one row loaded, and drew 362 mm against a 3.9 mm limit)."""
-    f = model.contact_fields
-    triangles, rows = f["triangles"], f["triangle_rows"]
-    loadable = np.unique(triangles)
-    inside = inside_trained_region(model.sample_points, model.sample_normals,
-                                   model.sample_triangles, model.vertices[loadable])  # fmt: skip
-    near = np.zeros(len(model.vertices), dtype=bool)
-    near[loadable[inside]] = True
-    for _ in range(2):  # two rings of triangles around them
-        near[triangles[np.any(near[triangles], axis=1)]] = True
-    read = np.unique(rows[np.any(near[triangles], axis=1)])
-    largest = np.abs(f["fields"]).max(axis=1)
-    total = float(largest[read].max(initial=0.0) + largest[f["sample_rows"]].max(initial=0.0))
-    if not total <= MAX_FIELD_SUM:
-        raise ArtifactError(
-            f"{model.path}: contact_fields/fields: a row read in the trained region plus a "
-            f"sample's reach {total:.4g} per unit depth (at most {MAX_FIELD_SUM:.4g}: the "
-            "rendered dent would pass the simulator's limit, 10x the trained depth)"
-        )
 
 
 def _within(model: ReducedModel, response: str, what: str, value: np.ndarray, limit: float):

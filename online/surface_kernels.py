@@ -28,6 +28,7 @@ from hapticrom.online.kernels import (
     NORMAL,
     SAMPLES,
     STEP,
+    TRIANGLE,
     WEIGHTS,
     anm_layout,
     anm_section,
@@ -311,7 +312,7 @@ def locate_on_surface(buf, sample_points, sample_normals, vertices, triangles, g
                       out_weights):  # fmt: skip
     """The loadable triangle nearest the contact (its index; its barycentric weights into
     ``out_weights`` (3)). The contact p = sum_j w_j (x_j + h n_j) is rebuilt from the state
-    (``kernels.locate``'s map; the border clamp's point outside the trained region).
+    (``kernels.locate``'s map; outside the trained region the border clamp's point, h = 0).
 
     The triangles are listed by the cells of a uniform grid their boxes meet (``grid``:
     origin (3), cell size, dims (3); ``starts``/``ids``: ``proxy.triangle_grid``'s lists):
@@ -319,7 +320,10 @@ def locate_on_surface(buf, sample_points, sample_normals, vertices, triangles, g
     than the searched block's nearest face (any nearer point lies in the block). The
     liver's 1,079 triangles searched one by one took 37 us a contact."""
     p0 = p1 = p2 = 0.0
-    h = buf[HEIGHT]
+    # Clamped (TRIANGLE -1): HEIGHT is the distance to the border, not a height; the contact
+    # is then the clamp point on the border, where the force is taken (review: the point
+    # pushed out by that distance put the dent up to 16 mm off).
+    h = buf[HEIGHT] if buf[TRIANGLE] >= 0.0 else 0.0
     for j in range(3):
         w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
         p0 += w * (sample_points[i, 0] + h * sample_normals[i, 0])

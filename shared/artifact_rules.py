@@ -342,6 +342,18 @@ def _tool_stiffness(artifact) -> None:
 
 
 MAX_FIELD_PER_DEPTH = 1e3  # mm/mm: see _contact_fields
+# The simulator's displacement limit is 10x the trained depth, and the load's sweep goes to
+# 1.5x it: the correction d (phi(x) - sum_j w_j phi_j) stays within that limit where any
+# row's largest value plus the largest of a sample's row is at most 10 / 1.5 per unit depth
+# (honest: 3.3 on the liver, 5.4 on the coarse test cornea's rim).
+MAX_FIELD_SUM = 10.0 / 1.5
+
+
+def contact_field_reach(fields: np.ndarray, sample_rows: np.ndarray) -> float:
+    """The largest |value| of any row plus that of any sample's row (per unit depth): what
+    bounds the rendered correction (MAX_FIELD_SUM)."""
+    largest = np.abs(fields).max(axis=1)
+    return float(largest.max(initial=0.0) + largest[sample_rows].max(initial=0.0))
 
 
 def _contact_fields(artifact) -> None:
@@ -350,7 +362,9 @@ def _contact_fields(artifact) -> None:
     sample's row at the sample's point, the only loadable vertex there (the correction then
     vanishes at a sample; a second vertex there was the red team's 1.1 mm off); values
     within +-MAX_FIELD_PER_DEPTH (a vertex moving 1,000 times the depth is no tissue's
-    linear response, and 1e300 would overflow the rendered field)."""
+    linear response, and 1e300 would overflow the rendered field); and any row's largest
+    value plus a sample row's at most MAX_FIELD_SUM (a row the load's sweep never reads at
+    999 loaded, and drew 362 mm against the simulator's 3.9 mm limit: red team)."""
     if "contact_fields" not in artifact.groups:
         return
     c, s = artifact["contact_fields"], artifact["surface"]
@@ -368,6 +382,12 @@ def _contact_fields(artifact) -> None:
                                   "loadable vertex")  # fmt: skip
     if np.any(np.abs(c["fields"]) > MAX_FIELD_PER_DEPTH):
         raise _fail(artifact, f"contact_fields/fields has values beyond +-{MAX_FIELD_PER_DEPTH:g}")
+    reach = contact_field_reach(c["fields"], c["sample_rows"])
+    if not reach <= MAX_FIELD_SUM:
+        raise _fail(artifact, f"contact_fields/fields: a row's largest value plus a sample's "
+                              f"reach {reach:.4g} per unit depth (at most {MAX_FIELD_SUM:.4g}: "
+                              "the rendered dent could pass the simulator's limit, 10x the "
+                              "trained depth)")  # fmt: skip
 
 
 def _surface(artifact) -> None:

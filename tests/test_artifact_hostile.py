@@ -753,12 +753,12 @@ def _a_vertex_that_is_not_loadable(artifact_path) -> int:
 
 
 def test_contact_field_rows_that_are_not_the_loadable_vertices_are_refused(
-    small_artifact, tmp_path
+    force_artifact, tmp_path
 ):
     """A row moved to a vertex of no loadable triangle: the runtime reads the rows of the
     loadable triangle under the contact, so one of those would be missing."""
-    other = _a_vertex_that_is_not_loadable(small_artifact)
-    path = copy(small_artifact, tmp_path)
+    other = _a_vertex_that_is_not_loadable(force_artifact)
+    path = copy(force_artifact, tmp_path)
 
     def move(v):
         v[len(v) // 2] = other
@@ -768,10 +768,10 @@ def test_contact_field_rows_that_are_not_the_loadable_vertices_are_refused(
     refused(path, f"{FIELDS}/vertices are not the loadable triangles' vertices")
 
 
-def test_contact_field_sample_rows_at_other_vertices_are_refused(small_artifact, tmp_path):
+def test_contact_field_sample_rows_at_other_vertices_are_refused(force_artifact, tmp_path):
     """Two samples' rows swapped (still distinct, in range): the correction would no longer
     vanish at a sample, and the trained field would not be drawn there."""
-    path = copy(small_artifact, tmp_path)
+    path = copy(force_artifact, tmp_path)
 
     def swap(rows):
         rows[[0, 1]] = rows[[1, 0]]
@@ -783,9 +783,9 @@ def test_contact_field_sample_rows_at_other_vertices_are_refused(small_artifact,
 
 @pytest.mark.parametrize("value", [1e30, -2e3, 1e3 * (1 + 1e-6)])
 def test_contact_fields_beyond_a_thousand_per_unit_depth_are_refused(
-    small_artifact, tmp_path, value
+    force_artifact, tmp_path, value
 ):
-    path = copy(small_artifact, tmp_path)
+    path = copy(force_artifact, tmp_path)
 
     def put(f):
         f[-1, f.shape[1] // 3] = value
@@ -795,13 +795,13 @@ def test_contact_fields_beyond_a_thousand_per_unit_depth_are_refused(
     refused(path, f"{FIELDS}/fields has values beyond")
 
 
-def test_without_contact_fields_a_2_1_file_loads_with_its_old_default(small_artifact, tmp_path):
+def test_without_contact_fields_a_2_1_file_loads_with_its_old_default(force_artifact, tmp_path):
     """The group removed (the version set back to 2.1): the file loads, asks for no
     compliance surface, and draws what it drew before."""
     from hapticrom.online.simulator import Simulator
     from hapticrom.shared.errors import InputError
 
-    path = copy(small_artifact, tmp_path)
+    path = copy(force_artifact, tmp_path)
 
     def strip(f):
         del f[FIELDS]
@@ -948,3 +948,32 @@ def test_a_contact_field_sample_row_at_a_second_vertex_is_refused_or_draws_the_t
         fields.append(sim.surface_displacement(np.zeros_like(model.vertices)).copy())
     got, expected = fields
     assert np.max(np.abs(got - expected)) <= 1e-6 * np.max(np.abs(expected))
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])
+def test_contact_fields_that_are_not_finite_are_refused(force_artifact, tmp_path, value):
+    """The generic finite test runs on small_artifact, which has no contact fields."""
+    path = copy(force_artifact, tmp_path)
+
+    def put(f):
+        f[len(f) // 2, 7] = value
+        return f
+
+    rewrite(path, f"{FIELDS}/fields", put)
+    refused(path, f"{FIELDS}/fields has NaN or infinite values")
+
+
+@pytest.mark.parametrize("name, symbol", [("vertices", "V"), ("sample_rows", "Lv")])
+@pytest.mark.parametrize("bad", ["negative", "size"])
+def test_contact_field_indices_out_of_range_are_refused(force_artifact, tmp_path, name, symbol,
+                                                         bad):  # fmt: skip
+    a = read_artifact(force_artifact)
+    size = len(a["surface"]["vertices"]) if symbol == "V" else len(a[FIELDS]["vertices"])
+    path = copy(force_artifact, tmp_path)
+
+    def put(v):
+        v[-1] = -1 if bad == "negative" else size
+        return v
+
+    rewrite(path, f"{FIELDS}/{name}", put)
+    refused(path, rf"{FIELDS}/{name} has indices outside \[0, {size}\)")

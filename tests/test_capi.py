@@ -259,12 +259,18 @@ def combinations(model) -> list[tuple[str, str]]:
 CODES = {"transport": 1, "podi": 2, "compliance": 3, "anm": 1, "curves": 2}
 
 
-def test_every_call_gives_the_python_runtimes_numbers(lib, model, small_artifact):
+@pytest.mark.parametrize("artifact", ["small_artifact", "force_artifact"])
+def test_every_call_gives_the_python_runtimes_numbers(lib, request, artifact):
     """set_contact, both steps, stiffness, error estimate, state and surface, for every
-    interpolation and response the model has, along a path: the Python simulator's values."""
+    interpolation and response the model has, along a path: the Python simulator's values
+    (the force-controlled model has the compliance surface too)."""
+    path = request.getfixturevalue(artifact)
+    model = online.load(path)
     points, depths = path_of(model)
-    for interpolation, response in combinations(model):
-        sim = load(lib, small_artifact, interpolation=CODES[interpolation],
+    names = combinations(model)
+    assert ("compliance", "curves") in names or artifact == "small_artifact"
+    for interpolation, response in names:
+        sim = load(lib, path, interpolation=CODES[interpolation],
                    response=CODES[response])  # fmt: skip
         py = model.simulator(interpolation, response)
         i = info(lib, sim)

@@ -184,3 +184,36 @@ def test_the_default_and_refusals(model):
     no_chart.chart = None
     assert Simulator(no_chart).interpolation == "compliance"
     assert Simulator(dataclasses.replace(no_fields)).interpolation in ("transport", "podi")
+
+
+def test_a_clamped_contact_gets_the_dent_at_its_clamp_point(model):
+    """Outside the trained region the force is taken at the border's clamp point; the dent is
+    drawn there too (the height slot then holds a distance, not a height: review)."""
+    from hapticrom.online.model import inside_trained_region
+    from hapticrom.online.reference import barycentric
+
+    f = model.contact_fields
+    vertices = np.unique(f["triangles"])
+    points = model.vertices[vertices]
+    outside = points[~inside_trained_region(model.sample_points, model.sample_normals,
+                                            model.sample_triangles, points)]  # fmt: skip
+    assert len(outside) >= 5
+    compliance = Simulator(model, "compliance", response="curves")
+    podi = Simulator(model, "podi", response="curves")
+    for point in outside[RNG.choice(len(outside), size=5, replace=False)]:
+        samples, weights, clamped = barycentric(model, point)
+        assert clamped
+        for sim in (compliance, podi):
+            sim.set_contact(point)
+            sim.step_displacement(-model.trained_depth * sim.contact_normal)
+        assert compliance.outside_trained_region
+        got = _surface_field(compliance) - _surface_field(podi)
+        clamp = weights @ model.sample_points[samples]
+        expected = linear_dent(model, clamp, samples, weights, compliance.depth)
+        assert np.max(np.abs(got - expected)) <= 1e-9 + 1e-6 * np.max(np.abs(expected))
+
+
+def test_only_force_controlled_campaigns_get_fields(small_artifact):
+    """A displacement-controlled campaign's depth is its rigid patch's, not the tool load's
+    weighted mean that phi is per: no fields, and no compliance surface."""
+    assert load(small_artifact).contact_fields is None

@@ -102,11 +102,14 @@ def test_writes_a_readable_figure_and_its_caption(small_artifact, work, tmp_path
     assert all(np.isfinite(float(value)) for _, value in errors)
 
 
-def test_a_model_without_a_chart_shows_its_compliance_field(model, work, comparison):
+def test_a_model_without_a_chart_shows_its_compliance_field(force_artifact, force_campaign):
     """No chart but contact fields: the runtime panel is "compliance" (the runtime's default
     then), in the fields, the caption, the figure's alt text and the page; at a training
     position its correction vanishes (the sample's own field less its blend, itself), so it
-    reproduces the full order as PODI does. Neither chart nor fields: PODI alone."""
+    reproduces the full order as PODI does. Neither chart nor fields: PODI alone. (The
+    force-controlled campaign: only those get contact fields.)"""
+    model, work = load(force_artifact), force_campaign[1].root
+    comparison = held_out_comparison(model, work)
     assert model.contact_fields is not None
     no_chart = dataclasses.replace(model)
     no_chart.chart = None

@@ -34,6 +34,7 @@ from hapticrom.offline.reduce.tool_stiffness import (
     free_dofs,
     linear_responses,
 )
+from hapticrom.shared.artifact_rules import MAX_FIELD_SUM, contact_field_reach
 from hapticrom.shared.geometry import vertex_normals
 
 MAX_BYTES = 32_000_000  # float32 fields beyond this are not written (see module)
@@ -75,9 +76,15 @@ def field_points(surface, sample_points, sample_normals, direction) -> tuple:
 def contact_fields(config, store, surface, sample_points, sample_normals,
                    say=print) -> ContactFields | None:  # fmt: skip
     """The linear field of the tool centred at every loadable vertex (rank 0; K0 from the
-    campaign's store), or None where they would pass MAX_BYTES."""
+    campaign's store), or None: for a campaign that is not force-controlled (its depth is
+    the rigid patch's or the sphere's advance, not the weighted mean of the tool's load, so
+    phi per unit depth would be per another depth: review), where they would pass
+    MAX_BYTES, or where they would pass the artifact's bound (MAX_FIELD_SUM)."""
     from hapticrom.offline.campaign.store import csr_from
 
+    if config.load.mode != "force":
+        say(f"no contact fields: the campaign is {config.load.mode}-controlled (force only)")
+        return None
     vertices, pushes, sample_rows = field_points(surface, sample_points, sample_normals,
                                                  config.load.direction)  # fmt: skip
     size = 4 * len(vertices) * surface.dofs.size
@@ -99,6 +106,11 @@ def contact_fields(config, store, surface, sample_points, sample_normals,
         surface_rows = X[np.minimum(rows, len(free) - 1)] / depth
         surface_rows[held] = 0.0
         fields[chunk.start : chunk.stop] = surface_rows.T
+    reach = contact_field_reach(fields, sample_rows)
+    if not reach <= MAX_FIELD_SUM:  # the reader would refuse the file
+        say(f"no contact fields: a row plus a sample's reach {reach:.3g} per unit depth (at "
+            f"most {MAX_FIELD_SUM:.3g})")  # fmt: skip
+        return None
     say(f"the tool's linear field at {len(vertices)} loadable vertices "
         f"({fields.nbytes / 1e6:.1f} MB) in {time.perf_counter() - t0:.1f} s")  # fmt: skip
     return ContactFields(vertices, fields, sample_rows)
