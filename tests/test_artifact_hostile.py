@@ -400,7 +400,7 @@ def test_opposite_normals_of_neighbouring_samples_are_refused(small_artifact, tm
         return n
 
     rewrite(path, "samples/normals", flip)
-    refused(path, "normals of neighbouring samples differ by more than 60 degrees")
+    refused(path, "normals of neighbouring samples differ by more than 80 degrees")
 
 
 @pytest.mark.parametrize(
