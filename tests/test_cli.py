@@ -140,6 +140,14 @@ def test_online_runtime_imports_without_the_offline_stack():
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr
 
 
+def test_the_interpolation_option_offers_what_the_runtime_has():
+    """The CLI keeps its own copy (it starts without numba): the same names."""
+    from hapticrom.cli.online_commands import INTERPOLATIONS as offered
+    from hapticrom.online.model import INTERPOLATIONS
+
+    assert sorted(offered) == sorted(INTERPOLATIONS)
+
+
 def test_play_and_bench_need_only_the_runtime(small_artifact, tmp_path):
     """The online commands run with the offline stack unimportable."""
     env_prelude = BLOCK_OFFLINE

@@ -14,7 +14,7 @@ from hapticrom.cli.outputs import check_out_dir, check_out_file
 from hapticrom.shared.errors import HapticromError
 
 # as hapticrom.online.model.INTERPOLATIONS (not imported: the CLI starts without numba)
-INTERPOLATIONS = ("transport", "podi", "grassmann")
+INTERPOLATIONS = ("transport", "compliance", "podi", "grassmann")
 RESPONSES = ("anm", "curves")
 # Bounds of the online commands' numbers: a servo loop of at most an hour (and at most
 # MAX_TICKS ticks, which the loop keeps in memory), bench runs that fit in memory (about
@@ -61,8 +61,9 @@ def interpolation_option(p) -> None:
         "--interpolation",
         default=None,
         choices=INTERPOLATIONS,
-        help="of the rendered surface: %(choices)s (default: transport, or podi where one plan "
-        "view cannot chart the model's samples; grassmann needs the model's grassmann group)",
+        help="of the rendered surface: %(choices)s (default: transport where one plan view "
+        "charts the model's samples, else compliance where the model has contact fields "
+        "(artifact 2.2), else podi; grassmann needs the model's grassmann group)",
     )
 
 
