@@ -540,7 +540,7 @@ def test_every_option_has_help_and_choices_are_declared():
     choices = {
         (name, a.dest): a.choices for name, sub in parser.commands.items() for a in sub._actions
     }
-    assert choices["bench", "interpolation"] == ("transport", "podi", "grassmann")
+    assert choices["bench", "interpolation"] == ("transport", "compliance", "podi", "grassmann")
     assert choices["bench", "response"] == ("anm", "curves")
     assert choices["mesh", "refinement"] == ("coarse", "default", "fine")
     assert list(choices["mesh", "name"]) == ["cornea", "beam", "hemisphere", "liver", "import"]
