@@ -258,3 +258,23 @@ def test_a_campaign_pushing_along_one_vector_gets_its_stiffness_along_it(force_c
     assert got == pytest.approx(expected, rel=1e-10)
     along_normal = sample_stiffness(config, store, points, np.array([[0, 0, -1.0]] * 2), surface)
     assert not got == pytest.approx(along_normal, rel=1e-3)
+
+
+def test_triangles_across_a_rim_get_a_finer_lattice():
+    """Samples' normals within 60 degrees of each other: 16 subdivisions; one triangle whose
+    normals differ by 70 (the 80-degree rule allows it, across the liver's rim): 32."""
+    from hapticrom.offline.reduce.tool_stiffness import (
+        DEFAULT_SUBDIVISIONS,
+        RIM_SUBDIVISIONS,
+        subdivisions_for,
+    )
+
+    def tilted(degrees):
+        a = np.radians(degrees)
+        return np.array([[0.0, 0.0, 1.0], [np.sin(a), 0.0, np.cos(a)], [0.0, 0.0, 1.0],
+                         [0.0, 0.0, 1.0]])  # fmt: skip
+
+    triangles = np.array([[0, 1, 2], [0, 2, 3]])
+    assert subdivisions_for(tilted(59.0), triangles) == DEFAULT_SUBDIVISIONS == 16
+    assert subdivisions_for(tilted(70.0), triangles) == RIM_SUBDIVISIONS == 32
+    assert subdivisions_for(tilted(70.0), triangles[1:]) == DEFAULT_SUBDIVISIONS  # not in one
