@@ -257,9 +257,9 @@ def dent_under_tool(field: np.ndarray, normal: np.ndarray, vertices: np.ndarray,
                     tool: int) -> tuple[float, float]:  # fmt: skip
     """(the normal displacement into the organ of the surface node at the tool, mm; the
     distance from the tool to the node that moves in deepest, mm)."""
-    inward = -(field @ normal)
-    deepest = int(np.argmax(inward))
-    return float(inward[tool]), float(np.linalg.norm(vertices[deepest] - vertices[tool]))
+    deepest = deepest_node(field, normal)
+    dent = -float(field[tool] @ normal)
+    return dent, float(np.linalg.norm(vertices[deepest] - vertices[tool]))
 
 
 def deepest_node(field: np.ndarray, normal: np.ndarray) -> int:

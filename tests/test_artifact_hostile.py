@@ -825,26 +825,23 @@ def _field_rows_at(model, point):
     return f["triangle_rows"][t], beta
 
 
-def test_a_contact_field_row_the_sweep_misses_is_refused_or_within_the_displacement_limit(
-    force_artifact, tmp_path
-):
+def test_a_contact_field_row_the_sweep_misses_is_refused(force_artifact, tmp_path):
     """One row at 999 (the rule allows 1000): the vertex of a loadable triangle that contacts
     inside the trained region read (at weight ~0.9), but no sweep point (samples, centroids,
-    edge midpoints) does. The file loads, and a contact there draws 999 d at that vertex:
-    350 mm at the trained depth against the simulator's 3.9 mm limit."""
+    edge midpoints) does. It loaded before the reach rule, and a contact there drew 999 d at
+    that vertex: 362 mm at the trained depth against the simulator's 3.9 mm limit."""
     from hapticrom.online.model import sweep_points
-    from hapticrom.online.simulator import Simulator
 
     honest = load(force_artifact, isolate=False)
     swept = set(honest.contact_fields["sample_rows"].tolist())
     for point in sweep_points(honest):
         rows, beta = _field_rows_at(honest, point)
         swept |= set(rows[beta > 0].tolist())
-    weight, row, at = 0.0, -1, None
+    weight, row = 0.0, -1
     for point in _contacts_in_triangles(honest, 400, seed=5):
         for r, w in zip(*_field_rows_at(honest, point), strict=True):
             if int(r) not in swept and w > weight:
-                weight, row, at = w, int(r), point
+                weight, row = w, int(r)
     assert weight > 0.5, "a row the contacts read with weight, the sweep never"
     path = copy(force_artifact, tmp_path)
 
@@ -853,16 +850,7 @@ def test_a_contact_field_row_the_sweep_misses_is_refused_or_within_the_displacem
         return fields
 
     rewrite(path, f"{FIELDS}/fields", put)
-    try:
-        model = load(path, isolate=False)
-    except ArtifactError as exc:
-        assert FIELDS in str(exc) or "simulator's limit" in str(exc)
-        return
-    sim = Simulator(model, "compliance", response="curves")
-    sim.set_contact(at)
-    sim.step_displacement(-model.trained_depth * np.array(sim.contact_normal))
-    surface = sim.surface_displacement(np.zeros_like(model.vertices))
-    assert np.max(np.abs(surface)) <= sim.max_displacement, np.max(np.abs(surface))
+    refused(path, f"{FIELDS}/fields: a row's largest value plus a sample's reach")
 
 
 def test_a_far_vertex_of_no_loadable_triangle_does_not_stall_the_contact_field_surface(
@@ -906,16 +894,12 @@ def test_a_far_vertex_of_no_loadable_triangle_does_not_stall_the_contact_field_s
     assert min(took) < 0.05, took
 
 
-def test_a_contact_field_sample_row_at_a_second_vertex_is_refused_or_draws_the_trained_field(
-    force_artifact, tmp_path
-):
+def test_a_contact_field_sample_row_at_a_second_vertex_is_refused(force_artifact, tmp_path):
     """A loadable vertex far from sample 0 (no neighbour of its vertex, at no sample) moved
     onto sample 0's point, and sample 0's row pointed at it: still "the vertex at the
     sample's point". The runtime's triangle there is the sample's own vertex's, so the
-    correction d (phi_B - phi_A) does not vanish at the sample: 1.1 mm off the trained
+    correction d (phi_B - phi_A) did not vanish at the sample: 1.1 mm off the trained
     field (whose largest value is 0.46 mm), within the sweep's limit."""
-    from hapticrom.online.simulator import Simulator
-
     a = read_artifact(force_artifact)
     s, c = a["surface"], a["contact_fields"]
     rows, sample_rows = c["vertices"], c["sample_rows"]
@@ -935,19 +919,7 @@ def test_a_contact_field_sample_row_at_a_second_vertex_is_refused_or_draws_the_t
 
     rewrite(path, "surface/vertices", onto_the_sample)
     rewrite(path, f"{FIELDS}/sample_rows", to_the_moved_row)
-    try:
-        model = load(path, isolate=False)
-    except ArtifactError as exc:
-        assert FIELDS in str(exc) or "surface/vertices" in str(exc)
-        return
-    fields = []
-    for interpolation in ("compliance", "podi"):
-        sim = Simulator(model, interpolation)
-        sim.set_contact(model.sample_points[0])
-        sim.step_displacement(-model.trained_depth * model.sample_normals[0])
-        fields.append(sim.surface_displacement(np.zeros_like(model.vertices)).copy())
-    got, expected = fields
-    assert np.max(np.abs(got - expected)) <= 1e-6 * np.max(np.abs(expected))
+    refused(path, f"{FIELDS}: a sample's point is at more than one loadable vertex")
 
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, -np.inf])

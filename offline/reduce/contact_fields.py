@@ -96,16 +96,16 @@ def contact_fields(config, store, surface, sample_points, sample_normals,
     data, _ = store.read_operators()
     K0 = csr_from(data, "K0")
     free = free_dofs(K0.shape[0], data["supported_nodes"])
-    rows = np.searchsorted(free, surface.dofs)  # a surface DOF's row among the free ones
-    held = free[np.minimum(rows, len(free) - 1)] != surface.dofs  # a support's: stays 0
+    row_of = np.full(K0.shape[0], -1)
+    row_of[free] = np.arange(len(free))
+    rows = row_of[surface.dofs]  # each surface DOF's row among the free ones (-1: a support's)
+    moving = rows >= 0
     fields = np.zeros((len(vertices), surface.dofs.size), dtype=np.float32)
     points = surface.vertices[vertices]
     for chunk, G, X, W in linear_responses(K0, data["supported_nodes"], ToolLoads(config),
                                            points, pushes):  # fmt: skip
         depth = np.einsum("ij,ij->j", G, X) / W  # the campaign's measure: g^T u / W
-        surface_rows = X[np.minimum(rows, len(free) - 1)] / depth
-        surface_rows[held] = 0.0
-        fields[chunk.start : chunk.stop] = surface_rows.T
+        fields[chunk.start : chunk.stop, moving] = (X[rows[moving]] / depth).T
     reach = contact_field_reach(fields, sample_rows)
     if not reach <= MAX_FIELD_SUM:  # the reader would refuse the file
         say(f"no contact fields: a row plus a sample's reach {reach:.3g} per unit depth (at "
