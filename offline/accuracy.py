@@ -34,6 +34,7 @@ from mpi4py import MPI
 
 from hapticrom.meshes.msh import Surface, read_surface
 from hapticrom.offline.mpi import on_rank_zero
+from hapticrom.online.kernels import face_floors
 from hapticrom.online.model import inside_trained_region
 from hapticrom.shared.accuracy import QUANTITIES, TARGETS, target, verdict
 from hapticrom.shared.errors import HapticromError, InputError
@@ -102,9 +103,12 @@ def trained_nodes(samples: dict, surface: Surface) -> set[int]:
 
 def region_nodes(samples: dict, surface: Surface) -> np.ndarray:
     """Surface nodes of the trained region: where the runtime locates a contact inside the
-    samples' triangulation on the surface (not clamped)."""
+    samples' triangulation on the surface (not clamped; beneath a triangle, nearer its face
+    than the opposite face of the organ, as far as the loadable surface shows it)."""
+    floors = face_floors(samples["points"], samples["normals"], samples["triangles"],
+                         surface.nodes, surface.normals)  # fmt: skip
     inside = inside_trained_region(
-        samples["points"], samples["normals"], samples["triangles"], surface.nodes
+        samples["points"], samples["normals"], samples["triangles"], surface.nodes, floors
     )
     return np.flatnonzero(inside)
 

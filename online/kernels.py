@@ -188,29 +188,98 @@ def border_edges(triangles) -> np.ndarray:
     return edges[counts[inverse.ravel()] == 1]
 
 
-PLANE = 13  # floats per sample triangle's plane: corner a, unit normal, g1, g2, longest edge^2
+PLANE = 14  # floats per sample triangle's plane: corner a, unit normal, g1, g2, longest edge^2,
+PLANE_FLOOR = 13  # ... and its floor: the lowest height (mm, along the normals) a contact has in it
+FACING = math.cos(math.radians(75.0))  # a surface vertex faces a triangle's way (or away) beyond
+FLOOR_MARGIN = 0.25  # a floor's place from the opposite face to the triangle's own (face_floors)
 
 
-def triangle_planes(points, triangles) -> np.ndarray:
+def triangle_planes(points, triangles, floors=None) -> np.ndarray:
     """Per sample triangle (S, PLANE): its first corner x_a (3), unit normal (3), the dual
     vectors g1, g2 (3 each; the flat coordinates of p are u = g1 (p - x_a), v = g2 (p -
-    x_a)) and its longest edge squared, so that :func:`locate`'s first pass costs a few
-    dot products per triangle."""
+    x_a)), its longest edge squared, so that :func:`locate`'s first pass costs a few
+    dot products per triangle, and its floor: ``floors`` (S,) mm (:func:`face_floors`),
+    never below minus the longest edge (the bound without them)."""
     x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     xa, e1, e2 = x[t[:, 0]], x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]
     n = np.cross(e1, e2)
     area2 = np.einsum("sx,sx->s", n, n)[:, None]
     reach2 = np.max([np.sum(e1 * e1, 1), np.sum(e2 * e2, 1), np.sum((e2 - e1) ** 2, 1)], axis=0)
+    floor = -np.sqrt(reach2)
+    if floors is not None:
+        floor = np.maximum(np.reshape(np.asarray(floors, dtype=np.float64), len(t)), floor)
     return np.column_stack(
-        [xa, n / np.sqrt(area2), np.cross(e2, n) / area2, np.cross(n, e1) / area2, reach2]
+        [xa, n / np.sqrt(area2), np.cross(e2, n) / area2, np.cross(n, e1) / area2, reach2, floor]
     )
 
 
+def face_floors(points, normals, triangles, vertices, vertex_normals) -> np.ndarray:
+    """(S,) mm: each sample triangle's floor, the lowest height along its blended normals
+    at which :func:`locate` puts a contact in it.
+
+    Why: a triangle of samples on one face of an organ also holds, far beneath it, points
+    of the opposite face (a liver's lower face under its upper one, a cornea's posterior
+    under its anterior): without a floor a tool on that face got the other face's
+    response. The floor lies a quarter of the way from the highest surface vertex in the
+    triangle that faces away (vertex normal over 105 degrees from the blended normal) to
+    the lowest that faces its way (within 75 degrees): the opposite face and the tissue
+    just above it are not in the triangle, the rest of the tissue is. Not halfway: a
+    contact point given a little inside a thin organ (a tool's tip pressed into a 0.55 mm
+    cornea, a chord across its samples) must stay in. No vertex facing away: minus
+    infinity (the longest edge bounds it, :func:`triangle_planes`). ``vertices``,
+    ``vertex_normals`` (V, 3): the organ's
+    surface vertices and their outward unit normals."""
+    v = np.ascontiguousarray(vertices, dtype=np.float64)
+    heights = np.zeros((len(triangles), 2))
+    _face_heights(
+        np.ravel(np.asarray(points, dtype=np.float64)),
+        np.ravel(np.asarray(normals, dtype=np.float64)),
+        np.ravel(np.asarray(triangles, dtype=np.float64)),
+        np.ravel(triangle_planes(points, triangles)), v,
+        np.ascontiguousarray(vertex_normals, dtype=np.float64), heights,
+    )  # fmt: skip
+    facing, away = heights[:, 0], heights[:, 1]
+    floors = np.full(len(facing), -np.inf)
+    below = np.isfinite(away) & (away < facing)
+    floors[below] = away[below] + FLOOR_MARGIN * (facing[below] - away[below])
+    folded = np.isfinite(away) & (away >= facing)  # a face turned away above it: a fold
+    floors[folded] = facing[folded]
+    return floors
+
+
+@njit(cache=True, nogil=True)
+def _face_heights(points, normals, triangles, planes, vertices, vertex_normals, out):
+    """out (S, 2): per sample triangle, the lowest height of the surface vertices it holds
+    (:func:`project_on_triangle`) that face its way (0 at least: its corners), and the
+    highest of those that face away (-inf if none)."""
+    count = triangles.shape[0] // 3
+    uvh = np.zeros(3)
+    for t in range(count):
+        out[t, 0], out[t, 1] = 0.0, -np.inf
+    for i in range(vertices.shape[0]):
+        p = vertices[i]
+        for t in range(count):
+            if not project_on_triangle(p, points, normals, triangles, planes, t, np.inf, uvh):
+                continue
+            u, v, h = uvh[0], uvh[1], uvh[2]
+            if u < 0.0 or v < 0.0 or u + v > 1.0:
+                continue
+            a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
+            na = vertex(normals, a)
+            n = combine(na, u, minus(vertex(normals, b), na), v, minus(vertex(normals, c), na))
+            turn = dot(n, vertex_normals[i]) / math.sqrt(dot(n, n))
+            if turn >= FACING:
+                out[t, 0] = min(out[t, 0], h)
+            elif turn <= -FACING:
+                out[t, 1] = max(out[t, 1], h)
+
+
 def contact_table(points, normals, forces, slopes, triangles, records=None,
-                  offsets=None, tool_stiffness=None) -> np.ndarray:  # fmt: skip
+                  offsets=None, tool_stiffness=None, floors=None) -> np.ndarray:  # fmt: skip
     """The model's arrays :func:`prepare_contact` reads, packed into one read-only array
-    (``tool_stiffness`` (S, L): the lattice values, or None)."""
+    (``tool_stiffness`` (S, L): the lattice values, or None; ``floors`` (S,): the
+    triangles' floors, :func:`face_floors`, or None)."""
     P, K = np.shape(forces)
     stride, Z = (0, 0) if records is None else np.shape(records)[::-1]
     edges = border_edges(triangles)
@@ -220,7 +289,8 @@ def contact_table(points, normals, forces, slopes, triangles, records=None,
         raise ValueError(f"tool stiffness of shape {np.shape(lattice)} is no lattice per triangle")
     if not np.all((np.asarray(lattice) > 0) & np.isfinite(lattice)):  # divided by at set_contact
         raise ValueError("tool stiffness must be finite and positive")
-    parts = [points, normals, forces, slopes, triangles, triangle_planes(points, triangles), edges,
+    parts = [points, normals, forces, slopes, triangles,
+             triangle_planes(points, triangles, floors), edges,
              lattice]  # fmt: skip
     if records is not None:
         parts += [records, offsets]
@@ -824,7 +894,8 @@ def locate(p, points, normals, triangles, planes, edges, out_weights, out_sample
     (PLANE S, :func:`triangle_planes`), border edges (3 E): two samples and the
     triangle's third): of the triangle that holds p along its
     blended normals (:func:`project_on_triangle`) with the smallest height (the near side
-    of a closed organ). The samples go into ``out_samples`` (as floats), the triangle and
+    of a closed organ) and not beneath its floor (nearer its face than the opposite face,
+    :func:`face_floors`). The samples go into ``out_samples`` (as floats), the triangle and
     the height into ``out_where`` (2); ``uvh`` (3) is scratch.
 
     The triangle whose plane projection holds p deepest is solved first: it is usually
@@ -850,7 +921,8 @@ def locate(p, points, normals, triangles, planes, edges, out_weights, out_sample
         if not project_on_triangle(p, points, normals, triangles, planes, t, best, uvh):
             continue
         u, v, h = uvh[0], uvh[1], uvh[2]
-        if u >= -1e-12 and v >= -1e-12 and u + v <= 1.0 + 1e-12 and abs(h) < best:
+        inside = u >= -1e-12 and v >= -1e-12 and u + v <= 1.0 + 1e-12
+        if inside and abs(h) < best and h >= planes[o + PLANE_FLOOR]:
             best, found, bu, bv = abs(h), t, u, v
             out_where[1] = h
     if found < 0:

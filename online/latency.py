@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticrom.online.model import ReducedModel, inside_trained_region, load
+from hapticrom.online.model import ReducedModel, load
 from hapticrom.online.reference import NumpySimulator
 
 
@@ -131,8 +131,7 @@ def _time_sliding_surface(model: ReducedModel, sim, out) -> np.ndarray:
     groups = np.asarray(model.artifact["surface"]["groups"])
     loadable = np.unique(model.triangles[groups == 1])
     points = model.vertices[loadable]
-    points = points[inside_trained_region(model.sample_points, model.sample_normals,
-                                          model.sample_triangles, points)]  # fmt: skip
+    points = points[model.inside_trained_region(points)]
     order = np.random.default_rng(0).integers(len(points), size=2000)
     ns = np.empty(len(order), dtype=np.int64)
     for k, i in enumerate(order):

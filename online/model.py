@@ -13,7 +13,7 @@ from hapticrom.online.surface_chart import surface_chart
 from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
 from hapticrom.shared.artifact_rules import MAX_LENGTH
 from hapticrom.shared.errors import InputError
-from hapticrom.shared.geometry import plan_view
+from hapticrom.shared.geometry import plan_view, vertex_normals
 
 # "transport" (the default): each neighbour's field carried to the contact before the blend
 # (online/surface_chart.py); "podi": blended where each was trained; "grassmann": the bases.
@@ -58,6 +58,9 @@ class ReducedModel:
         are blended with the weights w_i k(x) / k_i.
         contact_fields: the tool's linear surface field per unit depth at every loadable
         vertex (artifact 2.2, :func:`_contact_fields`), or None: the "compliance" surface.
+        sample_floors (S,): how far beneath each sample triangle a contact may lie, mm
+        (:func:`~hapticrom.online.kernels.face_floors`: nearer its face than the organ's
+        opposite face), built at load.
     """
 
     path: Path
@@ -80,7 +83,13 @@ class ReducedModel:
     contact_fields: dict | None = None  # the tool's linear fields (2.2): _contact_fields
 
     def __post_init__(self):
+        from hapticrom.online import kernels
+
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
+        self.sample_floors = kernels.face_floors(
+            self.sample_points, self.sample_normals, self.sample_triangles, self.vertices,
+            vertex_normals(self.vertices, self.triangles),
+        )  # fmt: skip
         self.plan_origin, self.plan_axes, self.plan_points = plan_view(
             self.sample_points, self.sample_normals
         )
@@ -94,6 +103,12 @@ class ReducedModel:
             tangents = self.grassmann["tangents"]
             self.grassmann["tangents_t"] = np.ascontiguousarray(tangents.transpose(0, 2, 1))
         self._freeze()
+
+    def inside_trained_region(self, points) -> np.ndarray:
+        """(N,) True where a point (N, 3) mm is located inside the samples' triangulation, as
+        ``set_contact`` does (not clamped to its border)."""
+        return inside_trained_region(self.sample_points, self.sample_normals,
+                                     self.sample_triangles, points, self.sample_floors)  # fmt: skip
 
     def _freeze(self) -> None:
         """Every array read-only: simulators share the model, none may change it."""
@@ -387,15 +402,16 @@ def _within(model: ReducedModel, response: str, what: str, value: np.ndarray, li
         )
 
 
-def locate_points(sample_points, sample_normals, sample_triangles, queries):
+def locate_points(sample_points, sample_normals, sample_triangles, queries, floors=None):
     """Where the runtime puts contacts at points (N, 3) mm in the samples' triangulation on
-    the surface (:func:`~hapticrom.online.kernels.locate`): their three samples (N, 3),
-    weights (N, 3) and whether each lies inside (not clamped to the border) (N,)."""
+    the surface (:func:`~hapticrom.online.kernels.locate`; ``floors``: the model's
+    ``sample_floors``, as its simulators): their three samples (N, 3), weights (N, 3) and
+    whether each lies inside (not clamped to the border) (N,)."""
     from hapticrom.online import kernels
 
     points, normals = _f8(np.ravel(sample_points)), _f8(np.ravel(sample_normals))
     triangles = _f8(np.ravel(sample_triangles))
-    planes = _f8(np.ravel(kernels.triangle_planes(sample_points, sample_triangles)))
+    planes = _f8(np.ravel(kernels.triangle_planes(sample_points, sample_triangles, floors)))
     edges = _f8(np.ravel(kernels.border_edges(sample_triangles)))
     where, scratch = np.zeros(2), np.zeros(3)
     queries = _f8(np.reshape(queries, (-1, 3)))
@@ -409,7 +425,9 @@ def locate_points(sample_points, sample_normals, sample_triangles, queries):
     return samples.astype(np.int64), weights, inside
 
 
-def inside_trained_region(sample_points, sample_normals, sample_triangles, queries) -> np.ndarray:
+def inside_trained_region(sample_points, sample_normals, sample_triangles, queries,
+                          floors=None) -> np.ndarray:  # fmt: skip
     """(N,) True where a point (N, 3) mm lies in the samples' triangulation on the surface, as
-    the runtime locates a contact: where ``set_contact`` would not clamp it."""
-    return locate_points(sample_points, sample_normals, sample_triangles, queries)[2]
+    the runtime locates a contact (with the model's ``floors``): where ``set_contact`` would
+    not clamp it."""
+    return locate_points(sample_points, sample_normals, sample_triangles, queries, floors)[2]

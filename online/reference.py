@@ -17,16 +17,19 @@ def barycentric(model: ReducedModel, point) -> tuple[np.ndarray, np.ndarray, boo
     sample triangles, by another algorithm than the kernel's Newton: a fixed-point
     iteration (the blended normal at the last (u, v), then the point moved along it onto
     the triangle's plane, a linear solve) and, outside every triangle, bisection along
-    each border edge."""
+    each border edge. Beneath a triangle's floor (the model's ``sample_floors``, never
+    deeper than its longest edge) a point is not in it."""
     p = np.asarray(point, dtype=float)
     x, n = model.sample_points, model.sample_normals
     best = (np.inf, None, None)
-    for tri in model.sample_triangles:
+    for tri, floor in zip(model.sample_triangles, model.sample_floors, strict=True):
         uvh = _fixed_point(p, x[tri], n[tri])
         if uvh is None:
             continue
         u, v, h = uvh
-        if min(u, v, 1 - u - v) >= -1e-9 and abs(h) < best[0]:
+        edges = x[tri] - x[np.roll(tri, 1)]
+        floor = max(floor, -np.sqrt(np.max(np.sum(edges * edges, axis=1))))
+        if min(u, v, 1 - u - v) >= -1e-9 and abs(h) < best[0] and h >= floor:
             best = (abs(h), tri.copy(), np.array([1 - u - v, u, v]))
     if best[1] is not None:
         return best[1], best[2], False

@@ -273,7 +273,7 @@ class Simulator:
             model.sample_points, model.sample_normals, model.force, model.stiffness,
             model.sample_triangles,
             *((anm["records"], anm["offsets"]) if anm else (None, None)),
-            tool_stiffness=model.tool_stiffness,
+            tool_stiffness=model.tool_stiffness, floors=model.sample_floors,
         )  # fmt: skip
         # bound once: no lookups per step
         self._step_displacement = k.step_displacement_anm if anm else k.step_displacement_curves

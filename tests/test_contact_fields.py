@@ -189,14 +189,12 @@ def test_the_default_and_refusals(model):
 def test_a_clamped_contact_gets_the_dent_at_its_clamp_point(model):
     """Outside the trained region the force is taken at the border's clamp point; the dent is
     drawn there too (the height slot then holds a distance, not a height: review)."""
-    from hapticrom.online.model import inside_trained_region
     from hapticrom.online.reference import barycentric
 
     f = model.contact_fields
     vertices = np.unique(f["triangles"])
     points = model.vertices[vertices]
-    outside = points[~inside_trained_region(model.sample_points, model.sample_normals,
-                                            model.sample_triangles, points)]  # fmt: skip
+    outside = points[~model.inside_trained_region(points)]
     assert len(outside) >= 5
     compliance = Simulator(model, "compliance", response="curves")
     podi = Simulator(model, "podi", response="curves")

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import hapticrom.online as online
+from hapticrom.online.model import inside_trained_region
 from hapticrom.online.reference import NumpySimulator
 from hapticrom.online.simulator import StepInputError
 
@@ -124,6 +125,27 @@ def test_outside_the_trained_region_is_clamped_and_flagged(model):
     assert np.all(weights >= -1e-12) and weights.sum() == pytest.approx(1.0)
     force = sim.step_displacement(-0.1 * sim.contact_normal)
     assert np.all(np.isfinite(force)) and force @ sim.contact_normal > 0
+
+
+def test_the_opposite_face_of_the_organ_is_outside_the_trained_region(model):
+    """A contact on the cornea's posterior face, under the trained anterior region, is
+    clamped and flagged, not given the anterior response a thickness above it; every
+    anterior vertex that was inside stays inside with the same weights."""
+    from hapticrom.shared.geometry import vertex_normals
+
+    normals = vertex_normals(model.vertices, model.triangles)
+    facing = normals @ model.sample_normals.mean(axis=0)
+    without = inside_trained_region(model.sample_points, model.sample_normals,
+                                    model.sample_triangles, model.vertices)  # fmt: skip
+    inside = model.inside_trained_region(model.vertices)
+    posterior = without & (facing < -0.9)
+    assert posterior.sum() >= 10  # located through the tissue without the floors
+    assert not inside[posterior].any()
+    assert np.array_equal(inside[facing > 0.9], without[facing > 0.9])
+    sim = model.simulator()
+    for v in np.flatnonzero(posterior)[:5]:
+        sim.set_contact(model.vertices[v])
+        assert sim.outside_trained_region
 
 
 def test_depth_flags(model):

@@ -60,12 +60,13 @@ def closed_organ():
     return vertices, points, normals, tri.triangles.astype(np.int64)
 
 
-def located(p, points, normals, triangles):
+def located(p, points, normals, triangles, floors=None):
     """(flag, samples, weights, height) of the runtime's kernel for point p."""
     weights, samples, where, scratch = np.zeros(3), np.zeros(3), np.zeros(2), np.zeros(3)
+    planes = kernels.triangle_planes(points, triangles, floors)
     flag = kernels.locate(
         np.asarray(p, dtype=float), np.ravel(points), np.ravel(normals),
-        np.ravel(triangles).astype(float), np.ravel(kernels.triangle_planes(points, triangles)),
+        np.ravel(triangles).astype(float), np.ravel(planes),
         np.ravel(kernels.border_edges(triangles)).astype(float),
         weights, samples, where, scratch,
     )  # fmt: skip
@@ -208,3 +209,64 @@ def test_a_hole_is_not_filled_across_samples_whose_normals_differ_by_over_80_deg
     for k, azimuth in enumerate(np.radians([0.0, 120.0, 240.0])):
         rough[k] = [np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), -np.cos(tilt)]
     assert len(_filled(points, rough, sides)) == 3
+
+
+THICKNESS = 2.0  # mm, of the slab below
+
+
+@pytest.fixture(scope="module")
+def slab():
+    """A slab 2 mm thick: its top face (z = 0, normal +z) and bottom face (z = -2, normal -z)
+    as vertices on a 1 mm grid, and four samples on the top face, two triangles."""
+    grid = np.stack(np.meshgrid(np.arange(-10.0, 10.5), np.arange(-10.0, 10.5)), -1).reshape(-1, 2)
+    zeros = np.zeros((len(grid), 1))
+    vertices = np.vstack([np.hstack([grid, zeros]), np.hstack([grid, zeros - THICKNESS])])
+    vertex_normals = np.repeat([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], len(grid), axis=0)
+    points = np.array([[-6.0, -6.0, 0.0], [6.0, -6.0, 0.0], [6.0, 6.0, 0.0], [-6.0, 6.0, 0.0]])
+    normals = np.tile([0.0, 0.0, 1.0], (4, 1))
+    triangles = np.array([[0, 1, 2], [0, 2, 3]])
+    floors = kernels.face_floors(points, normals, triangles, vertices, vertex_normals)
+    return points, normals, triangles, floors
+
+
+def test_a_triangles_floor_lies_a_quarter_of_the_way_from_the_opposite_face(slab):
+    assert slab[3] == pytest.approx([-0.75 * THICKNESS] * 2, abs=1e-12)
+
+
+def test_a_point_of_the_opposite_face_is_not_in_the_triangle_above_it(slab):
+    """The bottom face under the samples is clamped to the border (outside the trained
+    region), not given the top face's response 2 mm above it; without the floors it was
+    (what the liver showed: a lower-face vertex in an upper triangle at h = -39.8 mm)."""
+    points, normals, triangles, floors = slab
+    below = [1.0, -2.0, -THICKNESS]
+    assert located(below, points, normals, triangles)[0] == 0  # the bound it had
+    flag, _, _, _ = located(below, points, normals, triangles, floors)
+    assert flag == kernels.FLAG_OUTSIDE_REGION
+
+
+@pytest.mark.parametrize("height", [-0.7 * THICKNESS, -0.3 * THICKNESS, 0.0, 3.0])
+def test_points_above_the_floor_keep_their_weights(slab, height):
+    points, normals, triangles, floors = slab
+    flag, samples, weights, h = located([1.0, -2.0, height], points, normals, triangles, floors)
+    top = located([1.0, -2.0, 0.0], points, normals, triangles)
+    assert flag == 0 and h == pytest.approx(height, abs=1e-12)
+    assert np.array_equal(samples, top[1]) and np.allclose(weights, top[2], atol=1e-12)
+
+
+def test_the_reference_locates_with_the_same_floors(slab):
+    """The numpy reference (a fixed-point iteration and bisection on the border) answers as
+    the kernel on both faces and between them."""
+    from types import SimpleNamespace
+
+    from hapticrom.online.reference import barycentric
+
+    points, normals, triangles, floors = slab
+    model = SimpleNamespace(sample_points=points, sample_normals=normals,
+                            sample_triangles=triangles, sample_floors=floors)  # fmt: skip
+    rng = np.random.default_rng(7)
+    for x, y, z in np.column_stack([rng.uniform(-5, 5, (60, 2)), rng.uniform(-2, 0.5, 60)]):
+        flag, samples, weights, _ = located([x, y, z], points, normals, triangles, floors)
+        ref_samples, ref_weights, outside = barycentric(model, [x, y, z])
+        assert outside == (flag == kernels.FLAG_OUTSIDE_REGION) == (z < -0.75 * THICKNESS)
+        assert np.allclose(np.bincount(samples, weights, 4),
+                           np.bincount(ref_samples, ref_weights, 4), atol=1e-9)  # fmt: skip
