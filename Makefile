@@ -50,6 +50,9 @@ $(STAMP): pyproject.toml constraints.txt
 meshes/liver-4k.msh: $(STAMP) ## the liver at 4,117 nodes (examples/liver-4k-campaign.toml)
 	$(VENV)/bin/hapticrom mesh liver --set mesh_size=6.4 --out $@
 
+meshes/cornea-coarse.msh: $(STAMP) ## the coarse cornea (examples/cornea-coarse-soft-tip.toml)
+	$(VENV)/bin/hapticrom mesh cornea --refinement coarse --out $@
+
 meshes/%.msh: $(STAMP)
 	$(VENV)/bin/hapticrom mesh $* --out $@
 

@@ -1,10 +1,13 @@
 """The runtime's scalpel against the full-order model with the same cut meshed explicitly.
 
-    python bench/cutting_runtime_accuracy.py out/cornea-soft-cut.h5 [--depth 0.2] [--out DIR]
+    python bench/cutting_runtime_accuracy.py out/cornea-soft.h5 [--depth 0.2] [--out DIR]
+        [--interpolation NAME] [--untrained]
 
 Serial. The artifact needs a cuttable region and force-controlled (soft-tip)
-training. The scalpel presses at the trained position nearest the region's
-centre, blade along the circumference, down to ``--depth`` mm: it cuts as the
+training on a generated cornea mesh (any refinement). The scalpel presses at the
+trained position nearest the region's centre (``--untrained``: at the surface vertex
+nearest the centroid of the sample triangle nearest it, where the rendered surface
+is interpolated), blade along the circumference, down to ``--depth`` mm: it cuts as the
 blade force passes the artifact's cut force. The faces it cut are then cut in
 the mesh explicitly (duplicated nodes), and the full-order model (DOLFINx,
 Newton) is loaded with the same soft tip and the runtime's force. Reported:
@@ -30,6 +33,7 @@ from hapticrom.offline.config import ProblemConfig
 from hapticrom.offline.fe.dofs import CanonicalOrder
 from hapticrom.offline.fe.fullorder import FullOrderModel
 from hapticrom.offline.studies.cutting import draw_magnitude
+from hapticrom.online.simulator import default_interpolation
 
 
 def full_order_surface(mesh_file, campaign: dict, point, force, steps: int = 5):
@@ -65,6 +69,10 @@ def main() -> None:
         "cell at a time, and back at the start (a longer cut, compared there)",
     )
     parser.add_argument("--layers", type=int, help="cell rings of the cut patch (the artifact's)")
+    parser.add_argument("--interpolation", help="the rendered surface (default: the model's)")
+    parser.add_argument(
+        "--untrained", action="store_true", help="press between samples, not at the nearest one"
+    )
     args = parser.parse_args()
     model = online.load(args.model)
     if args.layers:
@@ -75,11 +83,15 @@ def main() -> None:
     if campaign["load"]["mode"] != "force":
         raise SystemExit("this comparison needs a soft-tip (force-controlled) model")
     centre = np.asarray(model.artifact.group_attrs["cutting"]["centre"], dtype=float)
-    sample = int(np.argmin(np.linalg.norm(model.sample_points - centre, axis=1)))
-    point = model.sample_points[sample]
+    point = _press_point(model, centre, args.untrained)
     radial = point - [0.0, 0.0, point[2]]
     blade = np.cross([0.0, 0.0, 1.0], radial / np.linalg.norm(radial))
-    sim, blind = model.simulator(), model.simulator()
+    interpolation = args.interpolation or default_interpolation(model)
+    sim, blind = model.simulator(interpolation), model.simulator(interpolation)
+    print(
+        f"{interpolation} surface, pressed at {np.round(point, 3).tolist()} mm "
+        f"({'between samples' if args.untrained else 'a training position'})"
+    )
     edges = model.vertices[model.triangles[:, 1]] - model.vertices[model.triangles[:, 0]]
     cell = float(np.median(np.linalg.norm(edges, axis=1)))
     path = [0, *range(-args.slide, args.slide + 1), 0] if args.slide else [0]
@@ -102,12 +114,7 @@ def main() -> None:
     nodes = np.asarray(model.artifact["cutting"]["nodes"])
     keys = {tuple(sorted(nodes[list(f)])) for f in sim.cutting.cuts.topology.cut_faces}
     mesh_name = campaign["mesh"]["file"]
-    intact = build("cornea", "default")
-    from hapticrom.offline.cutting.export import read_mesh_arrays
-
-    trained_nodes, _, _ = read_mesh_arrays(model.artifact.group_attrs["model"]["mesh_file"])
-    if trained_nodes.shape != intact.nodes.shape or not np.allclose(trained_nodes, intact.nodes):
-        raise SystemExit("the model was not trained on the default cornea mesh")
+    intact = _generated_cornea(model)
     faces, _ = interior_faces(intact.cells)
     chosen = [i for i, f in enumerate(faces) if tuple(sorted(f)) in keys]
     cut, origin = cut_mesh(intact, np.array(chosen))
@@ -153,7 +160,7 @@ def main() -> None:
     print(f"  runtime blind to the cut  {100 * error(u_blind):6.2f} %")
     # The cut's own field: runtime (with the cut - blind, at the same force) against the full
     # order (cut - intact, at the same force).
-    same_force = model.simulator()
+    same_force = model.simulator(interpolation)
     same_force.set_contact(point)
     same_force.step_force(push)
     u_blind_f = same_force.surface_displacement(np.zeros_like(model.vertices)).copy()
@@ -178,6 +185,32 @@ def main() -> None:
           f"full order {d_intact / d_cut:.4f}; at {args.depth} mm: full order "
           f"{nonlinear:.4f} (against the blind runtime's force)")  # fmt: skip
     _picture(Path(args.out), model, u_runtime, reference, point)
+
+
+def _press_point(model, centre, untrained: bool) -> np.ndarray:
+    """The training position nearest ``centre``, or (``untrained``) the surface vertex
+    nearest it that is inside the trained region and not a training position."""
+    if not untrained:
+        return model.sample_points[np.argmin(np.linalg.norm(model.sample_points - centre, axis=1))]
+    gap = np.min(np.linalg.norm(model.vertices[:, None] - model.sample_points[None], axis=2), 1)
+    candidates = np.flatnonzero(model.inside_trained_region(model.vertices) & (gap > 1e-9))
+    if len(candidates) == 0:
+        raise SystemExit("no surface vertex of the trained region is untrained")
+    nearest = np.argmin(np.linalg.norm(model.vertices[candidates] - centre, axis=1))
+    return model.vertices[candidates[nearest]]
+
+
+def _generated_cornea(model):
+    """The generated cornea mesh (of any refinement) the model was trained on."""
+    from hapticrom.meshes import REFINEMENTS
+    from hapticrom.offline.cutting.export import read_mesh_arrays
+
+    trained_nodes, _, _ = read_mesh_arrays(model.artifact.group_attrs["model"]["mesh_file"])
+    for refinement in REFINEMENTS:
+        mesh = build("cornea", refinement)
+        if mesh.nodes.shape == trained_nodes.shape and np.allclose(mesh.nodes, trained_nodes):
+            return mesh
+    raise SystemExit("the model was not trained on a generated cornea mesh")
 
 
 def _picture(out: Path, model, u_runtime, u_reference, point) -> None:

@@ -106,7 +106,7 @@ def region_nodes(samples: dict, surface: Surface) -> np.ndarray:
     samples' triangulation on the surface (not clamped; beneath a triangle, nearer its face
     than the opposite face of the organ, as far as the loadable surface shows it)."""
     floors = face_floors(samples["points"], samples["normals"], samples["triangles"],
-                         surface.nodes, surface.normals)  # fmt: skip
+                         surface.nodes, surface.normals, surface.faces)  # fmt: skip
     inside = inside_trained_region(
         samples["points"], samples["normals"], samples["triangles"], surface.nodes, floors
     )

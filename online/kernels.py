@@ -192,6 +192,7 @@ PLANE = 14  # floats per sample triangle's plane: corner a, unit normal, g1, g2,
 PLANE_FLOOR = 13  # ... and its floor: the lowest height (mm, along the normals) a contact has in it
 FACING = math.cos(math.radians(75.0))  # a surface vertex faces a triangle's way (or away) beyond
 FLOOR_MARGIN = 0.25  # a floor's place from the opposite face to the triangle's own (face_floors)
+FLOOR_RAYS = 4  # face_floors' rays per sample triangle: (4 + 1)(4 + 2) / 2 = 15
 
 
 def triangle_planes(points, triangles, floors=None) -> np.ndarray:
@@ -214,31 +215,35 @@ def triangle_planes(points, triangles, floors=None) -> np.ndarray:
     )
 
 
-def face_floors(points, normals, triangles, vertices, vertex_normals) -> np.ndarray:
+def face_floors(points, normals, triangles, vertices, vertex_normals, faces) -> np.ndarray:
     """(S,) mm: each sample triangle's floor, the lowest height along its blended normals
     at which :func:`locate` puts a contact in it.
 
     Why: a triangle of samples on one face of an organ also holds, far beneath it, points
     of the opposite face (a liver's lower face under its upper one, a cornea's posterior
     under its anterior): without a floor a tool on that face got the other face's
-    response. The floor lies a quarter of the way from the highest surface vertex in the
-    triangle that faces away (vertex normal over 105 degrees from the blended normal) to
-    the lowest that faces its way (within 75 degrees): the opposite face and the tissue
-    just above it are not in the triangle, the rest of the tissue is. Not halfway: a
-    contact point given a little inside a thin organ (a tool's tip pressed into a 0.55 mm
-    cornea, a chord across its samples) must stay in. No vertex facing away: minus
-    infinity (the longest edge bounds it, :func:`triangle_planes`). ``vertices``,
-    ``vertex_normals`` (V, 3): the organ's
-    surface vertices and their outward unit normals."""
+    response. The floor lies a quarter of the way from the opposite face's highest point
+    under the triangle to the lowest surface vertex in it that faces its way (within 75
+    degrees of the blended normal): the opposite face and the tissue just above it are not
+    in the triangle, the rest of the tissue is. Not halfway: a contact point given a little
+    inside a thin organ (a tool's tip pressed into a 0.55 mm cornea, a chord across its
+    samples) must stay in. The opposite face under the triangle: its vertices there (normal
+    over 105 degrees from the blended normal) and where rays from a lattice of the
+    triangle's points, down its blended normals, leave the organ (a face turned away);
+    the rays find it where the mesh is too coarse for a vertex to lie under a small
+    triangle. None: minus infinity (the longest edge bounds it, :func:`triangle_planes`).
+    ``vertices``, ``vertex_normals`` (V, 3): the organ's surface vertices and their outward
+    unit normals; ``faces`` (F, 3 or 4): its outward faces, vertex indices."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if faces.shape[1] == 4:  # quadrilaterals: two triangles each
+        faces = np.vstack([faces[:, [0, 1, 2]], faces[:, [0, 2, 3]]])
+    flat = [np.ravel(np.asarray(a, dtype=np.float64)) for a in (points, normals, triangles)]
+    planes = np.ravel(triangle_planes(points, triangles))
     heights = np.zeros((len(triangles), 2))
-    _face_heights(
-        np.ravel(np.asarray(points, dtype=np.float64)),
-        np.ravel(np.asarray(normals, dtype=np.float64)),
-        np.ravel(np.asarray(triangles, dtype=np.float64)),
-        np.ravel(triangle_planes(points, triangles)), v,
-        np.ascontiguousarray(vertex_normals, dtype=np.float64), heights,
-    )  # fmt: skip
+    _vertex_heights(*flat, planes, v, np.ascontiguousarray(vertex_normals, dtype=np.float64),
+                    heights)  # fmt: skip
+    _exit_heights(*flat, v, np.ascontiguousarray(faces), FLOOR_RAYS, heights[:, 1])
     facing, away = heights[:, 0], heights[:, 1]
     floors = np.full(len(facing), -np.inf)
     below = np.isfinite(away) & (away < facing)
@@ -248,11 +253,19 @@ def face_floors(points, normals, triangles, vertices, vertex_normals) -> np.ndar
     return floors
 
 
+@njit(inline="always")
+def blended_normal(normals, triangles, t, u, v):
+    """N(u, v) over sample triangle t: the blend of its samples' normals (not unit)."""
+    a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
+    na = vertex(normals, a)
+    return combine(na, u, minus(vertex(normals, b), na), v, minus(vertex(normals, c), na))
+
+
 @njit(cache=True, nogil=True)
-def _face_heights(points, normals, triangles, planes, vertices, vertex_normals, out):
+def _vertex_heights(points, normals, triangles, planes, vertices, vertex_normals, out):
     """out (S, 2): per sample triangle, the lowest height of the surface vertices it holds
-    (:func:`project_on_triangle`) that face its way (0 at least: its corners), and the
-    highest of those that face away (-inf if none)."""
+    (:func:`project_on_triangle`, as :func:`locate`) that face its way (0 at least: its
+    corners), and the highest of those that face away (-inf if none)."""
     count = triangles.shape[0] // 3
     uvh = np.zeros(3)
     for t in range(count):
@@ -263,16 +276,64 @@ def _face_heights(points, normals, triangles, planes, vertices, vertex_normals, 
             if not project_on_triangle(p, points, normals, triangles, planes, t, np.inf, uvh):
                 continue
             u, v, h = uvh[0], uvh[1], uvh[2]
-            if u < 0.0 or v < 0.0 or u + v > 1.0:
+            if u < -1e-12 or v < -1e-12 or u + v > 1.0 + 1e-12:
                 continue
-            a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
-            na = vertex(normals, a)
-            n = combine(na, u, minus(vertex(normals, b), na), v, minus(vertex(normals, c), na))
+            n = blended_normal(normals, triangles, t, u, v)
             turn = dot(n, vertex_normals[i]) / math.sqrt(dot(n, n))
             if turn >= FACING:
                 out[t, 0] = min(out[t, 0], h)
             elif turn <= -FACING:
                 out[t, 1] = max(out[t, 1], h)
+
+
+@njit(cache=True, nogil=True)
+def _exit_heights(points, normals, triangles, vertices, faces, m, away):
+    """away (S,): raised to the highest height at which a ray from the points (i/m, j/m)
+    of each sample triangle, down its blended normal, first meets a face turned away
+    (Moller-Trumbore; the height in :func:`project_on_triangle`'s units)."""
+    for t in range(triangles.shape[0] // 3):
+        a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
+        xa, xb, xc = vertex(points, a), vertex(points, b), vertex(points, c)
+        for i in range(m + 1):
+            for j in range(m + 1 - i):
+                u, v = i / m, j / m
+                x = combine(xa, u, minus(xb, xa), v, minus(xc, xa))
+                n = blended_normal(normals, triangles, t, u, v)
+                reach = _first_exit(x, n, vertices, faces)
+                if reach < np.inf:
+                    away[t] = max(away[t], -reach)
+
+
+@njit(inline="always")
+def _first_exit(x, n, vertices, faces):
+    """The smallest s > 0 at which x - s n crosses a face turned away from n (inf: none)."""
+    best = np.inf
+    nn = math.sqrt(dot(n, n))
+    for f in range(faces.shape[0]):
+        p0, p1, p2 = vertices[faces[f, 0]], vertices[faces[f, 1]], vertices[faces[f, 2]]
+        e1 = (p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2])
+        e2 = (p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2])
+        face_normal = cross(e1, e2)
+        area2 = math.sqrt(dot(face_normal, face_normal))
+        if dot(face_normal, n) > -FACING * area2 * nn:
+            continue  # not turned away: the ray does not leave the organ there
+        d = (-n[0], -n[1], -n[2])
+        q = cross(d, e2)
+        det = dot(e1, q)
+        if det == 0.0:
+            continue
+        r = (x[0] - p0[0], x[1] - p0[1], x[2] - p0[2])
+        beta = dot(r, q) / det
+        if beta < 0.0 or beta > 1.0:
+            continue
+        w = cross(r, e1)
+        gamma = dot(d, w) / det
+        if gamma < 0.0 or beta + gamma > 1.0:
+            continue
+        s = dot(e2, w) / det
+        if 0.0 < s < best:
+            best = s
+    return best
 
 
 def contact_table(points, normals, forces, slopes, triangles, records=None,

@@ -88,7 +88,7 @@ class ReducedModel:
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
         self.sample_floors = kernels.face_floors(
             self.sample_points, self.sample_normals, self.sample_triangles, self.vertices,
-            vertex_normals(self.vertices, self.triangles),
+            vertex_normals(self.vertices, self.triangles), self.triangles,
         )  # fmt: skip
         self.plan_origin, self.plan_axes, self.plan_points = plan_view(
             self.sample_points, self.sample_normals

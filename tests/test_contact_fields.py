@@ -215,3 +215,56 @@ def test_only_force_controlled_campaigns_get_fields(small_artifact):
     """A displacement-controlled campaign's depth is its rigid patch's, not the tool load's
     weighted mean that phi is per: no fields, and no compliance surface."""
     assert load(small_artifact).contact_fields is None
+
+
+def test_the_scalpel_cuts_a_compliance_surface_as_it_cuts_podi(force_campaign, mesh_dir, tmp_path):
+    """The same solves reduced again with a cuttable region: the scalpel pressed between
+    samples cuts, and the cut's field is added to the compliance surface as to PODI's (the
+    intact part scaled to the intact tissue's depth, the lips drawn apart): with the cut,
+    the two surfaces differ by that scaled difference of the intact ones, and the
+    compliance dent stays under the tool. Against the full order with the cut meshed:
+    bench/cutting_runtime_accuracy.py --interpolation compliance --untrained."""
+    from conftest import FORCE_CAMPAIGN, FORCE_TRAINING
+    from mpi4py import MPI
+
+    from hapticrom.offline.campaign.run import CampaignConfig
+    from hapticrom.offline.reduce.reduction import reduce_campaign
+
+    config, store, _ = force_campaign
+    points = np.round(np.asarray(FORCE_TRAINING, dtype=float), 6).tolist()
+    text = FORCE_CAMPAIGN.format(name="training", mesh=mesh_dir / "cornea-coarse.msh",
+                                 points=points)  # fmt: skip
+    point = np.array([1.3, 0.4, -7.8 + np.sqrt(7.8**2 - 1.3**2 - 0.4**2)])  # between samples
+    text += f"\n[cutting]\ncentre = {point.tolist()}\nradius = 2.0\ncut_force = 1e-4\n"
+    (tmp_path / "cut.toml").write_text(text)
+    reduce_campaign(store.root, tmp_path / "cut.h5", MPI.COMM_SELF, verbose=False,
+                    reduction=CampaignConfig.from_toml(tmp_path / "cut.toml"))  # fmt: skip
+    model = load(tmp_path / "cut.h5")
+    assert model.contact_fields is not None and model.cut_region is not None
+    where = model.vertices[np.argmin(np.linalg.norm(model.vertices - point, axis=1))]
+    sims = {name: Simulator(model, name) for name in ("compliance", "podi")}
+    intact = {name: Simulator(model, name) for name in ("compliance", "podi")}
+    blade = np.cross([0.0, 0.0, 1.0], where / np.linalg.norm(where))
+    out, force = {}, {}
+    for name, sim in sims.items():
+        sim.scalpel(where, blade)
+        n = sim.contact_normal.copy()
+        for depth in np.linspace(0.0, model.trained_depth, 9)[1:]:
+            force[name] = np.linalg.norm(sim.step_displacement(-depth * n))
+        assert sim.cut_events, "the scalpel did not cut"
+        intact[name].set_contact(where)
+        intact[name].step_displacement(-model.trained_depth * n)
+        out[name] = _surface_field(sim), _surface_field(intact[name])
+        vertices, _, lips = sim.lip_vertices
+        assert len(vertices) > 0 and np.abs(lips - out[name][0][vertices]).max() > 0
+    assert force["compliance"] == force["podi"]  # the surface does not change the force
+    cutting = sims["podi"].cutting
+    extra = force["podi"] * cutting.cuts.extra_compliance[cutting.vertex]  # mm, the cut's part
+    scale = 1.0 - extra / model.trained_depth
+    assert 0.0 < scale < 1.0
+    np.testing.assert_allclose(out["compliance"][0] - out["podi"][0],
+                               scale * (out["compliance"][1] - out["podi"][1]),
+                               atol=1e-12)  # fmt: skip
+    deepest = np.argmax(-out["compliance"][0] @ sims["compliance"].contact_normal)
+    edges = model.vertices[model.triangles] - model.vertices[np.roll(model.triangles, 1, axis=1)]
+    assert np.linalg.norm(model.vertices[deepest] - where) <= np.linalg.norm(edges, axis=2).max()

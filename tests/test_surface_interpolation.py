@@ -225,12 +225,29 @@ def slab():
     points = np.array([[-6.0, -6.0, 0.0], [6.0, -6.0, 0.0], [6.0, 6.0, 0.0], [-6.0, 6.0, 0.0]])
     normals = np.tile([0.0, 0.0, 1.0], (4, 1))
     triangles = np.array([[0, 1, 2], [0, 2, 3]])
-    floors = kernels.face_floors(points, normals, triangles, vertices, vertex_normals)
+    floors = kernels.face_floors(points, normals, triangles, vertices, vertex_normals,
+                                 np.zeros((0, 3), dtype=np.int64))  # fmt: skip
     return points, normals, triangles, floors
 
 
 def test_a_triangles_floor_lies_a_quarter_of_the_way_from_the_opposite_face(slab):
     assert slab[3] == pytest.approx([-0.75 * THICKNESS] * 2, abs=1e-12)
+
+
+def test_rays_find_the_opposite_face_where_no_vertex_lies_under_a_triangle(slab):
+    """The slab's faces as two triangles each, their vertices at the corners only (a mesh
+    coarser than the samples): no vertex lies under the sample triangles, the rays down
+    their normals meet the bottom face (turned away) and not the top one."""
+    points, normals, triangles, floors = slab
+    corners = np.array([[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]])
+    vertices = np.vstack([np.column_stack([corners, np.zeros(4)]),
+                          np.column_stack([corners, np.full(4, -THICKNESS)])])  # fmt: skip
+    vertex_normals = np.repeat([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]], 4, axis=0)
+    faces = np.array([[0, 1, 2], [0, 2, 3], [4, 6, 5], [4, 7, 6]])  # outward: up, down
+    coarse = kernels.face_floors(points, normals, triangles, vertices, vertex_normals, faces)
+    np.testing.assert_allclose(coarse, floors, atol=1e-12)
+    assert np.all(np.isinf(kernels.face_floors(points, normals, triangles, vertices,
+                                               vertex_normals, faces[:2])))  # fmt: skip
 
 
 def test_a_point_of_the_opposite_face_is_not_in_the_triangle_above_it(slab):
