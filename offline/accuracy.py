@@ -14,7 +14,10 @@ Held-out positions, inside the trained region and never a training position:
   surface node;
 - with a seed, surface nodes drawn at random (``numpy.random.default_rng(seed)``) among
   those of the tool's surface group that the runtime locates inside the samples'
-  triangulation on the surface.
+  triangulation on the surface;
+- ``softest``: the node of that region nearest each of the softest samples (least force
+  at the common depth grid's end): under force control the places that reach the trained
+  force deepest, where the runtime extrapolates in depth.
 
 Selection is numpy; the solves go through :func:`~hapticrom.offline.campaign.run.run_campaign`
 (its progress bar); the comparison uses the online runtime; output is a text table on
@@ -164,6 +167,26 @@ def random_positions(
     ]
 
 
+def softest_positions(samples: dict, surface: Surface, count: int) -> list[HeldOutPosition]:
+    """Up to ``count`` distinct nodes of the trained region, not training positions: the
+    nearest to each sample in the order of its force at the depth grid's end, least first."""
+    trained = trained_nodes(samples, surface)
+    region = np.array([int(n) for n in region_nodes(samples, surface) if int(n) not in trained])
+    force = np.asarray(samples["force"])[:, -1]
+    positions, taken = [], set()
+    for i in np.argsort(force, kind="stable") if len(region) else []:
+        gaps = np.linalg.norm(surface.nodes[region] - np.asarray(samples["points"])[i], axis=1)
+        node = int(region[np.argmin(gaps)])
+        if node in taken:
+            continue
+        taken.add(node)
+        why = f"nearest sample {i} ({force[i]:.3g} N at the grid's end, {gaps.min():.3g} mm away)"
+        positions.append(HeldOutPosition(tuple(float(c) for c in surface.nodes[node]), 0.0, why))
+        if len(positions) == count:
+            break
+    return positions
+
+
 # -- the plan (rank 0: the artifact and the mesh) -------------------------------------------
 def _mesh_file(model: str, info: dict) -> Path:
     """The mesh the model was trained on, checked against the digest the artifact records."""
@@ -184,7 +207,7 @@ def _mesh_file(model: str, info: dict) -> Path:
     return mesh
 
 
-def _plan(model: str, count: int, seed: int | None) -> HeldOutPlan:
+def _plan(model: str, count: int, seed: int | None, softest: bool = False) -> HeldOutPlan:
     from hapticrom.shared.artifact import read_artifact
 
     artifact = read_artifact(model)
@@ -193,7 +216,9 @@ def _plan(model: str, count: int, seed: int | None) -> HeldOutPlan:
         raise InputError(f"{model} does not record its training campaign: nothing to repeat")
     mesh = _mesh_file(model, info)
     surface = read_surface(mesh, info["surface_group"])
-    if seed is None:
+    if softest:
+        positions = softest_positions(samples, surface, count)
+    elif seed is None:
         positions = centroid_positions(samples, surface, count)
     else:
         positions = random_positions(samples, surface, count, seed)
@@ -204,18 +229,20 @@ def _plan(model: str, count: int, seed: int | None) -> HeldOutPlan:
     campaign["positions"] = {"points": [list(p.point) for p in positions]}
     campaign.setdefault("campaign", {})["name"] = "held-out"
     campaign["mesh"]["file"] = str(mesh)
-    method = "centroids" if seed is None else "random"
+    method = "softest" if softest else "centroids" if seed is None else "random"
     return HeldOutPlan(str(model), campaign, positions, method, seed, count)
 
 
-def plan_held_out(model: str, count: int, seed: int | None = None, comm=MPI.COMM_WORLD):
+def plan_held_out(model: str, count: int, seed: int | None = None, comm=MPI.COMM_WORLD,
+                  softest: bool = False):  # fmt: skip
     """The held-out positions of ``model`` (rank 0 reads; every rank gets the plan)."""
-    return on_rank_zero(comm, _plan, str(model), count, seed)
+    return on_rank_zero(comm, _plan, str(model), count, seed, softest)
 
 
-def default_work(model: str | Path, count: int, seed: int | None) -> Path:
-    """MODEL.heldout-N (centroids) or MODEL.heldout-N-seedS: one directory per selection."""
-    tag = f"{count}" if seed is None else f"{count}-seed{seed}"
+def default_work(model: str | Path, count: int, seed: int | None, softest: bool = False) -> Path:
+    """MODEL.heldout-N (centroids), MODEL.heldout-N-seedS or MODEL.heldout-N-softest: one
+    directory per selection."""
+    tag = f"{count}-softest" if softest else f"{count}" if seed is None else f"{count}-seed{seed}"
     return Path(model).with_suffix(f".heldout-{tag}")
 
 
@@ -329,9 +356,10 @@ def force_error(step: Step, name: str) -> float:
 
 
 def summarise(steps: list[Step], names: list[str]) -> dict[str, dict]:
-    """Per combination, over the steps within its trained depth (the others are counted):
-    the largest force and field errors with their targets and verdicts, the largest error
-    of the dent under the tool and the farthest its deepest node lies from the tool (mm).
+    """Per combination, over the steps within its trained depth (the others are counted, and
+    their largest force and field errors given apart): the largest force and field errors
+    with their targets and verdicts, the largest error of the dent under the tool and the
+    farthest its deepest node lies from the tool (mm).
     The deepest node is "within one element" where it is within one element of the tool or
     of the full order's own deepest node: pressed near the liver's thin border, the whole
     lobe swings and the full order's deepest node lies tens of millimetres away."""
@@ -342,8 +370,13 @@ def summarise(steps: list[Step], names: list[str]) -> dict[str, dict]:
             "force": [force_error(s, name) for s in within],
             "field": [s.field[name] for s in within],
         }
+        beyond = [s for s in steps if s.beyond.get(name, False)]
         entry = {
-            "steps_beyond_trained_depth": len(steps) - len(within),
+            "steps_beyond_trained_depth": len(beyond),
+            # the extrapolated steps apart: the force continued with the end slope, the
+            # field's coordinates linearly (a soft place reaches the trained force deeper)
+            "max_force_error_beyond": _nanmax([force_error(s, name) for s in beyond]),
+            "max_field_error_beyond": _nanmax([s.field[name] for s in beyond]),
             "max_dent_error": _nanmax([s.dent.get(name, np.nan) for s in within]),
             "max_deepest_distance_mm": _nanmax([s.deepest.get(name, np.nan) for s in within]),
             "max_deepest_fem_mm": _nanmax([s.deepest_fem for s in within]),
@@ -407,6 +440,8 @@ def positions_text(plan: HeldOutPlan) -> str:
             "centroids of sample triangles, snapped to the nearest surface node of the trained "
             "region; 'snap moved': from the centroid to the node, in plan view"
         )
+    elif plan.method == "softest":
+        how = "the trained region's nodes nearest the softest samples"
     else:
         how = f"random surface nodes of the trained region, seed {plan.seed}"
     lines = [
@@ -485,21 +520,26 @@ def summary_text(result: AccuracyResult) -> str:
     lines += [f"  {q}: {meaning}" for q, meaning in QUANTITIES.items()]
     lines.append(
         f"\n{'combination':<18} {'dent under tool':>15} {'deepest node from tool':>23}"
-        f" {'steps beyond trained depth (left out)':>38}"
+        f" {'beyond trained depth: steps, force, field':>42}"
     )
     for name, s in result.summary.items():
         where = "within one element" if s["deepest_within_one_element"] else "beyond one element"
+        beyond = f"{s['steps_beyond_trained_depth']:>12d}"
+        if s["steps_beyond_trained_depth"]:
+            beyond += (f" {100 * s['max_force_error_beyond']:8.2f} %"
+                       f" {100 * s['max_field_error_beyond']:7.2f} %")  # fmt: skip
         lines.append(
             f"{name:<18} {100 * s['max_dent_error']:13.2f} % "
-            f"{s['max_deepest_distance_mm']:8.3f} mm ({where}) "
-            f"{s['steps_beyond_trained_depth']:>12d}"
+            f"{s['max_deepest_distance_mm']:8.3f} mm ({where}) {beyond}"
         )
     lines.append(
         "  dent under tool: max relative error of the normal displacement of the surface node "
         "at the tool; deepest node: the farthest, over the steps, that the rendered dent's "
         "deepest surface node lies from the tool (the full order's own: "
         f"{_nanmax([s['max_deepest_fem_mm'] for s in result.summary.values()]):.3f} mm); "
-        "within one element: of the tool or of the full order's deepest node, at every step"
+        "within one element: of the tool or of the full order's deepest node, at every step; "
+        "beyond trained depth: the steps the runtime extrapolates in depth, left out above, "
+        "and their largest errors"
     )
     lines.append(
         "  verdicts are information: a missed target says where the model is not to be "

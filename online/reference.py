@@ -242,21 +242,31 @@ class NumpySimulator:
                 )
                 force += slope * (depth - end)
             total += w * force
-            found.append((z, a))
+            found.append((z, a, beyond))
         return total, found
+
+    def _coordinates(self, z: int, a: float, beyond: bool) -> np.ndarray:
+        """A section's reduced coordinates at a; beyond its end, continued along the series'
+        tangent: c(a_max) + (depth - end) dc/da / (d depth/da)."""
+        P = np.polynomial.polynomial
+        c = P.polyval(a, self.coefficient_series[z])
+        if beyond:
+            rate = 1.0 / P.polyval(a, P.polyder(self.depth_series[z]))  # da / d depth
+            end = P.polyval(a, self.depth_series[z])
+            c = c + (self.depth - end) * rate * P.polyval(a, P.polyder(self.coefficient_series[z]))
+        return c
 
     def surface_displacement(self) -> np.ndarray:
         """The surface vertices' displacement (V, 3), mm, at the last step's depth."""
         m = self.model
         if self.response == "anm":
             _, found = self._anm(self.depth)
-            P = np.polynomial.polynomial
             fields = [
-                m.surface_basis[i].astype(float) @ P.polyval(a, self.coefficient_series[z])
-                for i, (z, a) in zip(self.vertices, found, strict=True)
+                m.surface_basis[i].astype(float) @ self._coordinates(z, a, beyond)
+                for i, (z, a, beyond) in zip(self.vertices, found, strict=True)
             ]
             return (self.weights @ np.array(fields)).reshape(-1, 3)
-        x = min(self.depth / m.depth_step, m.coefficients.shape[1] - 1)
+        x = max(self.depth / m.depth_step, 0.0)  # beyond the last knot: continued linearly
         k = min(int(x), m.coefficients.shape[1] - 2)
         t = x - k
         coefficients = (1 - t) * m.coefficients[self.vertices, k] + t * m.coefficients[

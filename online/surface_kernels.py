@@ -33,9 +33,9 @@ from hapticrom.online.kernels import (
     anm_layout,
     anm_section,
     axpy,
-    depth_weights,
     f8_1d,
     f8_2d,
+    field_depth_weights,
     ro_f4_3d,
     ro_f8_3d,
     ro_i8_1d,
@@ -47,8 +47,8 @@ from hapticrom.online.proxy import closest_on_triangle
 @njit(f"void({f8_1d}, {ro_f8_3d}, {f8_2d})", cache=True, nogil=True)
 def curves_coefficients(buf, coefficients, out):
     """out[j] = c_i(depth) of neighbour j (i = buf[SAMPLES + j]), linear between the stored
-    depth knots of ``coefficients`` (P, K, n)."""
-    k, a, b = depth_weights(buf[DEPTH], buf[STEP], coefficients.shape[1] - 1)
+    depth knots of ``coefficients`` (P, K, n), and beyond the last (:func:`field_depth_weights`)."""
+    k, a, b = field_depth_weights(buf[DEPTH], buf[STEP], coefficients.shape[1] - 1)
     for j in range(3):
         i = int(buf[SAMPLES + j])
         for m in range(out.shape[1]):
@@ -58,18 +58,22 @@ def curves_coefficients(buf, coefficients, out):
 @njit(f"void({f8_1d}, {ro_i8_1d}, {ro_f8_3d}, {f8_2d})", cache=True, nogil=True)
 def anm_coefficients(buf, offsets, series, out):
     """out[j] = the POD-ANM series of neighbour j at the last step's depth: at its section
-    and path parameter there (``series`` (Z, N1, n), Horner in a)."""
+    and path parameter there (``series`` (Z, N1, n), Horner in a); beyond its last section,
+    continued along the series' tangent at a_max (the series is not evaluated past the
+    range where it holds)."""
     base, n1, _, block = anm_layout(buf)
     for j in range(3):
         b = base + j * block
         i = int(buf[SAMPLES + j])
-        section, a = anm_section(buf, b, buf[DEPTH])
+        section, a, beyond = anm_section(buf, b, buf[DEPTH])
         row = offsets[i] + section
         for m in range(out.shape[1]):
-            acc = 0.0
+            acc = slope = 0.0
             for k in range(n1 - 1, -1, -1):
                 acc = acc * a + series[row, k, m]
-            out[j, m] = acc
+                if k > 0:
+                    slope = slope * a + k * series[row, k, m]
+            out[j, m] = acc + beyond * slope
 
 
 # -- PODI: the fields blended where they were trained ---------------------------------------

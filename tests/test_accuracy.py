@@ -85,6 +85,28 @@ def test_centroids_snap_to_region_nodes_and_say_how_far(small_artifact):
     assert accuracy.centroid_positions(samples, surface, 8) == positions  # deterministic
 
 
+@pytest.mark.serial
+def test_softest_gives_the_region_nodes_nearest_the_softest_samples(small_artifact, tmp_path):
+    """Brute force: for the samples by increasing force at the grid's end, the nearest
+    untrained node of the region, each node once; the plan and its work directory say so."""
+    samples, surface = model_surface(small_artifact)
+    candidates = sorted(set(accuracy.region_nodes(samples, surface).tolist())
+                        - accuracy.trained_nodes(samples, surface))  # fmt: skip
+    expected = []
+    for i in np.argsort(np.asarray(samples["force"])[:, -1], kind="stable"):
+        d = [np.linalg.norm(surface.nodes[n] - samples["points"][i]) for n in candidates]
+        node = candidates[int(np.argmin(d))]
+        if node not in expected:
+            expected.append(node)
+    positions = accuracy.softest_positions(samples, surface, 3)
+    assert [node_index(surface, p.point) for p in positions] == expected[:3]
+    plan = accuracy.plan_held_out(small_artifact, 3, comm=MPI.COMM_SELF, softest=True)
+    assert plan.method == "softest" and plan.positions == positions
+    assert accuracy.default_work(tmp_path / "m.h5", 3, None, softest=True).name == (
+        "m.heldout-3-softest"
+    )
+
+
 # -- errors against the full order -----------------------------------------------------------
 @pytest.mark.serial
 def test_errors_are_against_a_full_order_solve(small_artifact, tmp_path):

@@ -137,15 +137,21 @@ def test_the_table_is_the_series_at_its_knots(samples):
 
 
 def test_the_surface_reads_each_neighbours_section_and_a(samples):
-    """`anm_section` (what the surface field evaluates the series at) against the roots."""
+    """`anm_section` (what the surface field evaluates the series at) against the roots;
+    beyond the last section, how far a goes on along the exact end slope 1 / depth'(a_max)."""
+    dc, _, a_max, _, offsets = samples
     buf = _buffer(samples)
     base, _, _, block = k.anm_layout(buf)
     for d in RNG.uniform(0.0, 1.2 * samples[3][-1, k.REC_DEPTH_END], 200):
         for j in range(3):
-            s, a = k.anm_section(buf, base + j * block, d)
+            s, a, beyond = k.anm_section(buf, base + j * block, d)
             _, _, s_exact, a_exact = _exact(samples, j, d)
             assert s == s_exact
             assert a == pytest.approx(a_exact, abs=1e-11)
+            z = offsets[j + 1] - 1  # the last section
+            end = P.polyval(a_max[z], dc[z])
+            rate = 1.0 / P.polyval(a_max[z], P.polyder(dc[z]))
+            assert beyond == pytest.approx(max(d - end, 0.0) * rate, rel=1e-9, abs=1e-15)
 
 
 def test_a_moved_contact_copies_only_the_records_it_lacks(samples):

@@ -402,6 +402,7 @@ def test_reduce_onto_a_full_disk_leaves_nothing_behind(
         (["--positions", "many"], "argument --positions: expected an integer, got 'many'"),
         (["--seed", "-1"], "argument --seed: must lie in [0, 4,294,967,295], got -1"),
         (["--seed", "1.5"], "argument --seed: expected an integer, got '1.5'"),
+        (["--seed", "1", "--softest"], "argument --softest: not allowed with argument --seed"),
     ],
 )
 def test_accuracy_numbers_are_bounded(small_artifact, tmp_path, capsys, monkeypatch, args, message):

@@ -268,3 +268,32 @@ def test_the_scalpel_cuts_a_compliance_surface_as_it_cuts_podi(force_campaign, m
     deepest = np.argmax(-out["compliance"][0] @ sims["compliance"].contact_normal)
     edges = model.vertices[model.triangles] - model.vertices[np.roll(model.triangles, 1, axis=1)]
     assert np.linalg.norm(model.vertices[deepest] - where) <= np.linalg.norm(edges, axis=2).max()
+
+
+def test_beyond_the_trained_depth_the_field_follows_the_tool(model, force_campaign):
+    """A held-out place softer than the stiffest sample reaches the trained force deeper
+    than the common depth grid: there the field's coordinates go on linearly, and the
+    surface is nearer the full order than the field held at the last knot, what the
+    runtime drew before (on the liver 45-68 % off at up to 2.2 mm, 0.3-1.3 % now)."""
+    _, _, held_out = force_campaign
+    nodes = model.artifact["surface"]["nodes"]
+    continued, held = [], []
+    for i in held_out.completed():
+        data, attrs = held_out.read_position(i)
+        point, push = np.asarray(attrs["point"]), np.asarray(attrs["direction"])
+        sim, last_knot = Simulator(model, "compliance"), Simulator(model, "compliance")
+        sim.set_contact(point)
+        last_knot.set_contact(point)
+        for u, c in zip(data["displacement"], data["contact_displacement"], strict=True):
+            depth = float(c @ push)
+            if depth <= 1.05 * model.trained_depth:
+                continue
+            sim.step_displacement(-depth * sim.contact_normal)
+            last_knot.step_displacement(-model.trained_depth * sim.contact_normal)
+            exact = u.reshape(-1, 3)[nodes]
+            scale = np.linalg.norm(exact)
+            continued.append(np.linalg.norm(_surface_field(sim) - exact) / scale)
+            held.append(np.linalg.norm(_surface_field(last_knot) - exact) / scale)
+    assert len(continued) >= 1, "no held-out step beyond the trained depth"
+    # measured: 5.7 and 5.3 % against 11.3 and 9.8 % held, at 1.10 and 1.08 trained depths
+    assert np.all(np.array(continued) < 0.6 * np.array(held)), (continued, held)

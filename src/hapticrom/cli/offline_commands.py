@@ -404,8 +404,8 @@ def cmd_accuracy(args, petsc) -> int:
     from hapticrom.offline.accuracy import default_work, plan_held_out
 
     json_path = check_out_file(args.json, f"accuracy --json {args.json}") if args.json else None
-    plan = plan_held_out(args.model, args.positions, args.seed)  # the model, its mesh
-    work = args.work or str(default_work(args.model, args.positions, args.seed))
+    plan = plan_held_out(args.model, args.positions, args.seed, softest=args.softest)
+    work = args.work or str(default_work(args.model, args.positions, args.seed, args.softest))
     work = check_campaign_dir(work, f"accuracy --work {work}", args.restart)
     petsc.start()
     from hapticrom.offline.accuracy import run_accuracy
@@ -443,18 +443,25 @@ def add_accuracy(sub) -> None:
         f"held-out positions, one full-order solve each (default {DEFAULT_HELD_OUT}, "
         f"at most {MAX_HELD_OUT:,})",
     )
-    p.add_argument(
+    where = p.add_mutually_exclusive_group()
+    where.add_argument(
         "--seed",
         type=int_in(0, 2**32 - 1),
         metavar="S",
         help="random surface nodes of the trained region, reproducible from S "
         "(default: centroids of the sample triangles, snapped to surface nodes)",
     )
+    where.add_argument(
+        "--softest",
+        action="store_true",
+        help="the trained region's nodes nearest the softest samples: where a force-"
+        "controlled model reaches the trained force deepest and extrapolates in depth",
+    )
     p.add_argument(
         "--work",
         metavar="DIR",
         help="held-out campaign directory, resumed if it exists "
-        "(default: MODEL with suffix .heldout-N or .heldout-N-seedS)",
+        "(default: MODEL with suffix .heldout-N, .heldout-N-seedS or .heldout-N-softest)",
     )
     p.add_argument("--restart", action="store_true", help="discard what the work directory holds")
     p.add_argument(
