@@ -193,6 +193,7 @@ PLANE_FLOOR = 13  # ... and its floor: the lowest height (mm, along the normals)
 FACING = math.cos(math.radians(75.0))  # a surface vertex faces a triangle's way (or away) beyond
 FLOOR_MARGIN = 0.25  # a floor's place from the opposite face to the triangle's own (face_floors)
 FLOOR_RAYS = 4  # face_floors' rays per sample triangle: (4 + 1)(4 + 2) / 2 = 15
+FLOOR_WORK = 20_000_000  # face_floors' projections, and ray-face tests, at most (a second or so)
 
 
 def triangle_planes(points, triangles, floors=None) -> np.ndarray:
@@ -238,12 +239,22 @@ def face_floors(points, normals, triangles, vertices, vertex_normals, faces) -> 
     faces = np.asarray(faces, dtype=np.int64)
     if faces.shape[1] == 4:  # quadrilaterals: two triangles each
         faces = np.vstack([faces[:, [0, 1, 2]], faces[:, [0, 2, 3]]])
+    faces = np.ascontiguousarray(faces)
     flat = [np.ravel(np.asarray(a, dtype=np.float64)) for a in (points, normals, triangles)]
-    planes = np.ravel(triangle_planes(points, triangles))
+    planes = triangle_planes(points, triangles)
+    # Each triangle looks only at what lies in its box: its corners +- its longest edge (no
+    # point farther from it is in it, :func:`project_on_triangle`), within a budget.
+    corners = np.asarray(points, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
+    reach = np.sqrt(planes[:, 12])[:, None]
+    lo, hi = corners.min(axis=1) - reach, corners.max(axis=1) + reach
+    near = in_boxes(v, v, lo, hi, FLOOR_WORK, "surface vertices")
+    corners = v[faces] if len(faces) else np.zeros((0, 3, 3))
+    crossed = in_boxes(corners.min(axis=1), corners.max(axis=1), lo, hi,
+                       FLOOR_WORK // _rays(FLOOR_RAYS), "surface faces")  # fmt: skip
     heights = np.zeros((len(triangles), 2))
-    _vertex_heights(*flat, planes, v, np.ascontiguousarray(vertex_normals, dtype=np.float64),
-                    heights)  # fmt: skip
-    _exit_heights(*flat, v, np.ascontiguousarray(faces), FLOOR_RAYS, heights[:, 1])
+    unit = np.ascontiguousarray(vertex_normals, dtype=np.float64)
+    _vertex_heights(*flat, np.ravel(planes), v, unit, *near, heights)
+    _exit_heights(*flat, v, faces, *crossed, FLOOR_RAYS, heights[:, 1])
     facing, away = heights[:, 0], heights[:, 1]
     floors = np.full(len(facing), -np.inf)
     below = np.isfinite(away) & (away < facing)
@@ -251,6 +262,39 @@ def face_floors(points, normals, triangles, vertices, vertex_normals, faces) -> 
     folded = np.isfinite(away) & (away >= facing)  # a face turned away above it: a fold
     floors[folded] = facing[folded]
     return floors
+
+
+def _rays(m: int) -> int:
+    """The rays :func:`_exit_heights` casts per triangle: its points (i/m, j/m)."""
+    return (m + 1) * (m + 2) // 2
+
+
+def in_boxes(item_lo, item_hi, lo, hi, budget: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(starts (S + 1,), ids): for each box [lo[t], hi[t]] (S, 3), the items whose own box
+    [item_lo, item_hi] (N, 3) meets it (CSR). The items sorted by their lower x bound,
+    each box scans those whose bound falls within its x range widened by the widest item;
+    more than ``budget`` scanned in all raises ValueError (naming ``what``, plural) before
+    any is."""
+    item_lo, item_hi = np.asarray(item_lo, dtype=np.float64), np.asarray(item_hi, dtype=np.float64)
+    order = np.argsort(item_lo[:, 0], kind="stable")
+    keys = item_lo[order, 0]
+    width = float(np.max(item_hi[:, 0] - item_lo[:, 0])) if len(keys) else 0.0
+    first = np.searchsorted(keys, lo[:, 0] - width, side="left")
+    last = np.searchsorted(keys, hi[:, 0], side="right")
+    scanned = int(np.sum(last - first))
+    if scanned > budget:
+        raise ValueError(
+            f"the sample triangles' boxes hold {scanned:,} {what} in all, more than the "
+            f"{budget:,} the triangles' floors may look at (overlapping or oversized triangles)"
+        )
+    ids, starts = [], [0]
+    for t in range(len(lo)):
+        cand = order[first[t] : last[t]]
+        meets = np.all((item_lo[cand] <= hi[t]) & (item_hi[cand] >= lo[t]), axis=1)
+        ids.append(cand[meets])
+        starts.append(starts[-1] + int(meets.sum()))
+    ids = np.concatenate(ids) if ids else np.zeros(0, dtype=np.int64)
+    return np.asarray(starts, dtype=np.int64), ids.astype(np.int64)
 
 
 @njit(inline="always")
@@ -262,17 +306,20 @@ def blended_normal(normals, triangles, t, u, v):
 
 
 @njit(cache=True, nogil=True)
-def _vertex_heights(points, normals, triangles, planes, vertices, vertex_normals, out):
+def _vertex_heights(points, normals, triangles, planes, vertices, vertex_normals, starts, ids,
+                    out):  # fmt: skip
     """out (S, 2): per sample triangle, the lowest height of the surface vertices it holds
     (:func:`project_on_triangle`, as :func:`locate`) that face its way (0 at least: its
-    corners), and the highest of those that face away (-inf if none)."""
+    corners), and the highest of those that face away (-inf if none); triangle t looks at
+    the vertices ids[starts[t]:starts[t + 1]] (:func:`in_boxes`)."""
     count = triangles.shape[0] // 3
     uvh = np.zeros(3)
     for t in range(count):
         out[t, 0], out[t, 1] = 0.0, -np.inf
-    for i in range(vertices.shape[0]):
-        p = vertices[i]
-        for t in range(count):
+    for t in range(count):
+        for k in range(starts[t], starts[t + 1]):
+            i = ids[k]
+            p = vertices[i]
             if not project_on_triangle(p, points, normals, triangles, planes, t, np.inf, uvh):
                 continue
             u, v, h = uvh[0], uvh[1], uvh[2]
@@ -287,10 +334,11 @@ def _vertex_heights(points, normals, triangles, planes, vertices, vertex_normals
 
 
 @njit(cache=True, nogil=True)
-def _exit_heights(points, normals, triangles, vertices, faces, m, away):
+def _exit_heights(points, normals, triangles, vertices, faces, starts, ids, m, away):
     """away (S,): raised to the highest height at which a ray from the points (i/m, j/m)
     of each sample triangle, down its blended normal, first meets a face turned away
-    (Moller-Trumbore; the height in :func:`project_on_triangle`'s units)."""
+    (Moller-Trumbore; the height in :func:`project_on_triangle`'s units), of the faces
+    ids[starts[t]:starts[t + 1]] (:func:`in_boxes`)."""
     for t in range(triangles.shape[0] // 3):
         a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
         xa, xb, xc = vertex(points, a), vertex(points, b), vertex(points, c)
@@ -299,17 +347,18 @@ def _exit_heights(points, normals, triangles, vertices, faces, m, away):
                 u, v = i / m, j / m
                 x = combine(xa, u, minus(xb, xa), v, minus(xc, xa))
                 n = blended_normal(normals, triangles, t, u, v)
-                reach = _first_exit(x, n, vertices, faces)
+                reach = _first_exit(x, n, vertices, faces, ids[starts[t] : starts[t + 1]])
                 if reach < np.inf:
                     away[t] = max(away[t], -reach)
 
 
 @njit(inline="always")
-def _first_exit(x, n, vertices, faces):
-    """The smallest s > 0 at which x - s n crosses a face turned away from n (inf: none)."""
+def _first_exit(x, n, vertices, faces, candidates):
+    """The smallest s > 0 at which x - s n crosses one of the ``candidates`` faces turned
+    away from n (inf: none)."""
     best = np.inf
     nn = math.sqrt(dot(n, n))
-    for f in range(faces.shape[0]):
+    for f in candidates:
         p0, p1, p2 = vertices[faces[f, 0]], vertices[faces[f, 1]], vertices[faces[f, 2]]
         e1 = (p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2])
         e2 = (p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2])

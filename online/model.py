@@ -86,10 +86,13 @@ class ReducedModel:
         from hapticrom.online import kernels
 
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
-        self.sample_floors = kernels.face_floors(
-            self.sample_points, self.sample_normals, self.sample_triangles, self.vertices,
-            vertex_normals(self.vertices, self.triangles), self.triangles,
-        )  # fmt: skip
+        try:
+            self.sample_floors = kernels.face_floors(
+                self.sample_points, self.sample_normals, self.sample_triangles, self.vertices,
+                vertex_normals(self.vertices, self.triangles), self.triangles,
+            )  # fmt: skip
+        except ValueError as error:  # a crafted surface or triangulation: too much work
+            raise ArtifactError(f"{self.path}: {error}") from None
         self.plan_origin, self.plan_axes, self.plan_points = plan_view(
             self.sample_points, self.sample_normals
         )

@@ -287,3 +287,30 @@ def test_the_reference_locates_with_the_same_floors(slab):
         assert outside == (flag == kernels.FLAG_OUTSIDE_REGION) == (z < -0.75 * THICKNESS)
         assert np.allclose(np.bincount(samples, weights, 4),
                            np.bincount(ref_samples, ref_weights, 4), atol=1e-9)  # fmt: skip
+
+
+def test_in_boxes_finds_what_brute_force_finds():
+    rng = np.random.default_rng(3)
+    lo_items = rng.uniform(-10, 10, (300, 3))
+    hi_items = lo_items + rng.uniform(0, 3, (300, 3))
+    lo = rng.uniform(-10, 10, (40, 3))
+    hi = lo + rng.uniform(0, 6, (40, 3))
+    starts, ids = kernels.in_boxes(lo_items, hi_items, lo, hi, 10**6, "items")
+    for t in range(len(lo)):
+        meets = np.all((lo_items <= hi[t]) & (hi_items >= lo[t]), axis=1)
+        assert sorted(ids[starts[t] : starts[t + 1]].tolist()) == np.flatnonzero(meets).tolist()
+
+
+def test_a_surface_too_large_for_the_floors_is_refused_by_name(small_artifact, monkeypatch):
+    """The floors' work is bounded before it starts (a crafted file of huge overlapping
+    triangles would otherwise hold the load for hours): over the budget, the load is
+    refused, naming why."""
+    import hapticrom.online as online
+    from hapticrom.shared.errors import ArtifactError
+
+    with pytest.raises(ValueError, match="more than the 5 the triangles' floors may look at"):
+        kernels.in_boxes(np.zeros((9, 3)), np.ones((9, 3)), np.zeros((2, 3)), np.ones((2, 3)), 5,
+                         "items")  # fmt: skip
+    monkeypatch.setattr(kernels, "FLOOR_WORK", 10)
+    with pytest.raises(ArtifactError, match="hold [0-9,]+ surface vertices in all, more than"):
+        online.load(small_artifact)
