@@ -193,7 +193,8 @@ PLANE_FLOOR = 13  # ... and its floor: the lowest height (mm, along the normals)
 FACING = math.cos(math.radians(75.0))  # a surface vertex faces a triangle's way (or away) beyond
 FLOOR_MARGIN = 0.25  # a floor's place from the opposite face to the triangle's own (face_floors)
 FLOOR_RAYS = 4  # face_floors' rays per sample triangle: (4 + 1)(4 + 2) / 2 = 15
-FLOOR_WORK = 20_000_000  # face_floors' projections, and ray-face tests, at most (a second or so)
+FLOOR_WORK = 10_000_000  # face_floors' projections and ray-face tests at most (2-3 s at worst)
+FLOOR_SCAN = 50_000_000  # ... and the box tests that find them (numpy, about as long)
 
 
 def triangle_planes(points, triangles, floors=None) -> np.ndarray:
@@ -224,17 +225,22 @@ def face_floors(points, normals, triangles, vertices, vertex_normals, faces) -> 
     of the opposite face (a liver's lower face under its upper one, a cornea's posterior
     under its anterior): without a floor a tool on that face got the other face's
     response. The floor lies a quarter of the way from the opposite face's highest point
-    under the triangle to the lowest surface vertex in it that faces its way (within 75
-    degrees of the blended normal): the opposite face and the tissue just above it are not
-    in the triangle, the rest of the tissue is. Not halfway: a contact point given a little
-    inside a thin organ (a tool's tip pressed into a 0.55 mm cornea, a chord across its
-    samples) must stay in. The opposite face under the triangle: its vertices there (normal
-    over 105 degrees from the blended normal) and where rays from a lattice of the
-    triangle's points, down its blended normals, leave the organ (a face turned away);
-    the rays find it where the mesh is too coarse for a vertex to lie under a small
-    triangle. None: minus infinity (the longest edge bounds it, :func:`triangle_planes`).
-    ``vertices``, ``vertex_normals`` (V, 3): the organ's surface vertices and their outward
-    unit normals; ``faces`` (F, 3 or 4): its outward faces, vertex indices."""
+    under the triangle to its own face's lowest point above that: the opposite face and
+    the tissue just above it are not in the triangle, the rest of the tissue is. Not
+    halfway: a contact point given a little inside a thin organ (a tool's tip pressed into
+    a 0.55 mm cornea, a chord across its samples) must stay in.
+
+    The faces under the triangle: its surface vertices there (normal within 75 degrees of
+    the blended normal: its own face; over 105: the opposite one) and, along rays from 15
+    points of the triangle down its blended normals, the first face turned away (where the
+    ray leaves the organ) and a face turned its way crossed before it (a concave stretch
+    below the chord), since on a mesh coarser than the samples no vertex may lie under a
+    small triangle. Only what lies above the opposite face counts as its own face (a
+    deeper layer of the organ does not). No opposite face: minus infinity (the longest edge
+    bounds it, :func:`triangle_planes`). ``vertices``, ``vertex_normals`` (V, 3): the
+    organ's surface vertices and their outward unit normals; ``faces`` (F, 3 or 4): its
+    outward faces, vertex indices. Refused (ValueError) if the triangles' boxes hold more
+    than FLOOR_WORK projections and ray tests."""
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     if faces.shape[1] == 4:  # quadrilaterals: two triangles each
@@ -247,14 +253,22 @@ def face_floors(points, normals, triangles, vertices, vertex_normals, faces) -> 
     corners = np.asarray(points, dtype=np.float64)[np.asarray(triangles, dtype=np.int64)]
     reach = np.sqrt(planes[:, 12])[:, None]
     lo, hi = corners.min(axis=1) - reach, corners.max(axis=1) + reach
-    near = in_boxes(v, v, lo, hi, FLOOR_WORK, "surface vertices")
+    near = in_boxes(v, v, lo, hi, "surface vertices")
     corners = v[faces] if len(faces) else np.zeros((0, 3, 3))
-    crossed = in_boxes(corners.min(axis=1), corners.max(axis=1), lo, hi,
-                       FLOOR_WORK // _rays(FLOOR_RAYS), "surface faces")  # fmt: skip
-    heights = np.zeros((len(triangles), 2))
+    crossed = in_boxes(corners.min(axis=1), corners.max(axis=1), lo, hi, "surface faces")
+    work = len(near[1]) + _rays(FLOOR_RAYS) * len(crossed[1])
+    if work > FLOOR_WORK:
+        raise ValueError(
+            f"the sample triangles' floors would take {work:,} projections and ray tests, more "
+            f"than {FLOOR_WORK:,} ({len(near[1]):,} surface vertices and {len(crossed[1]):,} "
+            "faces in the triangles' boxes: overlapping or oversized triangles)"
+        )
+    heights = np.zeros((len(triangles), 2))  # the own face's lowest, the opposite's highest
+    heights[:, 0], heights[:, 1] = 0.0, -np.inf  # the corners are on the own face
+    _ray_heights(*flat, v, faces, *crossed, FLOOR_RAYS, heights)
+    scratch = np.zeros((len(near[1]), 2))
     unit = np.ascontiguousarray(vertex_normals, dtype=np.float64)
-    _vertex_heights(*flat, np.ravel(planes), v, unit, *near, heights)
-    _exit_heights(*flat, v, faces, *crossed, FLOOR_RAYS, heights[:, 1])
+    _vertex_heights(*flat, np.ravel(planes), v, unit, *near, scratch, heights)
     facing, away = heights[:, 0], heights[:, 1]
     floors = np.full(len(facing), -np.inf)
     below = np.isfinite(away) & (away < facing)
@@ -265,27 +279,27 @@ def face_floors(points, normals, triangles, vertices, vertex_normals, faces) -> 
 
 
 def _rays(m: int) -> int:
-    """The rays :func:`_exit_heights` casts per triangle: its points (i/m, j/m)."""
+    """The rays :func:`_ray_heights` casts per triangle: its points (i/m, j/m)."""
     return (m + 1) * (m + 2) // 2
 
 
-def in_boxes(item_lo, item_hi, lo, hi, budget: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+def in_boxes(item_lo, item_hi, lo, hi, what: str) -> tuple[np.ndarray, np.ndarray]:
     """(starts (S + 1,), ids): for each box [lo[t], hi[t]] (S, 3), the items whose own box
-    [item_lo, item_hi] (N, 3) meets it (CSR). The items sorted by their lower x bound,
-    each box scans those whose bound falls within its x range widened by the widest item;
-    more than ``budget`` scanned in all raises ValueError (naming ``what``, plural) before
-    any is."""
+    [item_lo, item_hi] (N, 3) meets it (CSR). The items sorted by their lower x bound, each
+    box scans those whose bound falls within its x range widened by the widest item, with
+    numpy; if that scan (counted first, with a thousand a box for its own overhead) would
+    pass FLOOR_SCAN, ValueError (naming ``what``, plural) before any is done."""
     item_lo, item_hi = np.asarray(item_lo, dtype=np.float64), np.asarray(item_hi, dtype=np.float64)
     order = np.argsort(item_lo[:, 0], kind="stable")
     keys = item_lo[order, 0]
     width = float(np.max(item_hi[:, 0] - item_lo[:, 0])) if len(keys) else 0.0
     first = np.searchsorted(keys, lo[:, 0] - width, side="left")
     last = np.searchsorted(keys, hi[:, 0], side="right")
-    scanned = int(np.sum(last - first))
-    if scanned > budget:
+    scanned = int(np.sum(last - first)) + 1000 * len(lo)
+    if scanned > FLOOR_SCAN:
         raise ValueError(
-            f"the sample triangles' boxes hold {scanned:,} {what} in all, more than the "
-            f"{budget:,} the triangles' floors may look at (overlapping or oversized triangles)"
+            f"the sample triangles' boxes would scan {scanned:,} {what}, more than the "
+            f"{FLOOR_SCAN:,} the triangles' floors may (overlapping or oversized triangles)"
         )
     ids, starts = [], [0]
     for t in range(len(lo)):
@@ -307,37 +321,42 @@ def blended_normal(normals, triangles, t, u, v):
 
 @njit(cache=True, nogil=True)
 def _vertex_heights(points, normals, triangles, planes, vertices, vertex_normals, starts, ids,
-                    out):  # fmt: skip
-    """out (S, 2): per sample triangle, the lowest height of the surface vertices it holds
-    (:func:`project_on_triangle`, as :func:`locate`) that face its way (0 at least: its
-    corners), and the highest of those that face away (-inf if none); triangle t looks at
-    the vertices ids[starts[t]:starts[t + 1]] (:func:`in_boxes`)."""
-    count = triangles.shape[0] // 3
+                    scratch, heights):  # fmt: skip
+    """heights (S, 2), lowered (own face) and raised (opposite face) by the surface vertices
+    each sample triangle holds (:func:`project_on_triangle`, as :func:`locate`; triangle t
+    looks at ids[starts[t]:starts[t + 1]], :func:`in_boxes`): first the opposite face's
+    highest, then the own face's lowest above it. ``scratch`` (len(ids), 2): each
+    candidate's height and side (1 own, -1 opposite, 0 neither or not in the triangle)."""
     uvh = np.zeros(3)
-    for t in range(count):
-        out[t, 0], out[t, 1] = 0.0, -np.inf
-    for t in range(count):
+    for t in range(triangles.shape[0] // 3):
         for k in range(starts[t], starts[t + 1]):
+            scratch[k, 1] = 0.0
             i = ids[k]
-            p = vertices[i]
-            if not project_on_triangle(p, points, normals, triangles, planes, t, np.inf, uvh):
+            if not project_on_triangle(vertices[i], points, normals, triangles, planes, t,
+                                       np.inf, uvh):  # fmt: skip
                 continue
             u, v, h = uvh[0], uvh[1], uvh[2]
             if u < -1e-12 or v < -1e-12 or u + v > 1.0 + 1e-12:
                 continue
             n = blended_normal(normals, triangles, t, u, v)
             turn = dot(n, vertex_normals[i]) / math.sqrt(dot(n, n))
+            scratch[k, 0] = h
             if turn >= FACING:
-                out[t, 0] = min(out[t, 0], h)
+                scratch[k, 1] = 1.0
             elif turn <= -FACING:
-                out[t, 1] = max(out[t, 1], h)
+                scratch[k, 1] = -1.0
+                heights[t, 1] = max(heights[t, 1], h)
+        for k in range(starts[t], starts[t + 1]):
+            if scratch[k, 1] > 0.0 and scratch[k, 0] > heights[t, 1]:
+                heights[t, 0] = min(heights[t, 0], scratch[k, 0])
 
 
 @njit(cache=True, nogil=True)
-def _exit_heights(points, normals, triangles, vertices, faces, starts, ids, m, away):
-    """away (S,): raised to the highest height at which a ray from the points (i/m, j/m)
-    of each sample triangle, down its blended normal, first meets a face turned away
-    (Moller-Trumbore; the height in :func:`project_on_triangle`'s units), of the faces
+def _ray_heights(points, normals, triangles, vertices, faces, starts, ids, m, heights):
+    """heights (S, 2), lowered (own face) and raised (opposite face) along rays from the
+    points (i/m, j/m) of each sample triangle down its blended normal: the first face
+    turned away (where the ray leaves the organ) and a face turned its way crossed before
+    it (Moller-Trumbore; heights in :func:`project_on_triangle`'s units), of the faces
     ids[starts[t]:starts[t + 1]] (:func:`in_boxes`)."""
     for t in range(triangles.shape[0] // 3):
         a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
@@ -347,26 +366,29 @@ def _exit_heights(points, normals, triangles, vertices, faces, starts, ids, m, a
                 u, v = i / m, j / m
                 x = combine(xa, u, minus(xb, xa), v, minus(xc, xa))
                 n = blended_normal(normals, triangles, t, u, v)
-                reach = _first_exit(x, n, vertices, faces, ids[starts[t] : starts[t + 1]])
-                if reach < np.inf:
-                    away[t] = max(away[t], -reach)
+                leave, enter = _first_crossings(x, n, vertices, faces,
+                                                ids[starts[t] : starts[t + 1]])  # fmt: skip
+                if leave < np.inf:
+                    heights[t, 1] = max(heights[t, 1], -leave)
+                if enter < leave:
+                    heights[t, 0] = min(heights[t, 0], -enter)
 
 
 @njit(inline="always")
-def _first_exit(x, n, vertices, faces, candidates):
-    """The smallest s > 0 at which x - s n crosses one of the ``candidates`` faces turned
-    away from n (inf: none)."""
-    best = np.inf
+def _first_crossings(x, n, vertices, faces, candidates):
+    """(leave, enter): the smallest s > 0 at which x - s n crosses one of the ``candidates``
+    faces turned away from n, and one turned its way (inf: none)."""
+    leave = enter = np.inf
     nn = math.sqrt(dot(n, n))
+    d = (-n[0], -n[1], -n[2])
     for f in candidates:
         p0, p1, p2 = vertices[faces[f, 0]], vertices[faces[f, 1]], vertices[faces[f, 2]]
         e1 = (p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2])
         e2 = (p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2])
         face_normal = cross(e1, e2)
-        area2 = math.sqrt(dot(face_normal, face_normal))
-        if dot(face_normal, n) > -FACING * area2 * nn:
-            continue  # not turned away: the ray does not leave the organ there
-        d = (-n[0], -n[1], -n[2])
+        turn = dot(face_normal, n) / (math.sqrt(dot(face_normal, face_normal)) * nn + 1e-300)
+        if -FACING < turn < FACING:
+            continue  # a wall along the ray: neither face
         q = cross(d, e2)
         det = dot(e1, q)
         if det == 0.0:
@@ -380,9 +402,11 @@ def _first_exit(x, n, vertices, faces, candidates):
         if gamma < 0.0 or beta + gamma > 1.0:
             continue
         s = dot(e2, w) / det
-        if 0.0 < s < best:
-            best = s
-    return best
+        if s > 0.0 and turn <= -FACING:
+            leave = min(leave, s)
+        elif s > 0.0:
+            enter = min(enter, s)
+    return leave, enter
 
 
 def contact_table(points, normals, forces, slopes, triangles, records=None,
@@ -554,7 +578,7 @@ def field_depth_weights(depth, step, last):
     stopped following the tool there (its surface 45-68 % off; the force, continued with
     the end slope, 0.4-2.3 %)."""
     x = max(depth / step, 0.0)
-    k = min(int(x), last - 1)
+    k = min(int(min(x, float(last))), last - 1)  # int() of a huge x would wrap around
     return k, 1.0 - (x - k), x - k
 
 

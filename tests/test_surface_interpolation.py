@@ -295,7 +295,7 @@ def test_in_boxes_finds_what_brute_force_finds():
     hi_items = lo_items + rng.uniform(0, 3, (300, 3))
     lo = rng.uniform(-10, 10, (40, 3))
     hi = lo + rng.uniform(0, 6, (40, 3))
-    starts, ids = kernels.in_boxes(lo_items, hi_items, lo, hi, 10**6, "items")
+    starts, ids = kernels.in_boxes(lo_items, hi_items, lo, hi, "items")
     for t in range(len(lo)):
         meets = np.all((lo_items <= hi[t]) & (hi_items >= lo[t]), axis=1)
         assert sorted(ids[starts[t] : starts[t + 1]].tolist()) == np.flatnonzero(meets).tolist()
@@ -303,14 +303,72 @@ def test_in_boxes_finds_what_brute_force_finds():
 
 def test_a_surface_too_large_for_the_floors_is_refused_by_name(small_artifact, monkeypatch):
     """The floors' work is bounded before it starts (a crafted file of huge overlapping
-    triangles would otherwise hold the load for hours): over the budget, the load is
+    triangles would otherwise hold the load for hours): over either budget, the load is
     refused, naming why."""
     import hapticrom.online as online
     from hapticrom.shared.errors import ArtifactError
 
-    with pytest.raises(ValueError, match="more than the 5 the triangles' floors may look at"):
-        kernels.in_boxes(np.zeros((9, 3)), np.ones((9, 3)), np.zeros((2, 3)), np.ones((2, 3)), 5,
+    monkeypatch.setattr(kernels, "FLOOR_SCAN", 1000)
+    with pytest.raises(ValueError, match="would scan 2,018 items, more than the 1,000"):
+        kernels.in_boxes(np.zeros((9, 3)), np.ones((9, 3)), np.zeros((2, 3)), np.ones((2, 3)),
                          "items")  # fmt: skip
-    monkeypatch.setattr(kernels, "FLOOR_WORK", 10)
-    with pytest.raises(ArtifactError, match="hold [0-9,]+ surface vertices in all, more than"):
+    with pytest.raises(ArtifactError, match="boxes would scan [0-9,]+ surface vertices"):
         online.load(small_artifact)
+    monkeypatch.setattr(kernels, "FLOOR_SCAN", 10**9)
+    monkeypatch.setattr(kernels, "FLOOR_WORK", 10)
+    with pytest.raises(ArtifactError, match="floors would take [0-9,]+ projections and ray"):
+        online.load(small_artifact)
+
+
+def _layers(z_top, thickness, xs, ys):
+    """Vertices (outward normals) and outward faces of a slab whose top is z_top(x) over the
+    grid xs x ys (coarse: a few corners), its bottom thickness below."""
+    from hapticrom.shared.geometry import vertex_normals
+
+    grid = [(x, y) for y in ys for x in xs]
+    top = [(x, y, z_top(x)) for x, y in grid]
+    vertices = np.array(top + [(x, y, z - thickness) for x, y, z in top])
+    nx, half, faces = len(xs), len(grid), []
+    for j in range(len(ys) - 1):
+        for i in range(nx - 1):
+            a, b, c, d = j * nx + i, j * nx + i + 1, (j + 1) * nx + i + 1, (j + 1) * nx + i
+            faces += [(a, b, c), (a, c, d), (half + a, half + c, half + b),
+                      (half + a, half + d, half + c)]  # fmt: skip
+    faces = np.array(faces)
+    return vertices, vertex_normals(vertices, faces), faces
+
+
+def test_a_deeper_layer_of_the_organ_does_not_lower_the_floor(slab):
+    """A second slab 6 mm below the first (a fold of the organ): its top faces the
+    triangles' way but lies under their opposite face, and does not count."""
+    points, normals, triangles, floors = slab
+    v1, n1, f1 = _layers(lambda x: 0.0, THICKNESS, [-10.0, 10.0], [-10.0, 10.0])
+    v2, n2, f2 = _layers(lambda x: -8.0, THICKNESS, [-10.0, 0.0, 10.0], [-10.0, 0.0, 10.0])
+    folded = kernels.face_floors(points, normals, triangles, np.vstack([v1, v2]),
+                                 np.vstack([n1, n2]), np.vstack([f1, f2 + len(v1)]))  # fmt: skip
+    np.testing.assert_allclose(folded, floors, atol=1e-12)
+
+
+def test_a_valley_below_the_chord_with_no_vertex_under_it_stays_in():
+    """The top face dips 1.8 mm under the samples' chord between them, the mesh so coarse
+    that no vertex lies under the triangles: the rays find where they enter the top face
+    there, so its lowest point is in the triangles, and the bottom face is not."""
+    valley = lambda x: -3.0 + 0.3 * abs(x)  # noqa: E731 - 0 at |x| = 10, -1.2 at the samples
+    vertices, vertex_normals, faces = _layers(valley, THICKNESS, [-10.0, 0.0, 10.0],
+                                              [-10.0, 10.0])  # fmt: skip
+    points = np.array([[-6.0, -6.0, -1.2], [6.0, -6.0, -1.2], [6.0, 6.0, -1.2], [-6.0, 6.0, -1.2]])
+    normals = np.array([[0.3, 0, 1], [-0.3, 0, 1], [-0.3, 0, 1], [0.3, 0, 1]]) / np.hypot(0.3, 1)
+    triangles = np.array([[0, 1, 2], [0, 2, 3]])
+    floors = kernels.face_floors(points, normals, triangles, vertices, vertex_normals, faces)
+    flag, _, _, h = located([0.0, -1.0, -3.0], points, normals, triangles, floors)
+    assert flag == 0 and h < -1.5  # the valley's bottom, in
+    flag, _, _, _ = located([0.0, -1.0, -3.0 - THICKNESS], points, normals, triangles, floors)
+    assert flag == kernels.FLAG_OUTSIDE_REGION  # the bottom face under it, out
+
+
+def test_the_field_beyond_the_last_knot_never_wraps_its_index():
+    """field_depth_weights continues linearly, and at any depth indexes the last segment
+    (int() of 1e22 / step would wrap to a negative index)."""
+    for depth in (0.5, 1e3, 1e22):
+        k, a, b = kernels.field_depth_weights(depth, 0.1, 4)
+        assert k == 3 and b == pytest.approx(depth / 0.1 - 3) and a == pytest.approx(1 - b)
