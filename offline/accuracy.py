@@ -41,7 +41,7 @@ from hapticrom.online.kernels import face_floors
 from hapticrom.online.model import inside_trained_region
 from hapticrom.shared.accuracy import QUANTITIES, TARGETS, target, verdict
 from hapticrom.shared.errors import HapticromError, InputError
-from hapticrom.shared.geometry import plan_view
+from hapticrom.shared.geometry import plan_view, vertex_normals
 
 FORMAT, VERSION = "hapticrom-accuracy", 3  # 3: transport columns, dent, deepest, beyond
 RESPONSE_COLUMNS = {"curves": "curves", "anm": "ANM"}
@@ -106,10 +106,13 @@ def trained_nodes(samples: dict, surface: Surface) -> set[int]:
 
 def region_nodes(samples: dict, surface: Surface) -> np.ndarray:
     """Surface nodes of the trained region: where the runtime locates a contact inside the
-    samples' triangulation on the surface (not clamped; beneath a triangle, nearer its face
-    than the opposite face of the organ, as far as the loadable surface shows it)."""
-    floors = face_floors(samples["points"], samples["normals"], samples["triangles"],
-                         surface.nodes, surface.normals, surface.faces)  # fmt: skip
+    samples' triangulation on the surface (not clamped, nor beneath a triangle's floor:
+    ``samples["floors"]``, the runtime's from the whole surface, else from the loadable
+    surface alone)."""
+    floors = samples.get("floors")
+    if floors is None:
+        floors = face_floors(samples["points"], samples["normals"], samples["triangles"],
+                             surface.nodes, surface.normals, surface.faces)  # fmt: skip
     inside = inside_trained_region(
         samples["points"], samples["normals"], samples["triangles"], surface.nodes, floors
     )
@@ -211,7 +214,11 @@ def _plan(model: str, count: int, seed: int | None, softest: bool = False) -> He
     from hapticrom.shared.artifact import read_artifact
 
     artifact = read_artifact(model)
-    info, samples = artifact.group_attrs["model"], artifact["samples"]
+    info, samples = artifact.group_attrs["model"], dict(artifact["samples"])
+    vertices = np.asarray(artifact["surface"]["vertices"], dtype=np.float64)
+    faces = np.asarray(artifact["surface"]["triangles"], dtype=np.int64)
+    samples["floors"] = face_floors(samples["points"], samples["normals"], samples["triangles"],
+                                    vertices, vertex_normals(vertices, faces), faces)  # fmt: skip
     if "campaign" not in artifact.attrs:
         raise InputError(f"{model} does not record its training campaign: nothing to repeat")
     mesh = _mesh_file(model, info)
