@@ -122,20 +122,29 @@ def layer_run(shape, layer, rows, columns):
 @njit(inline="always")
 def contract_rectangle(node_basis, i, c, shape, rows, columns, field):
     """field (3, N) = sum_m c_m (the modes of sample i) over the rectangle of rows [rows[0],
-    rows[1]) and columns [columns[0], columns[1]) of every layer (its :func:`layer_run`s)."""
+    rows[1]) and columns [columns[0], columns[1]) of every layer (its :func:`layer_run`s).
+    Two modes a pass: half the passes over ``field`` (measured on the cornea demo: 25
+    against 34 us for three neighbours' contractions)."""
+    n = c.shape[0]
     for layer in range(shape[0]):
         first, last = layer_run(shape, layer, rows, columns)
         for comp in range(3):
             out = field[comp, first:last]
-            cm = np.float32(c[0])
-            modes = node_basis[i, 0, comp, first:last]
-            for b in range(last - first):
-                out[b] = cm * modes[b]
-            for m in range(1, c.shape[0]):
-                cm = np.float32(c[m])
-                modes = node_basis[i, m, comp, first:last]
+            m = n % 2  # an odd count: the first mode alone, then pairs
+            if m == 1:
+                c0, a = np.float32(c[0]), node_basis[i, 0, comp, first:last]
                 for b in range(last - first):
-                    out[b] += cm * modes[b]
+                    out[b] = c0 * a[b]
+            while m < n:
+                c0, c1 = np.float32(c[m]), np.float32(c[m + 1])
+                a, d = node_basis[i, m, comp, first:last], node_basis[i, m + 1, comp, first:last]
+                if m == 0:
+                    for b in range(last - first):
+                        out[b] = c0 * a[b] + c1 * d[b]
+                else:
+                    for b in range(last - first):
+                        out[b] += c0 * a[b] + c1 * d[b]
+                m += 2
 
 
 @njit(inline="always")
