@@ -59,7 +59,7 @@ class ReducedModel:
         contact_fields: the tool's linear surface field per unit depth at every loadable
         vertex (artifact 2.2, :func:`_contact_fields`), or None: the "compliance" surface.
         sample_floors (S,): how far beneath each sample triangle a contact may lie, mm
-        (:func:`~hapticrom.online.kernels.face_floors`: nearer its face than the organ's
+        (:func:`~hapticrom.online.kernels.face_floors`: not on or just above the organ's
         opposite face), built at load.
     """
 
