@@ -7,7 +7,8 @@ the surface displacement, with every combination the artifact supports (PODI and
 Grassmann fields with the stored curves; PODI with the POD-ANM series). The errors are
 stated against the targets of :mod:`hapticrom.shared.accuracy` with a verdict.
 
-Held-out positions, inside the trained region and never a training position:
+Held-out positions, inside the trained region (but with ``outside``) and never a training
+position:
 
 - by default, the centroids of sample triangles spread over the region (thesis Table 2.2
   layout: one per triangle, in the order of angle and radius), snapped to the nearest
@@ -15,9 +16,12 @@ Held-out positions, inside the trained region and never a training position:
 - with a seed, surface nodes drawn at random (``numpy.random.default_rng(seed)``) among
   those of the tool's surface group that the runtime locates inside the samples'
   triangulation on the surface;
-- ``softest``: the node of that region nearest each of the softest samples (least force
-  at the common depth grid's end): under force control the places that reach the trained
-  force deepest, where the runtime extrapolates in depth.
+- ``softest``: the node of that region nearest each of the softest samples (the deepest
+  solved, then the least force at the depth grid's end): under force control the places
+  that reach the trained force deepest, where the runtime extrapolates in depth;
+- ``outside`` (with a seed): random nodes of the tool's surface group that the runtime
+  does *not* locate inside the triangulation (it clamps a contact there to the border):
+  what a tool gets there.
 
 Selection is numpy; the solves go through :func:`~hapticrom.offline.campaign.run.run_campaign`
 (its progress bar); the comparison uses the online runtime; output is a text table on
@@ -40,6 +44,7 @@ from hapticrom.offline.mpi import on_rank_zero
 from hapticrom.online.kernels import face_floors
 from hapticrom.online.model import inside_trained_region
 from hapticrom.shared.accuracy import QUANTITIES, TARGETS, target, verdict
+from hapticrom.shared.artifact_rules import solved_depths
 from hapticrom.shared.errors import HapticromError, InputError
 from hapticrom.shared.geometry import plan_view, vertex_normals
 
@@ -152,38 +157,47 @@ def centroid_positions(samples: dict, surface: Surface, count: int) -> list[Held
 
 
 def random_positions(
-    samples: dict, surface: Surface, count: int, seed: int
+    samples: dict, surface: Surface, count: int, seed: int, outside: bool = False
 ) -> list[HeldOutPosition]:
     """Up to ``count`` distinct surface nodes of the trained region, not training positions,
-    drawn with ``numpy.random.default_rng(seed)``."""
+    drawn with ``numpy.random.default_rng(seed)``; with ``outside``, of the tool's surface
+    group outside that region instead (where the runtime clamps a contact to the region's
+    border: between the outermost samples and the group's border, and in the holes)."""
     trained = trained_nodes(samples, surface)
-    candidates = [int(n) for n in region_nodes(samples, surface) if int(n) not in trained]
+    region = region_nodes(samples, surface)
+    if outside:
+        region = np.setdiff1d(np.arange(len(surface.nodes)), region)
+    candidates = [int(n) for n in region if int(n) not in trained]
     if not candidates:
         return []
     rng = np.random.default_rng(seed)
     picked = rng.choice(candidates, size=min(count, len(candidates)), replace=False)
+    what = "outside the trained region" if outside else "random surface node"
     return [
-        HeldOutPosition(
-            tuple(float(c) for c in surface.nodes[n]), 0.0, f"random surface node (seed {seed})"
-        )
+        HeldOutPosition(tuple(float(c) for c in surface.nodes[n]), 0.0, f"{what} (seed {seed})")
         for n in picked
     ]
 
 
 def softest_positions(samples: dict, surface: Surface, count: int) -> list[HeldOutPosition]:
     """Up to ``count`` distinct nodes of the trained region, not training positions: the
-    nearest to each sample in the order of its force at the depth grid's end, least first."""
+    nearest to each sample in the order of its softness, softest first: the deepest solved
+    depth (artifact 2.3), then the least force at the depth grid's end."""
     trained = trained_nodes(samples, surface)
     region = np.array([int(n) for n in region_nodes(samples, surface) if int(n) not in trained])
     force = np.asarray(samples["force"])[:, -1]
+    solved = solved_depths(samples)
+    depth_end = float(np.asarray(samples["depth"])[-1])
+    order = np.lexsort((force, -np.round(solved / depth_end, 9)))  # rounding: no tie-breaker
     positions, taken = [], set()
-    for i in np.argsort(force, kind="stable") if len(region) else []:
+    for i in order if len(region) else []:
         gaps = np.linalg.norm(surface.nodes[region] - np.asarray(samples["points"])[i], axis=1)
         node = int(region[np.argmin(gaps)])
         if node in taken:
             continue
         taken.add(node)
-        why = f"nearest sample {i} ({force[i]:.3g} N at the grid's end, {gaps.min():.3g} mm away)"
+        why = (f"nearest sample {i} (solved to {solved[i]:.3g} mm, {force[i]:.3g} N at the "
+               f"grid's end, {gaps.min():.3g} mm away)")  # fmt: skip
         positions.append(HeldOutPosition(tuple(float(c) for c in surface.nodes[node]), 0.0, why))
         if len(positions) == count:
             break
@@ -210,7 +224,8 @@ def _mesh_file(model: str, info: dict) -> Path:
     return mesh
 
 
-def _plan(model: str, count: int, seed: int | None, softest: bool = False) -> HeldOutPlan:
+def _plan(model: str, count: int, seed: int | None, softest: bool = False,
+          outside: bool = False) -> HeldOutPlan:  # fmt: skip
     from hapticrom.shared.artifact import read_artifact
 
     artifact = read_artifact(model)
@@ -225,31 +240,42 @@ def _plan(model: str, count: int, seed: int | None, softest: bool = False) -> He
     surface = read_surface(mesh, info["surface_group"])
     if softest:
         positions = softest_positions(samples, surface, count)
+    elif outside:
+        positions = random_positions(samples, surface, count, seed or 0, outside=True)
     elif seed is None:
         positions = centroid_positions(samples, surface, count)
     else:
         positions = random_positions(samples, surface, count, seed)
     if not positions:
-        raise InputError(f"{model}: no surface node of the trained region is left to hold out")
+        where = "outside" if outside else "of"
+        raise InputError(f"{model}: no surface node {where} the trained region is left to hold out")
     campaign = json.loads(json.dumps(artifact.attrs["campaign"]))  # a deep copy
     campaign.pop("cutting", None)  # the solves only
     campaign["positions"] = {"points": [list(p.point) for p in positions]}
     campaign.setdefault("campaign", {})["name"] = "held-out"
     campaign["mesh"]["file"] = str(mesh)
-    method = "softest" if softest else "centroids" if seed is None else "random"
-    return HeldOutPlan(str(model), campaign, positions, method, seed, count)
+    method = ("softest" if softest else "outside" if outside else
+              "centroids" if seed is None else "random")  # fmt: skip
+    return HeldOutPlan(str(model), campaign, positions, method,
+                       (seed or 0) if outside else seed, count)  # fmt: skip
 
 
 def plan_held_out(model: str, count: int, seed: int | None = None, comm=MPI.COMM_WORLD,
-                  softest: bool = False):  # fmt: skip
+                  softest: bool = False, outside: bool = False):  # fmt: skip
     """The held-out positions of ``model`` (rank 0 reads; every rank gets the plan)."""
-    return on_rank_zero(comm, _plan, str(model), count, seed, softest)
+    return on_rank_zero(comm, _plan, str(model), count, seed, softest, outside)
 
 
-def default_work(model: str | Path, count: int, seed: int | None, softest: bool = False) -> Path:
-    """MODEL.heldout-N (centroids), MODEL.heldout-N-seedS or MODEL.heldout-N-softest: one
-    directory per selection."""
-    tag = f"{count}-softest" if softest else f"{count}" if seed is None else f"{count}-seed{seed}"
+def default_work(model: str | Path, count: int, seed: int | None, softest: bool = False,
+                 outside: bool = False) -> Path:  # fmt: skip
+    """MODEL.heldout-N (centroids), MODEL.heldout-N-seedS, MODEL.heldout-N-softest or
+    MODEL.heldout-N-outside-seedS: one directory per selection."""
+    if softest:
+        tag = f"{count}-softest"
+    elif outside:
+        tag = f"{count}-outside-seed{seed or 0}"
+    else:
+        tag = f"{count}" if seed is None else f"{count}-seed{seed}"
     return Path(model).with_suffix(f".heldout-{tag}")
 
 
@@ -449,6 +475,9 @@ def positions_text(plan: HeldOutPlan) -> str:
         )
     elif plan.method == "softest":
         how = "the trained region's nodes nearest the softest samples"
+    elif plan.method == "outside":
+        how = (f"random surface nodes outside the trained region, seed {plan.seed}: the "
+               "runtime clamps the contact to the region's border")  # fmt: skip
     else:
         how = f"random surface nodes of the trained region, seed {plan.seed}"
     lines = [

@@ -33,8 +33,9 @@ The model's arrays are read only here: every parameter a kernel only reads accep
 read-only array (``flags.writeable`` False), so a shared model may be frozen. A step input
 may be any 1-D float64 array (any strides, read-only or not).
 Flags (``buf[FLAGS]``, a bit field): 1 depth beyond the trained range
-(extrapolated linearly), 2 no contact (the tool pulls away: zero force),
-4 contact point outside the trained region (clamped to its boundary).
+(extrapolated linearly; for the curves, beyond ``buf[SOLVED_DEPTH]``), 2 no contact
+(the tool pulls away: zero force), 4 contact point outside the trained region (clamped
+to its boundary).
 """
 
 from __future__ import annotations
@@ -97,7 +98,8 @@ FRICTION = 47  # (3) step_position's Coulomb friction: static and dynamic coeffi
 SLIPPING = 50  # 1 if the last step_position slid with friction (0: stuck, or frictionless)
 SECTION_KNOTS = 51  # POD-ANM: the knots of each section's table (below)
 FORCE_WEIGHTS = 52  # (3) the weights the force curves are blended with: w_i k(x) / k_i
-CURVE = 55  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
+SOLVED_DEPTH = 55  # the contact's solved depth: its neighbours' (weight > 0) smallest (mm)
+CURVE = 56  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
 # POD-ANM (response "anm"), at buf[ANM_BASE] = CURVE + 2 K: three neighbour blocks, each a
 # header then SMAX section records (the neighbour's sections, artifact order).
 BLOCK_WEIGHT, BLOCK_COUNT, BLOCK_SAMPLE, BLOCK_RECORDS = 0, 1, 2, 3
@@ -170,11 +172,12 @@ GRID_ORIGIN, GRID_CELL, GRID_DIMS, GRID_STARTS = 0, 3, 4, 7  # a point_grid's pa
 # where the scalpel's part starts, V surface vertices or 0 without it, E border edges,
 # m the tool stiffness lattice's subdivisions or 0 without it),
 # then the contact's part: sample points (P, 3), sample normals (P, 3), forces (P, K),
-# slopes (P, K), sample triangles (S, 3), their planes (S, PLANE), the triangulation's
-# border edges (E, 3), the tool's stiffness on each triangle's lattice (S, L; L = 0 if m = 0),
-# POD-ANM section records (Z, stride) and section offsets (P + 1, with the records); then
-# the scalpel's part: reach, region reach, the surface vertices' point_grid, the vertices
-# (V, 3), their normals (V, 3), their region nodes (V; -1 outside the region). Row-major.
+# slopes (P, K), solved depths (P), sample triangles (S, 3), their planes (S, PLANE), the
+# triangulation's border edges (E, 3), the tool's stiffness on each triangle's lattice (S, L;
+# L = 0 if m = 0), POD-ANM section records (Z, stride) and section offsets (P + 1, with the
+# records); then the scalpel's part: reach, region reach, the surface vertices' point_grid,
+# the vertices (V, 3), their normals (V, 3), their region nodes (V; -1 outside the region).
+# Row-major.
 
 
 def border_edges(triangles) -> np.ndarray:
@@ -409,11 +412,12 @@ def _first_crossings(x, n, vertices, faces, candidates):
     return leave, enter
 
 
-def contact_table(points, normals, forces, slopes, triangles, records=None,
+def contact_table(points, normals, forces, slopes, solved_depth, triangles, records=None,
                   offsets=None, tool_stiffness=None, floors=None) -> np.ndarray:  # fmt: skip
     """The model's arrays :func:`prepare_contact` reads, packed into one read-only array
-    (``tool_stiffness`` (S, L): the lattice values, or None; ``floors`` (S,): the
-    triangles' floors, :func:`face_floors`, or None)."""
+    (``solved_depth`` (P,): the depth each sample was solved to, mm; ``tool_stiffness``
+    (S, L): the lattice values, or None; ``floors`` (S,): the triangles' floors,
+    :func:`face_floors`, or None)."""
     P, K = np.shape(forces)
     stride, Z = (0, 0) if records is None else np.shape(records)[::-1]
     edges = border_edges(triangles)
@@ -423,7 +427,7 @@ def contact_table(points, normals, forces, slopes, triangles, records=None,
         raise ValueError(f"tool stiffness of shape {np.shape(lattice)} is no lattice per triangle")
     if not np.all((np.asarray(lattice) > 0) & np.isfinite(lattice)):  # divided by at set_contact
         raise ValueError("tool stiffness must be finite and positive")
-    parts = [points, normals, forces, slopes, triangles,
+    parts = [points, normals, forces, slopes, solved_depth, triangles,
              triangle_planes(points, triangles, floors), edges,
              lattice]  # fmt: skip
     if records is not None:
@@ -453,8 +457,8 @@ def _frozen(a: np.ndarray) -> np.ndarray:
 @njit(inline="always")
 def contact_views(table):
     """The contact's parts of the table as flat views (row-major; a reshape costs more
-    than the index arithmetic): sample points, normals, forces, slopes, sample
-    triangles, their planes, border edges, the stiffness lattices, section records,
+    than the index arithmetic): sample points, normals, forces, slopes, solved depths,
+    sample triangles, their planes, border edges, the stiffness lattices, section records,
     section offsets."""
     P, K, S = int(table[T_SAMPLES]), int(table[T_KNOTS]), int(table[T_TRIANGLES])
     Z, stride, E = int(table[T_SECTIONS]), int(table[T_STRIDE]), int(table[T_EDGES])
@@ -463,15 +467,16 @@ def contact_views(table):
     a = o + 3 * P
     b = a + 3 * P
     c = b + P * K
-    e = c + P * K
+    d = c + P * K
+    e = d + P
     r = e + 3 * S
     q = r + PLANE * S
     t = q + 3 * E
     w = t + (S * (m + 1) * (m + 2) // 2 if m > 0 else 0)
     u = w + Z * stride
     v = u + (P + 1 if stride > 0 else 0)
-    return (table[o:a], table[a:b], table[b:c], table[c:e], table[e:r], table[r:q],
-            table[q:t], table[t:w], table[w:u], table[u:v])  # fmt: skip
+    return (table[o:a], table[a:b], table[b:c], table[c:d], table[d:e], table[e:r],
+            table[r:q], table[q:t], table[t:w], table[w:u], table[u:v])  # fmt: skip
 
 
 @njit(inline="always")
@@ -842,7 +847,7 @@ def hermite(force, slope, step, depth):
     last = force.shape[0] - 1
     if depth >= last * step:
         return force[last] + slope[last] * (depth - last * step)
-    k = int(depth / step)
+    k = min(int(depth / step), last - 1)  # depth / step may round up to last just below it
     t = depth / step - k
     t2, t3 = t * t, t * t * t
     return (
@@ -866,7 +871,7 @@ def step_displacement_curves(d, buf):
         depth = 0.0
         flags |= FLAG_NO_CONTACT
     else:
-        if depth > (knots - 1) * step:
+        if depth > buf[SOLVED_DEPTH]:
             flags |= FLAG_BEYOND_DEPTH
         magnitude = hermite(force, slope, step, depth)
     write_force(buf, magnitude, depth, flags)
@@ -920,10 +925,10 @@ def step_force_curves(f, buf):
         flags |= FLAG_NO_CONTACT
     elif push >= force[last]:
         depth = last * step + (push - force[last]) / slope[last]
-        if push > force[last]:
-            flags |= FLAG_BEYOND_DEPTH
     else:
         depth = curve_depth(force, slope, step, push)
+    if depth > buf[SOLVED_DEPTH]:
+        flags |= FLAG_BEYOND_DEPTH
     if not (depth <= buf[MAX_DEPTH]):
         return DISPLACEMENT_LIMIT
     write_displacement(buf, depth, flags)
@@ -1235,6 +1240,17 @@ def prepare_curves(weights, curve_weights, samples, normals, forces, slopes, out
         out_normal[c] /= norm
 
 
+@njit(inline="always")
+def solved_at(weights, samples, solved):
+    """The contact's solved depth (mm): the smallest of its neighbours' with a weight (beyond
+    it one of the blended curves is a continuation)."""
+    depth = np.inf
+    for j in range(3):
+        if weights[j] != 0.0:
+            depth = min(depth, solved[int(samples[j])])
+    return depth
+
+
 @njit(cache=True, nogil=True)
 def load_sections(weights, samples, offsets, records, buf):
     """The three neighbours' force weights into the POD-ANM blocks, and their section
@@ -1260,9 +1276,8 @@ def contact_at(point, table, buf):
     sample triangle, its weights (buf[SAMPLES], buf[WEIGHTS]) and the height above it,
     the normal, the curves, buf[FLAGS] and, for the POD-ANM response, the neighbours'
     sections at the current depth."""
-    points, normals, forces, slopes, triangles, planes, edges, lattice, records, offsets = (
-        contact_views(table)
-    )
+    (points, normals, forces, slopes, solved, triangles, planes, edges, lattice, records,
+     offsets) = contact_views(table)  # fmt: skip
     weights, samples = buf[WEIGHTS : WEIGHTS + 3], buf[SAMPLES : SAMPLES + 3]
     where, scratch = buf[TRIANGLE : TRIANGLE + 2], buf[LOCATE_SCRATCH : LOCATE_SCRATCH + 3]
     flag = locate(point, points, normals, triangles, planes, edges, weights, samples, where,
@@ -1274,6 +1289,7 @@ def contact_at(point, table, buf):
     prepare_curves(weights, curve_weights, samples, normals, forces, slopes,
                    buf[NORMAL : NORMAL + 3], buf[CURVE : CURVE + knots],
                    buf[CURVE + knots : CURVE + 2 * knots])  # fmt: skip
+    buf[SOLVED_DEPTH] = solved_at(weights, samples, solved)
     buf[FLAGS] = flag
     if buf[ANM_N1] > 0:
         load_sections(curve_weights, samples, offsets, records, buf)

@@ -11,7 +11,7 @@ import numpy as np
 from hapticrom.online.proxy import contact_surface, triangle_grid
 from hapticrom.online.surface_chart import surface_chart
 from hapticrom.shared.artifact import SCHEMA, Artifact, ArtifactError, read_artifact
-from hapticrom.shared.artifact_rules import MAX_LENGTH
+from hapticrom.shared.artifact_rules import MAX_LENGTH, solved_depths
 from hapticrom.shared.errors import InputError
 from hapticrom.shared.geometry import plan_view, vertex_normals
 
@@ -46,6 +46,9 @@ class ReducedModel:
         plan_origin (3,), plan_axes (2, 3), plan_points (P, 2): a plan view of the
         samples (:func:`~hapticrom.shared.geometry.plan_view`), for plots and paths only.
         depth_step: the uniform indentation grid spacing (mm); trained_depth, trained_force.
+        solved_depth (P,): the depth each sample was solved to (mm; artifact 2.3: the grid
+        goes to the deepest, and beyond its own a sample's curve goes on linearly);
+        sample_trained_force (P,): each sample's force there (N).
         force, stiffness (P, K): normal reaction force curves (N) and slopes (N/mm).
         surface_basis (P, 3V, n) float32, coefficients (P, K, n): surface field;
         surface_basis_t (P, n, 3V): the same transposed, for the PODI kernel.
@@ -81,10 +84,18 @@ class ReducedModel:
     cut_region: object = None  # online.coupled_patch.CutRegion of its cuttable region
     tool_stiffness: np.ndarray | None = None  # (S, L) N/mm, the curves' scaling (2.1)
     contact_fields: dict | None = None  # the tool's linear fields (2.2): _contact_fields
+    solved_depth: np.ndarray | None = None  # (P,) mm (2.3); None: the grid's end for each
 
     def __post_init__(self):
         from hapticrom.online import kernels
 
+        if self.solved_depth is None:
+            self.solved_depth = np.full(len(self.sample_points), self.depth_step *
+                                        (self.force.shape[1] - 1))  # fmt: skip
+        self.sample_trained_force = np.array([
+            kernels.hermite(f.copy(), k.copy(), self.depth_step, d)  # the kernel's own curve
+            for f, k, d in zip(self.force, self.stiffness, self.solved_depth, strict=True)
+        ])  # fmt: skip
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
         try:
             self.sample_floors = kernels.face_floors(
@@ -158,6 +169,7 @@ class ReducedModel:
             anm=anm,
             cut_region=cut_region,
             tool_stiffness=_f8(samples["tool_stiffness"]) if "tool_stiffness" in samples else None,
+            solved_depth=_f8(solved_depths(samples)),
             contact_fields=(
                 _contact_fields(artifact) if "contact_fields" in artifact.groups else None
             ),
@@ -165,13 +177,14 @@ class ReducedModel:
 
     @property
     def trained_depth(self) -> float:
-        """Largest trained indentation (mm)."""
-        return self.depth_step * (self.force.shape[1] - 1)
+        """The depth every sample was solved to (mm): the shallowest sample's (artifact 2.3:
+        the grid goes on to the deepest's)."""
+        return float(self.solved_depth.min())
 
     @property
     def trained_force(self) -> float:
         """Smallest of the samples' largest trained forces (N)."""
-        return float(self.force[:, -1].min())
+        return float(self.sample_trained_force.min())
 
     @property
     def contact_radius(self) -> float:
@@ -235,7 +248,7 @@ class ReducedModel:
         return (
             f"{a.group_attrs['model'].get('name', '?')}: {len(self.sample_points)} samples, "
             f"{self.num_modes} modes, {len(self.vertices)} surface vertices; trained to "
-            f"{self.trained_depth:.3g} mm / {self.force[:, -1].max():.3g} N "
+            f"{self.trained_depth:.3g} mm / {self.sample_trained_force.max():.3g} N "
             f"(artifact {a.version[0]}.{a.version[1]}, {self.path})"
         )
 

@@ -223,7 +223,8 @@ class Simulator:
     """Mutable contact state on an immutable :class:`ReducedModel`.
 
     Limits (absurd inputs are refused with :class:`StepInputError`, the state
-    unchanged): ``max_displacement`` (mm, default 10x the trained depth) bounds the
+    unchanged): ``max_displacement`` (mm, default 10x the deepest sample's solved depth:
+    under force control a soft place reaches the trained force deeper) bounds the
     tool displacement a displacement step takes and the one a force step returns (a
     force that would push the tool further is refused); ``max_force`` (N, default
     10x the trained force) bounds the force a force step takes. Each is None (the
@@ -253,9 +254,9 @@ class Simulator:
         self.model, self.interpolation, self.response = model, interpolation, response
         anm = model.anm if response == "anm" else None
         max_displacement = _limit(
-            max_displacement, 10 * model.trained_depth, "max_displacement", "mm"
+            max_displacement, 10 * float(model.solved_depth.max()), "max_displacement", "mm"
         )
-        max_force = _limit(max_force, 10 * model.force[:, -1].max(), "max_force", "N")
+        max_force = _limit(max_force, 10 * model.sample_trained_force.max(), "max_force", "N")
         k = kernels
         self._buf = _state_buffer(model, anm, max_displacement, max_force)
         # What the caller sees: views of the buffer that cannot be written through.
@@ -271,7 +272,7 @@ class Simulator:
         # The model's arrays set_contact reads, packed into one read-only array.
         self._table = k.contact_table(
             model.sample_points, model.sample_normals, model.force, model.stiffness,
-            model.sample_triangles,
+            model.solved_depth, model.sample_triangles,
             *((anm["records"], anm["offsets"]) if anm else (None, None)),
             tool_stiffness=model.tool_stiffness, floors=model.sample_floors,
         )  # fmt: skip
@@ -689,7 +690,9 @@ class Simulator:
 
     @property
     def beyond_trained_depth(self) -> bool:
-        """Whether the last step went deeper than the trained range (extrapolated)."""
+        """Whether the last step went deeper than the trained range (extrapolated): for the
+        curves, deeper than the smallest solved depth of the contact's neighbours; for
+        POD-ANM, past a neighbour's last section."""
         return bool(int(self._buf[kernels.FLAGS]) & kernels.FLAG_BEYOND_DEPTH)
 
     @property

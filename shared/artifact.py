@@ -46,8 +46,9 @@ FORMAT = "hapticrom"
 # 1.4: the integrity envelope (whole-file digest in the user block), required by this reader;
 # 2.0: the samples' triangulation on the surface replaces the plane chart (samples 2.0);
 # 2.1: the tool's linear stiffness on a lattice of each sample triangle (samples 2.1);
-# 2.2: the tool's linear surface field at the loadable vertices (contact_fields).
-FORMAT_VERSION = (2, 2)
+# 2.2: the tool's linear surface field at the loadable vertices (contact_fields);
+# 2.3: the depth grid to the deepest sample, each sample's solved depth (samples 2.2).
+FORMAT_VERSION = (2, 3)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -156,7 +157,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "samples",
         "contact-samples",
-        (2, 1),
+        (2, 2),
         _fields(
             ("points", "f", ("P", 3), "mm", "tool positions of the training samples"),
             ("normals", "f", ("P", 3), "1", "outward unit surface normals there", "unit"),
@@ -180,6 +181,10 @@ SCHEMA: tuple[Group, ...] = (
             # group version 2.1 (format 2.1): what the force curves are scaled by
             ("tool_stiffness", "f", ("S", "L"), "N/mm",
              "the tool's linear stiffness at each sample triangle's lattice points",
+             "positive"),
+            # group version 2.2 (format 2.3): where each sample's curve is its own solve
+            ("solved_depth", "f", ("P",), "mm",
+             "the depth each sample was solved to (beyond it its curve goes on linearly)",
              "positive"),
             required=False,
         ),

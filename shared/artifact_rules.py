@@ -249,6 +249,34 @@ def _depth_grid(artifact) -> None:
         raise _fail(artifact, f"samples/depth reaches {depth[-1]:.3g} mm (over {MAX_LENGTH:g})")
 
 
+def solved_depths(samples) -> np.ndarray:
+    """(P,) the depth each sample was solved to (mm): ``samples/solved_depth`` (format 2.3),
+    else the grid's end for every sample (older files: their grid stops where every sample
+    was solved)."""
+    if "solved_depth" in samples:
+        return np.asarray(samples["solved_depth"], dtype=np.float64)
+    return np.full(len(samples["points"]), float(samples["depth"][-1]))
+
+
+def _solved_depth(artifact) -> None:
+    """Each sample's solved depth lies on the grid's range, at least its first knot from 0
+    (the runtime flags a depth beyond its contact's shallowest neighbour's as extrapolated,
+    and the simulator's limits are 10x the shallowest), and the deepest one is the grid's
+    end (the grid goes no further than a solve)."""
+    s = artifact["samples"]
+    if "solved_depth" not in s:
+        return
+    solved, depth = s["solved_depth"], s["depth"]
+    if np.any(solved < depth[1] * (1 - 1e-9)) or np.any(solved > depth[-1] * (1 + 1e-9)):
+        raise _fail(
+            artifact,
+            f"samples/solved_depth has values outside [{depth[1]:.6g}, "
+            f"{depth[-1]:.6g}] mm (the grid's first knot to its end)",
+        )
+    if abs(solved.max() - depth[-1]) > 1e-9 * depth[-1]:
+        raise _fail(artifact, "samples/solved_depth: no sample reaches the depth grid's end")
+
+
 def _force_curves(artifact) -> None:
     s = artifact["samples"]
     force, slope = s["force"], s["stiffness"]
@@ -435,8 +463,9 @@ def _anm_sections(artifact) -> None:
         bad = np.flatnonzero(slope <= 0 if name == "depth" else slope < -1e-6 * scale)
         if len(bad):
             raise _fail(artifact, f"anm/{name} decreases along section {bad[0]}")
-        if name == "depth" and np.any(end[offsets[1:] - 1] < depth_scale * (1 - 1e-6)):
-            raise _fail(artifact, "anm: the sections of a sample end before the trained depth")
+        solved = solved_depths(samples)
+        if name == "depth" and np.any(end[offsets[1:] - 1] < solved * (1 - 1e-6)):
+            raise _fail(artifact, "anm: the sections of a sample end before its solved depth")
     _anm_end_slopes(artifact, offsets[1:] - 1)
 
 
@@ -495,17 +524,20 @@ def _roots(c: np.ndarray) -> np.ndarray:
 
 
 def _anm_against_curves(artifact) -> None:
-    """The series' force at the trained depths against the stored full-order curves."""
+    """The series' force at the depths each sample was solved to against the stored
+    full-order curves."""
     if "anm" not in artifact.groups:
         return
     a, s = artifact["anm"], artifact["samples"]
     offsets = a["section_offsets"]
     x = np.linspace(0.0, 1.0, 33) * a["a_max"][:, None]
     depth, force = _horner(a["depth"], x), _horner(a["force"], x)
+    solved = solved_depths(s)
     for p in range(len(s["points"])):
         rows = slice(offsets[p], offsets[p + 1])
-        series = np.interp(s["depth"], depth[rows].ravel(), force[rows].ravel())
-        if np.max(abs(series - s["force"][p])) > ANM_CURVE_TOL * s["force"][p].max():
+        solves = s["depth"] <= solved[p] * (1 + 1e-9)  # beyond, both are continuations
+        series = np.interp(s["depth"][solves], depth[rows].ravel(), force[rows].ravel())
+        if np.max(abs(series - s["force"][p][solves])) > ANM_CURVE_TOL * s["force"][p].max():
             raise _fail(
                 artifact, f"anm/force of sample {p} disagrees with samples/force (over 5 %)"
             )
@@ -513,6 +545,7 @@ def _anm_against_curves(artifact) -> None:
 
 CROSS_RULES = (
     _depth_grid,
+    _solved_depth,
     _force_curves,
     _sample_triangulation,
     _tool_stiffness,

@@ -87,8 +87,9 @@ def test_centroids_snap_to_region_nodes_and_say_how_far(small_artifact):
 
 @pytest.mark.serial
 def test_softest_gives_the_region_nodes_nearest_the_softest_samples(small_artifact, tmp_path):
-    """Brute force: for the samples by increasing force at the grid's end, the nearest
-    untrained node of the region, each node once; the plan and its work directory say so."""
+    """Brute force: for the samples by increasing force at the grid's end (a displacement-
+    controlled model: every sample solved to the grid's end), the nearest untrained node of
+    the region, each node once; the plan and its work directory say so."""
     samples, surface = model_surface(small_artifact)
     candidates = sorted(set(accuracy.region_nodes(samples, surface).tolist())
                         - accuracy.trained_nodes(samples, surface))  # fmt: skip
@@ -237,3 +238,42 @@ def test_two_ranks_give_the_serial_result(mesh_dir, tmp_path_factory):
         np.testing.assert_allclose(row[2:4], [step.depth, step.f_fem], rtol=1e-9)
         names = ("transport+curves", "podi+curves", "transport+anm", "podi+anm")
         np.testing.assert_allclose(row[4:], [step.force[n] for n in names], rtol=1e-9)
+
+
+def test_softest_starts_at_the_deepest_solved_sample(force_artifact):
+    """Force control (artifact 2.3): the softest sample is the one solved deepest; the first
+    position is the untrained region node nearest it."""
+    samples, surface = model_surface(force_artifact)
+    solved = np.asarray(samples["solved_depth"])
+    assert np.ptp(solved) > 0
+    deepest = int(np.argmax(solved))
+    candidates = sorted(set(accuracy.region_nodes(samples, surface).tolist())
+                        - accuracy.trained_nodes(samples, surface))  # fmt: skip
+    d = [np.linalg.norm(surface.nodes[n] - samples["points"][deepest]) for n in candidates]
+    first = accuracy.softest_positions(samples, surface, 1)[0]
+    assert node_index(surface, first.point) == candidates[int(np.argmin(d))]
+    assert f"nearest sample {deepest} (solved to" in first.source
+
+
+def test_outside_draws_nodes_of_the_tools_group_the_runtime_clamps(small_artifact, tmp_path):
+    """--outside S: random nodes of the surface group that are neither in the trained region
+    nor training positions, reproducible from S, each flagged outside by the runtime."""
+    from hapticrom.online import load
+
+    samples, surface = model_surface(small_artifact)
+    region = set(accuracy.region_nodes(samples, surface).tolist())
+    trained = accuracy.trained_nodes(samples, surface)
+    positions = accuracy.random_positions(samples, surface, 5, 3, outside=True)
+    nodes = [node_index(surface, p.point) for p in positions]
+    assert len(set(nodes)) == 5 and not (set(nodes) & (region | trained))
+    again = accuracy.random_positions(samples, surface, 5, 3, outside=True)
+    assert [p.point for p in again] == [p.point for p in positions]
+    sim = load(small_artifact).simulator()
+    for p in positions:
+        sim.set_contact(p.point)
+        assert sim.outside_trained_region
+    plan = accuracy.plan_held_out(small_artifact, 5, 3, comm=MPI.COMM_SELF, outside=True)
+    assert plan.method == "outside" and plan.positions == positions and plan.seed == 3
+    assert accuracy.default_work(tmp_path / "m.h5", 5, 3, outside=True).name == (
+        "m.heldout-5-outside-seed3"
+    )

@@ -949,3 +949,50 @@ def test_contact_field_indices_out_of_range_are_refused(force_artifact, tmp_path
 
     rewrite(path, f"{FIELDS}/{name}", put)
     refused(path, rf"{FIELDS}/{name} has indices outside \[0, {size}\)")
+
+
+# -- each sample's solved depth (samples/solved_depth, format 2.3) -----------------------------
+SOLVED = "samples/solved_depth"
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        (lambda d, grid: np.r_[0.5 * grid[1], d[1:]], "has values outside"),  # before a knot
+        (lambda d, grid: np.r_[1.01 * grid[-1], d[1:]], "has values outside"),  # past the end
+        (lambda d, grid: 0.9 * d, "no sample reaches the depth grid's end"),
+        (lambda d, grid: np.r_[-d[0], d[1:]], "not positive"),
+    ],
+)
+def test_solved_depths_off_the_grid_are_refused(force_artifact, tmp_path, change, match):
+    path = copy(force_artifact, tmp_path)
+    with h5py.File(path, "r") as f:
+        grid = f["samples/depth"][()]
+    rewrite(path, SOLVED, lambda d: change(d, grid))
+    refused(path, f"{SOLVED}.*{match}|{match}")
+
+
+def test_without_solved_depths_every_sample_is_solved_to_the_grids_end(force_artifact, tmp_path):
+    """A 2.2 file (the dataset removed): every sample's solved depth is the grid's end, so no
+    depth on the grid is flagged as extrapolated, and the forces are the same."""
+    from hapticrom.online.simulator import Simulator
+
+    path = copy(force_artifact, tmp_path)
+
+    def strip(f):
+        del f[SOLVED]
+        f.attrs["format_version"] = np.array([2, 2], dtype=np.int64)
+        f["samples"].attrs["version"] = np.array([2, 1], dtype=np.int64)
+
+    mutate(path, strip)
+    old, new = load(path, isolate=False), load(force_artifact, isolate=False)
+    end = old.depth_step * (old.force.shape[1] - 1)
+    np.testing.assert_array_equal(old.solved_depth, end)
+    assert old.trained_depth == end and new.trained_depth < end
+    a, b = Simulator(old, response="curves"), Simulator(new, response="curves")
+    for point in old.sample_points:
+        a.set_contact(point)
+        b.set_contact(point)
+        d = -0.999 * end * np.array(a.contact_normal)
+        np.testing.assert_array_equal(a.step_displacement(d), b.step_displacement(d))
+        assert not a.beyond_trained_depth

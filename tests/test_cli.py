@@ -403,6 +403,8 @@ def test_reduce_onto_a_full_disk_leaves_nothing_behind(
         (["--seed", "-1"], "argument --seed: must lie in [0, 4,294,967,295], got -1"),
         (["--seed", "1.5"], "argument --seed: expected an integer, got '1.5'"),
         (["--seed", "1", "--softest"], "argument --softest: not allowed with argument --seed"),
+        (["--outside", "1", "--seed", "2"], "argument --seed: not allowed with argument --outside"),
+        (["--outside", "-1"], "argument --outside: must lie in [0, 4,294,967,295], got -1"),
     ],
 )
 def test_accuracy_numbers_are_bounded(small_artifact, tmp_path, capsys, monkeypatch, args, message):

@@ -131,7 +131,8 @@ def test_surface_and_samples_are_the_artifacts(model, exported):
     np.testing.assert_array_equal(cells(s, "Polys"), model.sample_triangles)
     np.testing.assert_array_equal(s["PointData"]["normal"], model.sample_normals)
     np.testing.assert_array_equal(s["PointData"]["force_N"], model.force)
-    np.testing.assert_array_equal(s["PointData"]["trained_force_N"], model.force[:, -1])
+    np.testing.assert_array_equal(s["PointData"]["trained_force_N"], model.sample_trained_force)
+    np.testing.assert_array_equal(s["PointData"]["solved_depth_mm"], model.solved_depth)
     np.testing.assert_array_equal(s["FieldData"]["depth_mm"], model.artifact["samples"]["depth"])
 
 

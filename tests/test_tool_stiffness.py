@@ -188,14 +188,16 @@ def test_the_indicator_blends_as_the_runtime_does(model, force_campaign):
     of the others, or k_i / k_n F_n of the nearest where they make no triangle (against
     those formulas evaluated here); a uniform stiffness changes nothing; the reduction
     stored this indicator."""
-    from hapticrom.offline.campaign.greedy import organ_surface
+    from hapticrom.offline.campaign.greedy import organ_surface, read_force_curves
     from hapticrom.offline.reduce.indicator import leave_one_out
     from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
     from hapticrom.offline.reduce.tool_stiffness import sample_stiffness
     from hapticrom.online.model import locate_points
 
     config, store, _ = force_campaign
-    p, n, F = model.sample_points, model.sample_normals, model.force
+    p, n = model.sample_points, model.sample_normals
+    # on the depths every sample reached (the artifact's grid goes on to the deepest's)
+    F = read_force_curves(store, store.completed(), config.load.steps).force
     surface = organ_surface(store, config.problem.mesh.file)
     k = sample_stiffness(config, store, p, -n, surface)
     indicator = leave_one_out(p, n, surface, F, k)

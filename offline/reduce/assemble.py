@@ -113,19 +113,21 @@ def surface_group(surface: RenderSurface) -> dict:
 def samples_group(model: ReducedModel, dofs: np.ndarray) -> dict:
     """The ``samples`` group: per sample, its position, force curve and reduced model."""
     where, reduced, grid = model.neighbourhoods, model.reduced, model.grid
+    snapshots = len(model.samples[0].depth) - 1  # M: the load steps (the grid may be finer)
     return {
         "points": where.points,
         "normals": where.normals,
         "triangles": where.triangles,
         "indicator": model.indicator,
         "depth": grid.depth,
+        "solved_depth": grid.solved_depth,
         "force": grid.force,
         "stiffness": grid.stiffness,
         "surface_basis": np.array([A[dofs] for A in model.sample_bases], dtype=np.float32),
         "coefficients": grid.coefficients,
         "reduced_stiffness": np.array([r.reduced_stiffness for r in reduced]),
         "contact_rows": np.array([r.contact_rows for r in reduced]),
-        "eigenvalues": np.array([r.pod.eigenvalues[: len(grid.depth) - 1] for r in reduced]),
+        "eigenvalues": np.array([r.pod.eigenvalues[:snapshots] for r in reduced]),
         "attrs": {"pressure_modes": [r.pressure_modes for r in reduced]},
         **({} if model.tool_stiffness is None else {"tool_stiffness": model.tool_stiffness}),
     }

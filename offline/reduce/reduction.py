@@ -60,7 +60,11 @@ from hapticrom.offline.reduce.inputs import (
     read_samples,
     surface_mesh,
 )
-from hapticrom.offline.reduce.interpolation import common_depth_grid, grassmann_tangents
+from hapticrom.offline.reduce.interpolation import (
+    artifact_depth_grid,
+    grassmann_tangents,
+    on_common_grid,
+)
 from hapticrom.offline.reduce.operators import PODSettings, reduce_globally, reduce_samples
 from hapticrom.offline.reduce.sample_triangulation import triangulate_samples
 from hapticrom.offline.reduce.tool_stiffness import stiffness_lattice
@@ -121,7 +125,7 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
     surface = on_rank_zero(comm, surface_mesh, config.problem.mesh.file, ops.node_coordinates)
     neighbourhoods = on_rank_zero(comm, sample_neighbourhoods, samples, surface)
     grassmann = grassmann_tangents(comm, reduced, neighbourhoods.reference)
-    grid = common_depth_grid(samples, reduced)
+    grid = artifact_depth_grid(samples, reduced)
     where = neighbourhoods
     tool_stiffness = at_samples = None
     if config.load.mode == "force":  # the depth the campaign measures is the linear solve's
@@ -129,8 +133,10 @@ def reduce(store: SnapshotStore, manifest: dict, config: CampaignConfig, comm, s
                                                   surface, say=say)  # fmt: skip
     fields = on_rank_zero(comm, contact_fields, config, store, surface, where.points,
                           where.normals, say=say)  # fmt: skip
+    # on the depths every sample reached, as the greedy trainer's (not the continued tails)
+    _, common_force = on_common_grid([s.depth for s in samples], [s.force for s in samples])
     indicator = on_rank_zero(comm, leave_one_out, where.points, where.normals, surface,
-                             grid.force, at_samples)  # fmt: skip
+                             common_force, at_samples)  # fmt: skip
     return ReducedModel(
         config=config,
         manifest=manifest,

@@ -123,8 +123,9 @@ def write_surface(model: ReducedModel, path: Path) -> Path:
 
 def write_samples(model: ReducedModel, path: Path) -> Path:
     """The training samples (``/samples``) as points: ``normal``, the force curve
-    ``force_N`` (one component per trained depth), ``trained_force_N`` and
-    ``stiffness_N_per_mm`` at the trained depth; the sample triangles as polygons."""
+    ``force_N`` (one component per depth of the grid), ``solved_depth_mm`` (the depth each
+    was solved to), ``trained_force_N`` there and ``stiffness_N_per_mm`` at the grid's end;
+    the sample triangles as polygons."""
     samples = model.artifact["samples"]
     depth = np.asarray(samples["depth"])
     return write_polydata(
@@ -135,7 +136,8 @@ def write_samples(model: ReducedModel, path: Path) -> Path:
         point_data={
             "normal": model.sample_normals,
             "force_N": model.force,
-            "trained_force_N": model.force[:, -1],
+            "solved_depth_mm": model.solved_depth,
+            "trained_force_N": model.sample_trained_force,
             "stiffness_N_per_mm": model.stiffness[:, -1],
             "sample": np.arange(len(model.sample_points)),
         },

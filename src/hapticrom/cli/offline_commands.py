@@ -404,8 +404,10 @@ def cmd_accuracy(args, petsc) -> int:
     from hapticrom.offline.accuracy import default_work, plan_held_out
 
     json_path = check_out_file(args.json, f"accuracy --json {args.json}") if args.json else None
-    plan = plan_held_out(args.model, args.positions, args.seed, softest=args.softest)
-    work = args.work or str(default_work(args.model, args.positions, args.seed, args.softest))
+    outside = args.outside is not None
+    seed = args.outside if outside else args.seed
+    plan = plan_held_out(args.model, args.positions, seed, softest=args.softest, outside=outside)
+    work = args.work or str(default_work(args.model, args.positions, seed, args.softest, outside))
     work = check_campaign_dir(work, f"accuracy --work {work}", args.restart)
     petsc.start()
     from hapticrom.offline.accuracy import run_accuracy
@@ -457,11 +459,19 @@ def add_accuracy(sub) -> None:
         help="the trained region's nodes nearest the softest samples: where a force-"
         "controlled model reaches the trained force deepest and extrapolates in depth",
     )
+    where.add_argument(
+        "--outside",
+        type=int_in(0, 2**32 - 1),
+        metavar="S",
+        help="random nodes of the tool's surface group outside the trained region, "
+        "reproducible from S: where the runtime clamps the contact to the region's border",
+    )
     p.add_argument(
         "--work",
         metavar="DIR",
         help="held-out campaign directory, resumed if it exists "
-        "(default: MODEL with suffix .heldout-N, .heldout-N-seedS or .heldout-N-softest)",
+        "(default: MODEL with suffix .heldout-N, .heldout-N-seedS, .heldout-N-softest or "
+        ".heldout-N-outside-seedS)",
     )
     p.add_argument("--restart", action="store_true", help="discard what the work directory holds")
     p.add_argument(

@@ -68,10 +68,14 @@ def summary_rows(model: ReducedModel) -> list[tuple[str, str]]:
         ("element", str(info.get("element", "?"))),
         ("campaign load", _load_description(campaign)),
         ("samples (tool positions)", f"{P}"),
-        ("indentation grid", f"{K} depths, 0 to {model.trained_depth:.4g} mm"),
+        ("indentation grid", f"{K} depths, 0 to {model.depth_step * (K - 1):.4g} mm"),
+        (
+            "depth solved to",
+            f"{model.solved_depth.min():.4g} to {model.solved_depth.max():.4g} mm",
+        ),
         (
             "trained force at the deepest point",
-            f"{model.force[:, -1].min():.4g} to {model.force[:, -1].max():.4g} N",
+            f"{model.sample_trained_force.min():.4g} to {model.sample_trained_force.max():.4g} N",
         ),
         ("POD modes per sample", _modes_description(model, info, pressure)),
         ("surface", f"{len(model.vertices):,} vertices, {len(model.triangles):,} triangles"),
