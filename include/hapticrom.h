@@ -146,8 +146,8 @@ typedef struct hapticrom_info {
     uint64_t mode_count;     /* n: reduced modes per sample */
     int32_t interpolation;   /* what HAPTICROM_INTERPOLATION_DEFAULT resolved to */
     int32_t response;        /* what HAPTICROM_RESPONSE_DEFAULT resolved to */
-    double trained_depth;    /* mm, the largest trained indentation */
-    double trained_force;    /* N, the smallest of the samples' largest trained forces */
+    double trained_depth;    /* mm, the depth every sample was trained to (the shallowest) */
+    double trained_force;    /* N, the smallest of the samples' forces at trained_depth */
     double max_displacement; /* mm, this simulator's limit */
     double max_force;        /* N, this simulator's limit */
     double tool_radius;      /* mm, step_position's spherical tip */

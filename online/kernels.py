@@ -99,7 +99,8 @@ SLIPPING = 50  # 1 if the last step_position slid with friction (0: stuck, or fr
 SECTION_KNOTS = 51  # POD-ANM: the knots of each section's table (below)
 FORCE_WEIGHTS = 52  # (3) the weights the force curves are blended with: w_i k(x) / k_i
 SOLVED_DEPTH = 55  # the contact's solved depth: its neighbours' (weight > 0) smallest (mm)
-CURVE = 56  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
+CONTACT_POINT = 56  # (3) the contact point as set (mm; clamped or not)
+CURVE = 59  # (K) the contact's force curve (N), then (K) its slopes (N/mm)
 # POD-ANM (response "anm"), at buf[ANM_BASE] = CURVE + 2 K: three neighbour blocks, each a
 # header then SMAX section records (the neighbour's sections, artifact order).
 BLOCK_WEIGHT, BLOCK_COUNT, BLOCK_SAMPLE, BLOCK_RECORDS = 0, 1, 2, 3
@@ -166,11 +167,13 @@ def tabulate_series(depth, force, a_max, budget: int = MAX_TABLE_FLOATS
 # One read-only float64 array per simulator (indices stored as floats: exact), a header
 T_SAMPLES, T_KNOTS, T_TRIANGLES, T_STRIDE, T_SECTIONS, T_SCALPEL, T_VERTICES, T_EDGES = range(8)
 T_LATTICE = 8
-T_HEADER = 9
+T_OUTSIDE = 9  # where the outside part starts (0: none): see outside_part
+T_HEADER = 10
 GRID_ORIGIN, GRID_CELL, GRID_DIMS, GRID_STARTS = 0, 3, 4, 7  # a point_grid's parts
 # (P samples, K knots, S sample triangles, the section records' stride or 0, Z sections,
 # where the scalpel's part starts, V surface vertices or 0 without it, E border edges,
-# m the tool stiffness lattice's subdivisions or 0 without it),
+# m the tool stiffness lattice's subdivisions or 0 without it, where the outside part starts
+# or 0 without it),
 # then the contact's part: sample points (P, 3), sample normals (P, 3), forces (P, K),
 # slopes (P, K), solved depths (P), sample triangles (S, 3), their planes (S, PLANE), the
 # triangulation's border edges (E, 3), the tool's stiffness on each triangle's lattice (S, L;
@@ -413,11 +416,12 @@ def _first_crossings(x, n, vertices, faces, candidates):
 
 
 def contact_table(points, normals, forces, slopes, solved_depth, triangles, records=None,
-                  offsets=None, tool_stiffness=None, floors=None) -> np.ndarray:  # fmt: skip
+                  offsets=None, tool_stiffness=None, floors=None,
+                  outside=None) -> np.ndarray:  # fmt: skip
     """The model's arrays :func:`prepare_contact` reads, packed into one read-only array
     (``solved_depth`` (P,): the depth each sample was solved to, mm; ``tool_stiffness``
     (S, L): the lattice values, or None; ``floors`` (S,): the triangles' floors,
-    :func:`face_floors`, or None)."""
+    :func:`face_floors`, or None; ``outside``: :func:`outside_part`'s arguments, or None)."""
     P, K = np.shape(forces)
     stride, Z = (0, 0) if records is None else np.shape(records)[::-1]
     edges = border_edges(triangles)
@@ -433,8 +437,24 @@ def contact_table(points, normals, forces, slopes, solved_depth, triangles, reco
     if records is not None:
         parts += [records, offsets]
     body = np.concatenate([np.ravel(np.asarray(a, dtype=np.float64)) for a in parts])
-    header = [P, K, len(triangles), stride, Z, T_HEADER + len(body), 0, len(edges), m]
+    start = T_HEADER + len(body) if outside is not None else 0
+    if outside is not None:
+        body = np.concatenate([body, outside_part(*outside)])
+    header = [P, K, len(triangles), stride, Z, T_HEADER + len(body), 0, len(edges), m, start]
     return _frozen(np.concatenate([header, body]))
+
+
+def outside_part(corners, stiffness, grid, starts, ids) -> np.ndarray:
+    """The table's outside part (:func:`scale_outside`): [TL, cells, ids, grid (origin (3),
+    cell size, dims (3)), cell starts (cells + 1), triangle ids by cell, the loadable
+    triangles' corners (TL, 3, 3), the tool's linear stiffness at them (TL, 3)], from the
+    contact fields' triangle grid (``model._contact_fields``)."""
+    corners, stiffness = np.asarray(corners, np.float64), np.asarray(stiffness, np.float64)
+    if corners.shape != (len(stiffness), 3, 3) or np.shape(stiffness)[1:] != (3,):
+        raise ValueError(f"corners {corners.shape} and stiffness {np.shape(stiffness)} differ")
+    head = [len(stiffness), len(starts) - 1, len(ids)]
+    parts = [head, grid, starts, ids, corners.ravel(), stiffness.ravel()]
+    return np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in parts])
 
 
 def scalpel_table(table: np.ndarray, vertices, normals, region_of, spacing: float, reach: float,
@@ -841,6 +861,13 @@ def step_force_anm(f, buf):
 
 
 # -- the stored full-order curves (response "curves") ---------------------------------------
+@njit(inline="always")
+def beyond_solved(depth, buf):
+    """Whether a depth passes the contact's solved depth by more than rounding (a force step
+    at exactly a sample's trained force lands within 1e-9 of it, either side: review)."""
+    return depth > buf[SOLVED_DEPTH] * (1.0 + 1e-9)
+
+
 @njit("float64(float64[::1], float64[::1], float64, float64)", cache=True, nogil=True)
 def hermite(force, slope, step, depth):
     """The piecewise-cubic Hermite curve F(depth) (uniform knots 0, step, 2 step, ...)."""
@@ -871,7 +898,7 @@ def step_displacement_curves(d, buf):
         depth = 0.0
         flags |= FLAG_NO_CONTACT
     else:
-        if depth > buf[SOLVED_DEPTH]:
+        if beyond_solved(depth, buf):
             flags |= FLAG_BEYOND_DEPTH
         magnitude = hermite(force, slope, step, depth)
     write_force(buf, magnitude, depth, flags)
@@ -927,7 +954,7 @@ def step_force_curves(f, buf):
         depth = last * step + (push - force[last]) / slope[last]
     else:
         depth = curve_depth(force, slope, step, push)
-    if depth > buf[SOLVED_DEPTH]:
+    if beyond_solved(depth, buf):
         flags |= FLAG_BEYOND_DEPTH
     if not (depth <= buf[MAX_DEPTH]):
         return DISPLACEMENT_LIMIT
@@ -972,6 +999,84 @@ def combine(a, s, b, t, c):
 @njit(inline="always")
 def minus(a, b):
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+# -- the point of a triangle nearest a point (the proxy's, the surface's, a clamped contact's) --
+@njit(cache=True, nogil=True)
+def closest_on_triangle(p, a, b, c):
+    """The point of triangle (a, b, c) nearest p: (its barycentric coordinates, distance^2).
+    The region tests of Ericson (Real-Time Collision Detection, 5.1.5)."""
+    ab, ac, ap = minus(b, a), minus(c, a), minus(p, a)
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return _result(p, a, b, c, 1.0, 0.0, 0.0)
+    bp = minus(p, b)
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return _result(p, a, b, c, 0.0, 1.0, 0.0)
+    # The divisions below are by sums of terms of one sign: zero only on a degenerate
+    # triangle (corners that coincide, or in a line: an offset sheet can fold them so),
+    # where numba would raise ZeroDivisionError into the servo loop. Such a triangle is
+    # the union of its edges: the nearest point of those instead.
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        if not d1 > d3:
+            return _nearest_on_edges(p, a, b, c)
+        v = d1 / (d1 - d3)
+        return _result(p, a, b, c, 1.0 - v, v, 0.0)
+    cp = minus(p, c)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return _result(p, a, b, c, 0.0, 0.0, 1.0)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        if not d2 > d6:
+            return _nearest_on_edges(p, a, b, c)
+        w = d2 / (d2 - d6)
+        return _result(p, a, b, c, 1.0 - w, 0.0, w)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        span = (d4 - d3) + (d5 - d6)
+        if not span > 0.0:
+            return _nearest_on_edges(p, a, b, c)
+        w = (d4 - d3) / span
+        return _result(p, a, b, c, 0.0, 1.0 - w, w)
+    total = va + vb + vc  # |ab x ac|^2 up to rounding
+    if not total > 0.0:  # a degenerate triangle (or NaN from an overflow)
+        return _nearest_on_edges(p, a, b, c)
+    v, w = vb / total, vc / total
+    return _result(p, a, b, c, 1.0 - v - w, v, w)
+
+
+@njit(cache=True, nogil=True)
+def _nearest_on_edges(p, a, b, c):
+    """The point of the edges ab, bc, ca nearest p: (barycentric u, v, w, distance^2), for
+    a degenerate triangle (which is the union of its edges)."""
+    best, u, v, w = math.inf, 1.0, 0.0, 0.0
+    for edge in range(3):
+        s, e = (a, b) if edge == 0 else ((b, c) if edge == 1 else (c, a))
+        d = minus(e, s)
+        length2 = dot(d, d)
+        t = min(1.0, max(0.0, dot(minus(p, s), d) / length2)) if length2 > 0.0 else 0.0
+        r = minus(p, (s[0] + t * d[0], s[1] + t * d[1], s[2] + t * d[2]))
+        distance2 = dot(r, r)
+        if distance2 < best:
+            best = distance2
+            if edge == 0:
+                u, v, w = 1.0 - t, t, 0.0
+            elif edge == 1:
+                u, v, w = 0.0, 1.0 - t, t
+            else:
+                u, v, w = t, 0.0, 1.0 - t
+    return u, v, w, best
+
+
+@njit(inline="always")
+def _result(p, a, b, c, u, v, w):
+    x = (u * a[0] + v * b[0] + w * c[0], u * a[1] + v * b[1] + w * c[1],
+         u * a[2] + v * b[2] + w * c[2])  # fmt: skip
+    r = minus(p, x)
+    return u, v, w, dot(r, r)
 
 
 @njit(inline="always")  # called per triangle: a call passing arrays costs more
@@ -1242,11 +1347,12 @@ def prepare_curves(weights, curve_weights, samples, normals, forces, slopes, out
 
 @njit(inline="always")
 def solved_at(weights, samples, solved):
-    """The contact's solved depth (mm): the smallest of its neighbours' with a weight (beyond
-    it one of the blended curves is a continuation)."""
+    """The contact's solved depth (mm): the smallest of its neighbours' with a weight above
+    1e-9 (beyond it one of the blended curves is a continuation; a smaller weight's share of
+    the force is below rounding)."""
     depth = np.inf
     for j in range(3):
-        if weights[j] != 0.0:
+        if abs(weights[j]) > 1e-9:  # not locate's rounding at a sample (up to 6e-18: review)
             depth = min(depth, solved[int(samples[j])])
     return depth
 
@@ -1270,6 +1376,97 @@ def load_sections(weights, samples, offsets, records, buf):
             buf[start + k] = records[first * stride + k]
 
 
+# -- a contact outside the trained region: the force scaled by the tool's linear stiffness --
+# The ratio's bounds: as the tool stiffness lattice's within a triangle (artifact_rules), the
+# force stays within 10x the border's.
+MIN_OUTSIDE_RATIO, MAX_OUTSIDE_RATIO = 0.1, 10.0
+
+
+@njit(inline="always")
+def outside_views(table):
+    """The outside part (:func:`outside_part`): grid, cell starts, ids, corners (TL 9),
+    stiffness (TL 3), flat."""
+    o = int(table[T_OUTSIDE])
+    count, cells, listed = int(table[o]), int(table[o + 1]), int(table[o + 2])
+    g = o + 3
+    a = g + 7
+    b = a + cells + 1
+    c = b + listed
+    d = c + 9 * count
+    return table[g:a], table[a:b], table[b:c], table[c:d], table[d : d + 3 * count]
+
+
+@njit(inline="always")
+def grid_reach(p, grid, cell, r):
+    """How far around p the cells within r of p's ``cell`` reach (mm): the distance from p
+    to the block's nearest face inside the grid (beyond the grid there are no triangles)."""
+    size, reach = grid[3], np.inf
+    for a in range(3):
+        lo = grid[a] + (cell[a] - r) * size
+        hi = grid[a] + (cell[a] + r + 1) * size
+        if cell[a] - r > 0:
+            reach = min(reach, p[a] - lo)
+        if cell[a] + r < int(grid[4 + a]) - 1:
+            reach = min(reach, hi - p[a])
+    return max(reach, 0.0)
+
+
+@njit(inline="always")
+def stiffness_nearest(p, grid, starts, ids, corners, stiffness):
+    """The tool's linear stiffness (N/mm) at the loadable surface's point nearest p: linear
+    on the triangle holding it, found ring by ring through the grid (as
+    ``surface_kernels.locate_on_surface``)."""
+    size = grid[3]
+    n0, n1, n2 = int(grid[4]), int(grid[5]), int(grid[6])
+    c0 = min(max(int(math.floor((p[0] - grid[0]) / size)), 0), n0 - 1)
+    c1 = min(max(int(math.floor((p[1] - grid[1]) / size)), 0), n1 - 1)
+    c2 = min(max(int(math.floor((p[2] - grid[2]) / size)), 0), n2 - 1)
+    best, k = np.inf, 0.0
+    for r in range(max(n0, n1, n2)):
+        for i0 in range(max(c0 - r, 0), min(c0 + r, n0 - 1) + 1):
+            for i1 in range(max(c1 - r, 0), min(c1 + r, n1 - 1) + 1):
+                for i2 in range(max(c2 - r, 0), min(c2 + r, n2 - 1) + 1):
+                    if max(abs(i0 - c0), abs(i1 - c1), abs(i2 - c2)) != r:
+                        continue  # an inner ring's cell, searched already
+                    cell = (i0 * n1 + i1) * n2 + i2
+                    for q in range(int(starts[cell]), int(starts[cell + 1])):
+                        t = int(ids[q])
+                        u, v, w, d2 = closest_on_triangle(
+                            p, vertex(corners, 3 * t), vertex(corners, 3 * t + 1),
+                            vertex(corners, 3 * t + 2),
+                        )  # fmt: skip
+                        if d2 < best:
+                            best, k = d2, u * stiffness[3 * t] + v * stiffness[3 * t + 1]
+                            k += w * stiffness[3 * t + 2]
+        if best <= grid_reach(p, grid, (c0, c1, c2), r) ** 2:
+            break
+    return k
+
+
+@njit(inline="always")
+def scale_outside(point, table, weights, samples, points, curve_weights):
+    """A contact clamped to the trained region's border takes the border's curves, scaled by
+    k(x) / k(c): the tool's linear stiffness at the contact x over that at the clamp point c
+    (both on the loadable surface; 1 at the border, so the force is continuous; bounded to
+    [MIN_OUTSIDE_RATIO, MAX_OUTSIDE_RATIO]). Why: the border's force alone was 4-65 % off the
+    full order on the liver outside its region (README). Nothing without the outside part."""
+    if table[T_OUTSIDE] == 0.0:
+        return
+    grid, starts, ids, corners, stiffness = outside_views(table)
+    c0 = c1 = c2 = 0.0
+    for j in range(3):
+        w, i = weights[j], int(samples[j])
+        c0 += w * points[3 * i]
+        c1 += w * points[3 * i + 1]
+        c2 += w * points[3 * i + 2]
+    at_contact = stiffness_nearest(point, grid, starts, ids, corners, stiffness)
+    at_clamp = stiffness_nearest((c0, c1, c2), grid, starts, ids, corners, stiffness)
+    ratio = at_contact / at_clamp if at_clamp > 0.0 else 1.0
+    ratio = min(max(ratio, MIN_OUTSIDE_RATIO), MAX_OUTSIDE_RATIO)
+    for j in range(3):
+        curve_weights[j] *= ratio
+
+
 @njit(cache=True, nogil=True)
 def contact_at(point, table, buf):
     """Everything that depends on the contact point only (3 finite numbers, mm): the
@@ -1285,11 +1482,15 @@ def contact_at(point, table, buf):
     curve_weights = buf[FORCE_WEIGHTS : FORCE_WEIGHTS + 3]
     force_weights(weights, samples, int(buf[TRIANGLE]), triangles, lattice,
                   int(table[T_LATTICE]), curve_weights)  # fmt: skip
+    if flag & FLAG_OUTSIDE_REGION:
+        scale_outside(point, table, weights, samples, points, curve_weights)
     knots = int(buf[KNOTS])
     prepare_curves(weights, curve_weights, samples, normals, forces, slopes,
                    buf[NORMAL : NORMAL + 3], buf[CURVE : CURVE + knots],
                    buf[CURVE + knots : CURVE + 2 * knots])  # fmt: skip
     buf[SOLVED_DEPTH] = solved_at(weights, samples, solved)
+    for c in range(3):
+        buf[CONTACT_POINT + c] = point[c]
     buf[FLAGS] = flag
     if buf[ANM_N1] > 0:
         load_sections(curve_weights, samples, offsets, records, buf)

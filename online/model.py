@@ -92,10 +92,14 @@ class ReducedModel:
         if self.solved_depth is None:
             self.solved_depth = np.full(len(self.sample_points), self.depth_step *
                                         (self.force.shape[1] - 1))  # fmt: skip
-        self.sample_trained_force = np.array([
-            kernels.hermite(f.copy(), k.copy(), self.depth_step, d)  # the kernel's own curve
-            for f, k, d in zip(self.force, self.stiffness, self.solved_depth, strict=True)
-        ])  # fmt: skip
+
+        def forces_at(depths):  # the kernel's own curves
+            rows = zip(self.force, self.stiffness, depths, strict=True)
+            return np.array([kernels.hermite(f.copy(), k.copy(), self.depth_step, d)
+                             for f, k, d in rows])  # fmt: skip
+
+        self.sample_trained_force = forces_at(self.solved_depth)
+        self._force_at_trained_depth = forces_at(np.full(len(self.force), self.trained_depth))
         self.surface_basis_t = np.ascontiguousarray(self.surface_basis.transpose(0, 2, 1))
         try:
             self.sample_floors = kernels.face_floors(
@@ -183,8 +187,10 @@ class ReducedModel:
 
     @property
     def trained_force(self) -> float:
-        """Smallest of the samples' largest trained forces (N)."""
-        return float(self.sample_trained_force.min())
+        """The force every sample reaches within the trained depth (N): the smallest of the
+        samples' forces at it (under force control the softest's, below the campaign's force;
+        ``sample_trained_force`` holds each one's at its own solved depth)."""
+        return float(self._force_at_trained_depth.min())
 
     @property
     def contact_radius(self) -> float:
@@ -299,8 +305,9 @@ def _cut_region(artifact: Artifact):
 def _contact_fields(artifact: Artifact) -> dict:
     """The kernel's view of ``contact_fields``: ``fields`` (R, 3V) float32, ``sample_rows``
     (P,), the loadable triangles (TL, 3) as vertex indices and as rows (``triangle_rows``),
-    and a uniform grid of them (``grid``, ``grid_starts``, ``grid_ids``: where the surface
-    looks for the triangle under the contact)."""
+    a uniform grid of them (``grid``, ``grid_starts``, ``grid_ids``: where the surface
+    looks for the triangle under the contact), and the tool's linear stiffness at their
+    corners (``corner_stiffness`` (TL, 3), or None)."""
     c, s = artifact["contact_fields"], artifact["surface"]
     triangles = _i8(s["triangles"][np.asarray(s["groups"]) == 1])
     row_of = np.full(len(s["vertices"]), -1, dtype=np.int64)
@@ -318,6 +325,10 @@ def _contact_fields(artifact: Artifact) -> dict:
         "grid": np.array([*origin, size, *dims], dtype=np.float64),  # the triangles' grid
         "grid_starts": _i8(starts),
         "grid_ids": _i8(ids),
+        # the tool's linear stiffness at each loadable triangle's corners (format 2.3), or None
+        "corner_stiffness": (
+            _f8(np.asarray(c["stiffness"])[row_of[triangles]]) if "stiffness" in c else None
+        ),  # fmt: skip
     }
 
 
@@ -385,11 +396,15 @@ def field_interpolations(model: ReducedModel) -> list[str]:
 
 
 def sweep(model: ReducedModel) -> None:
-    """Every response at every sweep point, at the trained depth and force and 1.5x them:
-    forces, displacements and surfaces finite and within the simulator's limits (10x the
-    trained depth and force). Catches what no rule on single datasets sees (a field that
-    overflows in the blend of two samples, a force that runs away beyond the trained depth)."""
+    """Every response at every sweep point, at the trained depth and force and 1.5x them, and
+    the surface at the deepest sample's solved depth: forces, displacements and surfaces
+    finite and within the simulator's limits (10x the trained depth and force). Catches what
+    no rule on single datasets sees (a field that overflows in the blend of two samples, a
+    force that runs away beyond the trained depth)."""
     fields = field_interpolations(model)
+    # the deepest solved depth, where the simulator takes it (a review's tampered coefficients
+    # beyond 1.5x the shallowest drew 3.9e6 mm there, and the sweep did not go that deep)
+    deepest = min(float(model.solved_depth.max()), 10 * model.trained_depth)
     combos = [(field, "curves") for field in fields]
     if model.grassmann:
         combos.append(("grassmann", "curves"))
@@ -408,6 +423,13 @@ def sweep(model: ReducedModel) -> None:
                         sim.max_displacement)  # fmt: skip
                 d = sim.step_force(-scale * model.trained_force * n)
                 _within(model, response, "displacement", d, sim.max_displacement)
+            if deepest > model.trained_depth:  # the grid's end (2.3): the surface only (a
+                # stiff place's force there, continued far past its own solves, may pass
+                # the force limit without fault)
+                sim.step_displacement(-deepest * n)  # within 10x that depth, as at the
+                # trained depth (the 4k organ's lobe swings 1.4x the depth there: legitimate)
+                _within(model, response, "surface", sim.surface_displacement(surface),
+                        10 * deepest)  # fmt: skip
 
 
 def _within(model: ReducedModel, response: str, what: str, value: np.ndarray, limit: float):

@@ -48,6 +48,7 @@ import numpy as np
 from numba import njit
 
 from hapticrom.online import kernels as k
+from hapticrom.online.kernels import closest_on_triangle  # noqa: F401 - here before
 from hapticrom.shared.artifact_rules import MAX_LENGTH
 from hapticrom.shared.geometry import vertex_normals
 
@@ -217,83 +218,6 @@ def sheet_views(s):
 def corners(offset, triangles, t):
     a, b, c = int(triangles[3 * t]), int(triangles[3 * t + 1]), int(triangles[3 * t + 2])
     return k.vertex(offset, a), k.vertex(offset, b), k.vertex(offset, c)
-
-
-@njit(cache=True, nogil=True)
-def closest_on_triangle(p, a, b, c):
-    """The point of triangle (a, b, c) nearest p: (its barycentric coordinates, distance^2).
-    The region tests of Ericson (Real-Time Collision Detection, 5.1.5)."""
-    ab, ac, ap = k.minus(b, a), k.minus(c, a), k.minus(p, a)
-    d1, d2 = k.dot(ab, ap), k.dot(ac, ap)
-    if d1 <= 0.0 and d2 <= 0.0:
-        return _result(p, a, b, c, 1.0, 0.0, 0.0)
-    bp = k.minus(p, b)
-    d3, d4 = k.dot(ab, bp), k.dot(ac, bp)
-    if d3 >= 0.0 and d4 <= d3:
-        return _result(p, a, b, c, 0.0, 1.0, 0.0)
-    # The divisions below are by sums of terms of one sign: zero only on a degenerate
-    # triangle (corners that coincide, or in a line: an offset sheet can fold them so),
-    # where numba would raise ZeroDivisionError into the servo loop. Such a triangle is
-    # the union of its edges: the nearest point of those instead.
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        if not d1 > d3:
-            return _nearest_on_edges(p, a, b, c)
-        v = d1 / (d1 - d3)
-        return _result(p, a, b, c, 1.0 - v, v, 0.0)
-    cp = k.minus(p, c)
-    d5, d6 = k.dot(ab, cp), k.dot(ac, cp)
-    if d6 >= 0.0 and d5 <= d6:
-        return _result(p, a, b, c, 0.0, 0.0, 1.0)
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        if not d2 > d6:
-            return _nearest_on_edges(p, a, b, c)
-        w = d2 / (d2 - d6)
-        return _result(p, a, b, c, 1.0 - w, 0.0, w)
-    va = d3 * d6 - d5 * d4
-    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        span = (d4 - d3) + (d5 - d6)
-        if not span > 0.0:
-            return _nearest_on_edges(p, a, b, c)
-        w = (d4 - d3) / span
-        return _result(p, a, b, c, 0.0, 1.0 - w, w)
-    total = va + vb + vc  # |ab x ac|^2 up to rounding
-    if not total > 0.0:  # a degenerate triangle (or NaN from an overflow)
-        return _nearest_on_edges(p, a, b, c)
-    v, w = vb / total, vc / total
-    return _result(p, a, b, c, 1.0 - v - w, v, w)
-
-
-@njit(cache=True, nogil=True)
-def _nearest_on_edges(p, a, b, c):
-    """The point of the edges ab, bc, ca nearest p: (barycentric u, v, w, distance^2), for
-    a degenerate triangle (which is the union of its edges)."""
-    best, u, v, w = math.inf, 1.0, 0.0, 0.0
-    for edge in range(3):
-        s, e = (a, b) if edge == 0 else ((b, c) if edge == 1 else (c, a))
-        d = k.minus(e, s)
-        length2 = k.dot(d, d)
-        t = min(1.0, max(0.0, k.dot(k.minus(p, s), d) / length2)) if length2 > 0.0 else 0.0
-        r = k.minus(p, (s[0] + t * d[0], s[1] + t * d[1], s[2] + t * d[2]))
-        distance2 = k.dot(r, r)
-        if distance2 < best:
-            best = distance2
-            if edge == 0:
-                u, v, w = 1.0 - t, t, 0.0
-            elif edge == 1:
-                u, v, w = 0.0, 1.0 - t, t
-            else:
-                u, v, w = t, 0.0, 1.0 - t
-    return u, v, w, best
-
-
-@njit(inline="always")
-def _result(p, a, b, c, u, v, w):
-    x = (u * a[0] + v * b[0] + w * c[0], u * a[1] + v * b[1] + w * c[1],
-         u * a[2] + v * b[2] + w * c[2])  # fmt: skip
-    r = k.minus(p, x)
-    return u, v, w, k.dot(r, r)
 
 
 @njit(cache=True, nogil=True)

@@ -60,6 +60,23 @@ def curve_weights(model: ReducedModel, vertices: np.ndarray, weights: np.ndarray
     raise AssertionError(f"no sample triangle has the corners {vertices}")
 
 
+def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
+    """k(x) / k(c) of a contact x clamped to the border at c (artifact 2.3), bounded to
+    [0.1, 10]: the tool's linear stiffness linear on the loadable triangle nearest each, by
+    brute force over all of them (:func:`nearest_on_triangles`, not the kernel's grid); 1
+    without the stiffness."""
+    f = model.contact_fields
+    if f is None or f["corner_stiffness"] is None:
+        return 1.0
+
+    def stiffness(p):
+        t, beta = nearest_on_triangles(np.asarray(p, float), model.vertices, f["triangles"])
+        return float(beta @ f["corner_stiffness"][t])
+
+    clamp = np.asarray(weights) @ model.sample_points[vertices]
+    return float(np.clip(stiffness(point) / stiffness(clamp), 0.1, 10.0))
+
+
 def _lattice_interpolation(values: np.ndarray, m: int, b: np.ndarray) -> float:
     """The piecewise-linear interpolant of the lattice at barycentric weights b."""
     points = lattice_weights(m)
@@ -179,6 +196,8 @@ class NumpySimulator:
         normal = self.weights @ m.sample_normals[self.vertices]
         self.normal = normal / np.linalg.norm(normal)
         scaled = curve_weights(m, self.vertices, self.weights)
+        if self.outside:
+            scaled = scaled * outside_ratio(m, point, self.vertices, self.weights)
         self.curve = scaled @ m.force[self.vertices]
         self.slope = scaled @ m.stiffness[self.vertices]
         self.curve_weights = scaled

@@ -196,6 +196,17 @@ def default_interpolation(model: ReducedModel) -> str:
     return "compliance" if model.contact_fields is not None else "podi"
 
 
+def _outside_part(model: ReducedModel) -> tuple | None:
+    """:func:`kernels.outside_part`'s arguments: the loadable triangles' corners and linear
+    stiffness and their grid (a contact outside the trained region is scaled by them), or
+    None without the stiffness (artifact 2.3)."""
+    f = model.contact_fields
+    if f is None or f["corner_stiffness"] is None:
+        return None
+    corners = model.vertices[f["triangles"]]
+    return corners, f["corner_stiffness"], f["grid"], f["grid_starts"], f["grid_ids"]
+
+
 def _state_buffer(model: ReducedModel, anm: dict | None, max_displacement: float,
                   max_force: float) -> np.ndarray:  # fmt: skip
     """A new simulator's state buffer (layout: :mod:`hapticrom.online.kernels`)."""
@@ -223,11 +234,12 @@ class Simulator:
     """Mutable contact state on an immutable :class:`ReducedModel`.
 
     Limits (absurd inputs are refused with :class:`StepInputError`, the state
-    unchanged): ``max_displacement`` (mm, default 10x the deepest sample's solved depth:
-    under force control a soft place reaches the trained force deeper) bounds the
+    unchanged): ``max_displacement`` (mm, default 10x the trained depth, the depth every
+    sample was solved to; it also sets how far beside the loadable surface's border
+    ``step_position`` fades out) bounds the
     tool displacement a displacement step takes and the one a force step returns (a
     force that would push the tool further is refused); ``max_force`` (N, default
-    10x the trained force) bounds the force a force step takes. Each is None (the
+    10x the largest trained force) bounds the force a force step takes. Each is None (the
     default) or a finite positive number; anything else raises ``InputError``.
 
     Threads: one simulator is stepped by one thread at a time (a call while another
@@ -254,7 +266,7 @@ class Simulator:
         self.model, self.interpolation, self.response = model, interpolation, response
         anm = model.anm if response == "anm" else None
         max_displacement = _limit(
-            max_displacement, 10 * float(model.solved_depth.max()), "max_displacement", "mm"
+            max_displacement, 10 * model.trained_depth, "max_displacement", "mm"
         )
         max_force = _limit(max_force, 10 * model.sample_trained_force.max(), "max_force", "N")
         k = kernels
@@ -275,6 +287,7 @@ class Simulator:
             model.solved_depth, model.sample_triangles,
             *((anm["records"], anm["offsets"]) if anm else (None, None)),
             tool_stiffness=model.tool_stiffness, floors=model.sample_floors,
+            outside=_outside_part(model),
         )  # fmt: skip
         # bound once: no lookups per step
         self._step_displacement = k.step_displacement_anm if anm else k.step_displacement_curves

@@ -47,7 +47,8 @@ FORMAT = "hapticrom"
 # 2.0: the samples' triangulation on the surface replaces the plane chart (samples 2.0);
 # 2.1: the tool's linear stiffness on a lattice of each sample triangle (samples 2.1);
 # 2.2: the tool's linear surface field at the loadable vertices (contact_fields);
-# 2.3: the depth grid to the deepest sample, each sample's solved depth (samples 2.2).
+# 2.3: the depth grid to the deepest sample, each sample's solved depth (samples 2.2); the
+# tool's linear stiffness at the loadable vertices (contact_fields 1.1).
 FORMAT_VERSION = (2, 3)
 # What a reader says about a file of another major version.
 REREDUCE = (
@@ -265,13 +266,18 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "contact_fields",
         "linear-contact-fields",
-        (1, 0),
+        (1, 1),
         _fields(
             ("vertices", "i", ("Lv",), "1", "the surface vertex the tool is centred at, a row",
              "index:V", "distinct"),
             ("fields", "f", ("Lv", "3V"), "1",
              "the linear surface displacement per unit depth of the tool there"),
             ("sample_rows", "i", ("P",), "1", "the row of each sample", "index:Lv", "distinct"),
+        ) + _fields(
+            # group version 1.1 (format 2.3): what a contact outside the region is scaled by
+            ("stiffness", "f", ("Lv",), "N/mm", "the tool's linear stiffness there",
+             "positive"),
+            required=False,
         ),
         required=False,
     ),

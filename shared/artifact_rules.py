@@ -261,8 +261,8 @@ def solved_depths(samples) -> np.ndarray:
 def _solved_depth(artifact) -> None:
     """Each sample's solved depth lies on the grid's range, at least its first knot from 0
     (the runtime flags a depth beyond its contact's shallowest neighbour's as extrapolated,
-    and the simulator's limits are 10x the shallowest), and the deepest one is the grid's
-    end (the grid goes no further than a solve)."""
+    and the simulator's displacement limit is 10x the shallowest), and the deepest one is
+    the grid's end (the grid goes no further than a solve)."""
     s = artifact["samples"]
     if "solved_depth" not in s:
         return
@@ -275,6 +275,37 @@ def _solved_depth(artifact) -> None:
         )
     if abs(solved.max() - depth[-1]) > 1e-9 * depth[-1]:
         raise _fail(artifact, "samples/solved_depth: no sample reaches the depth grid's end")
+
+
+def _continued_beyond_solved(artifact) -> None:
+    """Beyond its solved depth a sample's curve and coordinates are continuations: linear
+    (second differences within rounding) and the force's slope there at most 3x the largest
+    secant within its solves (a crafted curve could otherwise jump where no sweep looks:
+    review). Linear, as the writer continues them (``sample_on_grid``)."""
+    s = artifact["samples"]
+    if "solved_depth" not in s:
+        return
+    depth, force, coefficients = s["depth"], s["force"], s["coefficients"]
+    step = depth[1]
+    for p, solved in enumerate(s["solved_depth"]):
+        beyond = np.flatnonzero(depth > solved * (1 + 1e-9))
+        f, c = force[p], coefficients[p]
+        if len(beyond) >= 3:
+            scale_f = np.max(np.abs(f))
+            scale_c = np.max(np.abs(c), axis=0) + 1e-300
+            if np.any(np.abs(np.diff(f[beyond], 2)) > 1e-9 * scale_f) or np.any(
+                np.abs(np.diff(c[beyond], 2, axis=0)) > 1e-9 * scale_c
+            ):
+                raise _fail(artifact, f"samples: sample {p}'s curve is not linear beyond its "
+                                      "solved depth")  # fmt: skip
+        inside = depth <= solved * (1 + 1e-9)
+        if len(beyond) >= 2 and np.count_nonzero(inside) >= 2:
+            slope = (f[beyond[1]] - f[beyond[0]]) / step
+            largest = np.max(np.diff(f[inside])) / step
+            if slope > 3 * largest + 1e-9 * np.max(np.abs(f)) / step:
+                raise _fail(artifact, f"samples: sample {p}'s force beyond its solved depth "
+                                      f"rises {slope / largest:.3g}x its steepest solved "
+                                      "secant (at most 3)")  # fmt: skip
 
 
 def _force_curves(artifact) -> None:
@@ -414,6 +445,11 @@ def _contact_fields(artifact) -> None:
                                   "loadable vertex")  # fmt: skip
     if np.any(np.abs(c["fields"]) > MAX_FIELD_PER_DEPTH):
         raise _fail(artifact, f"contact_fields/fields has values beyond +-{MAX_FIELD_PER_DEPTH:g}")
+    if "stiffness" in c:
+        low, high = TOOL_STIFFNESS_RANGE
+        if np.any(c["stiffness"] < low) or np.any(c["stiffness"] > high):
+            raise _fail(artifact, f"contact_fields/stiffness has values outside {low:g} to "
+                                  f"{high:g} N/mm")  # fmt: skip
     reach = contact_field_reach(c["fields"], c["sample_rows"])
     if not reach <= MAX_FIELD_SUM:
         raise _fail(artifact, f"contact_fields/fields: a row's largest value plus a sample's "
@@ -546,6 +582,7 @@ def _anm_against_curves(artifact) -> None:
 CROSS_RULES = (
     _depth_grid,
     _solved_depth,
+    _continued_beyond_solved,
     _force_curves,
     _sample_triangulation,
     _tool_stiffness,

@@ -996,3 +996,68 @@ def test_without_solved_depths_every_sample_is_solved_to_the_grids_end(force_art
         d = -0.999 * end * np.array(a.contact_normal)
         np.testing.assert_array_equal(a.step_displacement(d), b.step_displacement(d))
         assert not a.beyond_trained_depth
+
+
+@pytest.mark.parametrize("value", [1e-12, 1e12, 0.0])
+def test_contact_field_stiffness_outside_its_range_is_refused(force_artifact, tmp_path, value):
+    """contact_fields/stiffness scales a contact outside the region: within 1e-9..1e9 N/mm
+    (a ratio of two would overflow or vanish beyond), positive."""
+    path = copy(force_artifact, tmp_path)
+
+    def put(k):
+        k[len(k) // 2] = value
+        return k
+
+    rewrite(path, "contact_fields/stiffness", put)
+    refused(path, "contact_fields/stiffness (has values outside|has values that are not positive)")
+
+
+def test_a_curve_that_is_not_linear_beyond_its_solved_depth_is_refused(force_artifact, tmp_path):
+    """A file claiming a sample (a ring sample; the centre is the deepest) was solved to its
+    first knot only: its stored curve beyond is the cubic through its solves."""
+    path = copy(force_artifact, tmp_path)
+    with h5py.File(path, "r") as f:
+        first = f["samples/depth"][1]
+    rewrite(path, SOLVED, lambda d: np.r_[d[0], first, d[2:]])  # sample 0 reaches the end
+    refused(path, "sample 1's curve is not linear beyond its solved depth")
+
+
+def test_a_continuation_steeper_than_the_solves_is_refused(force_artifact, tmp_path):
+    """Beyond a (claimed) solved depth at knot 2, a linear force rising 10 times the
+    steepest solved secant: where no sweep looks, a soft place would feel it."""
+    path = copy(force_artifact, tmp_path)
+    with h5py.File(path, "r") as f:
+        depth, force, c = (
+            f["samples/depth"][()],
+            f["samples/force"][()],
+            f["samples/coefficients"][()],
+        )
+    steepest = np.max(np.diff(force[1, :3])) / depth[1]
+
+    def steep(f):
+        f[1, 3:] = f[1, 2] + 10 * steepest * (depth[3:] - depth[2])
+        return f
+
+    def straight(a):
+        a[1, 3:] = a[1, 2] + np.outer(depth[3:] - depth[2], (c[1, 2] - c[1, 1]) / depth[1])
+        return a
+
+    rewrite(path, SOLVED, lambda d: np.r_[d[0], depth[2], d[2:]])
+    rewrite(path, "samples/force", steep)
+    rewrite(path, "samples/coefficients", straight)
+    refused(path, "sample 1's force beyond its solved depth rises 10x its steepest solved")
+
+
+def test_a_field_that_runs_away_at_the_grids_end_is_refused(force_artifact, tmp_path):
+    """The deepest sample's coordinates at the grid's end times 1e6 (its own range: no
+    linearity to check there): load's sweep takes the surface at the deepest solved depth."""
+    path = copy(force_artifact, tmp_path)
+    with h5py.File(path, "r") as f:
+        deepest = int(np.argmax(f[SOLVED][()]))
+
+    def huge(c):
+        c[deepest, -1] *= 1e6
+        return c
+
+    rewrite(path, "samples/coefficients", huge)
+    refused(path, "surface is not finite or beyond the simulator's limit")

@@ -151,11 +151,15 @@ def test_the_curves_flag_beyond_the_contacts_shallowest_neighbour(model):
         sim.set_contact(point)
         n = np.array(sim.contact_normal)
         solved = model.solved_depth[i]
+        # its own: not a neighbour's through locate's rounding weights (6e-18: review)
+        assert sim._buf[kernels.SOLVED_DEPTH] == solved, i
         sim.step_displacement(-(1 - 1e-3) * solved * n)
         assert not sim.beyond_trained_depth, i
         sim.step_displacement(-(1 + 1e-3) * solved * n)
         assert sim.beyond_trained_depth, i
         sim.step_force(-(1 - 1e-3) * model.sample_trained_force[i] * n)
+        assert not sim.beyond_trained_depth, i
+        sim.step_force(-model.sample_trained_force[i] * n)  # exactly: within rounding of it
         assert not sim.beyond_trained_depth, i
         sim.step_force(-(1 + 1e-3) * model.sample_trained_force[i] * n)
         assert sim.beyond_trained_depth, i

@@ -6,8 +6,9 @@ table's other positions (points, polar, farthest) and goes in rounds:
 1. the campaign machinery (:func:`~.run.run_campaign`) solves every planned position not
    yet stored, in the same resumable directory;
 2. rank 0 reads the solved positions' force curves (normal reaction against indentation
-   depth at the nominal load steps), puts them on one depth grid (monotone cubic, as the
-   reduction's :func:`~hapticrom.offline.reduce.interpolation.common_depth_grid`) and
+   depth at the nominal load steps), puts them on one depth grid (monotone cubic,
+   :func:`~hapticrom.offline.reduce.interpolation.on_common_grid`, as the reduction's
+   indicator) and
    computes the leave-one-out indicator of every sample
    (:func:`~hapticrom.offline.reduce.indicator.leave_one_out`, the one the artifact stores);
 3. it stops when every sample's indicator is at most ``target``, when ``max_solves``

@@ -71,7 +71,8 @@ def artifact_content(model: ReducedModel, region: CutRegion | None = None) -> di
     if model.contact_fields is not None:
         f = model.contact_fields
         content["contact_fields"] = {"vertices": f.vertices, "fields": f.fields,
-                                     "sample_rows": f.sample_rows}  # fmt: skip
+                                     "sample_rows": f.sample_rows,
+                                     "stiffness": f.stiffness}  # fmt: skip
     if model.series is not None:
         content["anm"] = anm_group(model.series, model.config)
     if model.cut is not None and region is not None:

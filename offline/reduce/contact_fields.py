@@ -48,6 +48,7 @@ class ContactFields:
     vertices: np.ndarray  # (R,) int64 surface vertex of each row
     fields: np.ndarray  # (R, 3V) float32, mm per mm of depth, surface DOF order
     sample_rows: np.ndarray  # (P,) int64 the row of each sample
+    stiffness: np.ndarray  # (R,) N/mm the tool's linear stiffness W^2 / (g^T K0^-1 g) there
 
 
 def field_points(surface, sample_points, sample_normals, direction) -> tuple:
@@ -101,11 +102,13 @@ def contact_fields(config, store, surface, sample_points, sample_normals,
     rows = row_of[surface.dofs]  # each surface DOF's row among the free ones (-1: a support's)
     moving = rows >= 0
     fields = np.zeros((len(vertices), surface.dofs.size), dtype=np.float32)
+    stiffness = np.empty(len(vertices))
     points = surface.vertices[vertices]
     for chunk, G, X, W in linear_responses(K0, data["supported_nodes"], ToolLoads(config),
                                            points, pushes):  # fmt: skip
         depth = np.einsum("ij,ij->j", G, X) / W  # the campaign's measure: g^T u / W
         fields[chunk.start : chunk.stop, moving] = (X[rows[moving]] / depth).T
+        stiffness[chunk.start : chunk.stop] = W / depth  # tool_stiffness.linear_stiffness's
     reach = contact_field_reach(fields, sample_rows)
     if not reach <= MAX_FIELD_SUM:  # the reader would refuse the file
         say(f"no contact fields: a row plus a sample's reach {reach:.3g} per unit depth (at "
@@ -113,4 +116,4 @@ def contact_fields(config, store, surface, sample_points, sample_normals,
         return None
     say(f"the tool's linear field at {len(vertices)} loadable vertices "
         f"({fields.nbytes / 1e6:.1f} MB) in {time.perf_counter() - t0:.1f} s")  # fmt: skip
-    return ContactFields(vertices, fields, sample_rows)
+    return ContactFields(vertices, fields, sample_rows, stiffness)

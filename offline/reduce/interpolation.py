@@ -77,7 +77,7 @@ class DepthGrid:
 
 
 # The artifact's grid is at most this many times finer than the common one (the deepest
-# sample's depth against the shallowest's: 4.7 on the liver, 6.7 on the 4k organ). Beyond
+# sample's depth against the shallowest's: 6.3 on the liver, 7.4 on the 4k organ). Beyond
 # it the stiffest samples get fewer knots than they were solved at.
 MAX_GRID_REFINEMENT = 16
 
@@ -104,7 +104,7 @@ def extended_grid(depths: list[np.ndarray]) -> np.ndarray:
     keeps its knots.
 
     Why: under force control a soft place reaches the trained force several times deeper
-    than the stiffest (the liver 4.7x, the 4k organ 6.7x). A grid that stopped at the
+    than the stiffest (the liver 6.3x, the 4k organ 7.4x). A grid that stopped at the
     shallowest end left the runtime to extrapolate every neighbour's curve there with its
     end slope, though the campaign had solved the soft ones: the force was 2.3 % (liver)
     and 3.35 % (4k organ) off next to the softest samples."""

@@ -115,18 +115,20 @@ def load_displacement_figure(model: ReducedModel, samples: list[int], response: 
     """The runtime's force along the indentation at ``samples`` against the stored curves."""
     from matplotlib.lines import Line2D
 
-    knots = model.artifact["samples"]["depth"]
-    fine = np.linspace(0.0, model.trained_depth, 201)
+    knots = np.asarray(model.artifact["samples"]["depth"])
+    fine = np.linspace(0.0, knots[-1], 201)  # the grid's end: the deepest sample's (2.3)
     radii = np.linalg.norm(model.plan_points, axis=1)
     fig = new_figure(7.5, 6.5)
     top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[2.2, 1])
     for colour, i in enumerate(samples):
         c = f"C{colour}"
         top.plot(fine, rom_forces(model, i, fine, response), "-", color=c, lw=1.5)
-        top.plot(knots, model.force[i], "o", color=c, mfc="none", ms=6)
-        at_knots = rom_forces(model, i, knots[1:], response)
-        error = 100 * (at_knots - model.force[i, 1:]) / model.force[i, 1:]
-        bottom.plot(knots[1:], error, "o-", color=c, ms=4, lw=1)
+        solved = knots <= model.solved_depth[i] * (1 + 1e-9)  # beyond: a continuation
+        top.plot(knots[solved], model.force[i, solved], "o", color=c, mfc="none", ms=6)
+        mark = np.flatnonzero(solved[1:]) + 1
+        at_knots = rom_forces(model, i, knots[mark], response)
+        error = 100 * (at_knots - model.force[i, mark]) / model.force[i, mark]
+        bottom.plot(knots[mark], error, "o-", color=c, ms=4, lw=1)
     sample_handles = [
         Line2D([], [], color=f"C{k}", lw=3, label=f"sample {i} (r = {radii[i]:.2f} mm)")
         for k, i in enumerate(samples)
