@@ -61,10 +61,11 @@ def curve_weights(model: ReducedModel, vertices: np.ndarray, weights: np.ndarray
 
 
 def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
-    """k(x) / k(c) of a contact x clamped to the border at c (artifact 2.3), bounded to
-    [0.1, 10]: the tool's linear stiffness linear on the loadable triangle nearest each, by
-    brute force over all of them (:func:`nearest_on_triangles`, not the kernel's grid); 1
-    without the stiffness."""
+    """k(x) / D of a contact x clamped to the border at c (artifact 2.3; D as
+    ``kernels.scale_outside``: k at b, the point of c's normal line level with x, blended
+    into the lattice's k(c) over the tool's radius beside the border), bounded to [0.1, 10];
+    k linear on the loadable triangle nearest each point, by brute force over all of them
+    (:func:`nearest_on_triangles`, not the kernel's grid); 1 without the stiffness."""
     f = model.contact_fields
     if f is None or f["corner_stiffness"] is None:
         return 1.0
@@ -74,7 +75,27 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
         return float(beta @ f["corner_stiffness"][t])
 
     clamp = np.asarray(weights) @ model.sample_points[vertices]
-    return float(np.clip(stiffness(point) / stiffness(clamp), 0.1, 10.0))
+    n = np.asarray(weights) @ model.sample_normals[vertices]
+    level = clamp + (np.asarray(point, float) - clamp) @ n / (n @ n) * n
+    denominator = stiffness(level)
+    scaled = curve_weights(model, vertices, weights)
+    j = int(np.argmax(weights))
+    if model.tool_stiffness is not None and not np.array_equal(scaled, weights):
+        # the lattice's k(c): w_j k(c) / k_j times the corner value k_j, from another route
+        at_clamp = scaled[j] / weights[j] * _corner_value(model, vertices[j])
+        aside = np.linalg.norm(np.asarray(point, float) - level)
+        denominator += (at_clamp - denominator) * min(1.0, aside / model.contact_radius)
+    return float(np.clip(stiffness(point) / denominator, 0.1, 10.0))
+
+
+def _corner_value(model: ReducedModel, sample: int) -> float:
+    """The lattice's value at a sample (the same in each of its triangles: artifact rule)."""
+    for t, corners in enumerate(model.sample_triangles):
+        where = np.flatnonzero(corners == sample)
+        if len(where):
+            values = model.tool_stiffness[t]
+            return float(values[lattice_corners(lattice_subdivisions(len(values)))][where[0]])
+    raise AssertionError(f"sample {sample} is in no triangle")
 
 
 def _lattice_interpolation(values: np.ndarray, m: int, b: np.ndarray) -> float:

@@ -204,7 +204,8 @@ def _outside_part(model: ReducedModel) -> tuple | None:
     if f is None or f["corner_stiffness"] is None:
         return None
     corners = model.vertices[f["triangles"]]
-    return corners, f["corner_stiffness"], f["grid"], f["grid_starts"], f["grid_ids"]
+    return (corners, f["corner_stiffness"], f["grid"], f["grid_starts"], f["grid_ids"],
+            model.contact_radius)  # fmt: skip
 
 
 def _state_buffer(model: ReducedModel, anm: dict | None, max_displacement: float,
