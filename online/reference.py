@@ -70,8 +70,12 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
     if f is None or f["corner_stiffness"] is None:
         return 1.0
 
+    grid = f["grid"]  # the kernel moves a query into the grid's box widened by 2 cells
+    lo, hi = grid[:3] - 2 * grid[3], grid[:3] + (grid[4:7] + 2) * grid[3]
+
     def stiffness(p):
-        t, beta = nearest_on_triangles(np.asarray(p, float), model.vertices, f["triangles"])
+        q = np.clip(np.asarray(p, float), lo, hi)
+        t, beta = nearest_on_triangles(q, model.vertices, f["triangles"])
         return float(beta @ f["corner_stiffness"][t])
 
     clamp = np.asarray(weights) @ model.sample_points[vertices]
@@ -80,7 +84,7 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
     denominator = stiffness(level)
     scaled = curve_weights(model, vertices, weights)
     j = int(np.argmax(weights))
-    if model.tool_stiffness is not None and not np.array_equal(scaled, weights):
+    if model.tool_stiffness is not None and weights[0] != 1.0:  # the kernel's lattice cases
         # the lattice's k(c): w_j k(c) / k_j times the corner value k_j, from another route
         at_clamp = scaled[j] / weights[j] * _corner_value(model, vertices[j])
         aside = np.linalg.norm(np.asarray(point, float) - level)
