@@ -1417,20 +1417,34 @@ def grid_reach(p, grid, cell, r):
 
 
 @njit(inline="always")
-def stiffness_nearest(p, grid, starts, ids, corners, stiffness):
-    """The tool's linear stiffness (N/mm) at the loadable surface's point nearest p: linear
-    on the triangle holding it, found ring by ring through the grid (as
-    ``surface_kernels.locate_on_surface``)."""
+def grid_cell(p, grid):
+    """(the cell of p, clamped into the grid (3), the grid's dims (3)) of a uniform grid
+    (origin (3), cell size, dims (3)): where a ring search starts."""
     size = grid[3]
     n0, n1, n2 = int(grid[4]), int(grid[5]), int(grid[6])
     c0 = min(max(int(math.floor((p[0] - grid[0]) / size)), 0), n0 - 1)
     c1 = min(max(int(math.floor((p[1] - grid[1]) / size)), 0), n1 - 1)
     c2 = min(max(int(math.floor((p[2] - grid[2]) / size)), 0), n2 - 1)
+    return (c0, c1, c2), (n0, n1, n2)
+
+
+@njit(inline="always")
+def ring_span(c, r, n):
+    """[first, last + 1) of the cells within r of cell c along one axis of n cells."""
+    return max(c - r, 0), min(c + r, n - 1) + 1
+
+
+@njit(inline="always")
+def stiffness_nearest(p, grid, starts, ids, corners, stiffness):
+    """The tool's linear stiffness (N/mm) at the loadable surface's point nearest p: linear
+    on the triangle holding it, found ring by ring through the grid (as
+    ``surface_kernels.locate_on_surface``)."""
+    (c0, c1, c2), (n0, n1, n2) = grid_cell(p, grid)
     best, k = np.inf, 0.0
     for r in range(max(n0, n1, n2)):
-        for i0 in range(max(c0 - r, 0), min(c0 + r, n0 - 1) + 1):
-            for i1 in range(max(c1 - r, 0), min(c1 + r, n1 - 1) + 1):
-                for i2 in range(max(c2 - r, 0), min(c2 + r, n2 - 1) + 1):
+        for i0 in range(*ring_span(c0, r, n0)):
+            for i1 in range(*ring_span(c1, r, n1)):
+                for i2 in range(*ring_span(c2, r, n2)):
                     if max(abs(i0 - c0), abs(i1 - c1), abs(i2 - c2)) != r:
                         continue  # an inner ring's cell, searched already
                     cell = (i0 * n1 + i1) * n2 + i2

@@ -38,7 +38,9 @@ from hapticrom.online.kernels import (
     f8_1d,
     f8_2d,
     field_depth_weights,
+    grid_cell,
     grid_reach,
+    ring_span,
     ro_f4_3d,
     ro_f8_3d,
     ro_i8_1d,
@@ -333,16 +335,12 @@ def locate_on_surface(buf, sample_points, sample_normals, vertices, triangles, g
         # (measured on the liver outside its region: 9-222 % off at the clamp point)
         p0, p1, p2 = buf[CONTACT_POINT], buf[CONTACT_POINT + 1], buf[CONTACT_POINT + 2]
     p = (p0, p1, p2)
-    size = grid[3]
-    n0, n1, n2 = int(grid[4]), int(grid[5]), int(grid[6])
-    c0 = min(max(int(math.floor((p0 - grid[0]) / size)), 0), n0 - 1)
-    c1 = min(max(int(math.floor((p1 - grid[1]) / size)), 0), n1 - 1)
-    c2 = min(max(int(math.floor((p2 - grid[2]) / size)), 0), n2 - 1)
+    (c0, c1, c2), (n0, n1, n2) = grid_cell(p, grid)
     best, found = np.inf, 0
     for r in range(max(n0, n1, n2)):
-        for i0 in range(max(c0 - r, 0), min(c0 + r, n0 - 1) + 1):
-            for i1 in range(max(c1 - r, 0), min(c1 + r, n1 - 1) + 1):
-                for i2 in range(max(c2 - r, 0), min(c2 + r, n2 - 1) + 1):
+        for i0 in range(*ring_span(c0, r, n0)):
+            for i1 in range(*ring_span(c1, r, n1)):
+                for i2 in range(*ring_span(c2, r, n2)):
                     if max(abs(i0 - c0), abs(i1 - c1), abs(i2 - c2)) != r:
                         continue  # an inner ring's cell, searched already
                     best, found = _nearest_in_cell(p, (i0 * n1 + i1) * n2 + i2, vertices,
