@@ -21,7 +21,9 @@ position:
   that reach the trained force deepest, where the runtime extrapolates in depth;
 - ``outside`` (with a seed): random nodes of the tool's surface group that the runtime
   does *not* locate inside the triangulation (it clamps a contact there to the border):
-  what a tool gets there.
+  what a tool gets there;
+- ``anywhere`` (with a seed): random nodes of the whole tool's surface group, inside the
+  region or not: the force a tool meets anywhere it can touch, the summary split by region.
 
 Selection is numpy; the solves go through :func:`~hapticrom.offline.campaign.run.run_campaign`
 (its progress bar); the comparison uses the online runtime; output is a text table on
@@ -49,6 +51,15 @@ from hapticrom.shared.errors import HapticromError, InputError
 from hapticrom.shared.geometry import plan_view, vertex_normals
 
 FORMAT, VERSION = "hapticrom-accuracy", 3  # 3: transport columns, dent, deepest, beyond
+# how the held-out nodes are chosen -> the work directory's tag (N positions, seed S)
+SELECTIONS = {
+    "centroids": "{count}",
+    "random": "{count}-seed{seed}",
+    "softest": "{count}-softest",
+    "outside": "{count}-outside-seed{seed}",
+    "anywhere": "{count}-anywhere-seed{seed}",
+}
+RANDOM_NODES = {"random": "region", "outside": "outside", "anywhere": "anywhere"}
 RESPONSE_COLUMNS = {"curves": "curves", "anm": "ANM"}
 
 
@@ -68,7 +79,7 @@ class HeldOutPlan:
     model: str
     campaign: dict
     positions: list[HeldOutPosition]
-    method: str  # "centroids" or "random"
+    method: str  # one of SELECTIONS
     seed: int | None
     requested: int
 
@@ -157,24 +168,32 @@ def centroid_positions(samples: dict, surface: Surface, count: int) -> list[Held
 
 
 def random_positions(
-    samples: dict, surface: Surface, count: int, seed: int, outside: bool = False
+    samples: dict, surface: Surface, count: int, seed: int, where: str = "region"
 ) -> list[HeldOutPosition]:
-    """Up to ``count`` distinct surface nodes of the trained region, not training positions,
-    drawn with ``numpy.random.default_rng(seed)``; with ``outside``, of the tool's surface
-    group outside that region instead (where the runtime clamps a contact to the region's
-    border: between the outermost samples and the group's border, and in the holes)."""
+    """Up to ``count`` distinct surface nodes, not training positions, drawn with
+    ``numpy.random.default_rng(seed)`` among those of ``where``: "region", the trained
+    region; "outside", the tool's surface group outside it (where the runtime clamps a
+    contact to the region's border: between the outermost samples and the group's border,
+    and in the holes); "anywhere", the whole group."""
     trained = trained_nodes(samples, surface)
     region = region_nodes(samples, surface)
-    if outside:
-        region = np.setdiff1d(np.arange(len(surface.nodes)), region)
-    candidates = [int(n) for n in region if int(n) not in trained]
+    nodes = {"region": region, "outside": np.setdiff1d(np.arange(len(surface.nodes)), region),
+             "anywhere": np.arange(len(surface.nodes))}[where]  # fmt: skip
+    candidates = [int(n) for n in nodes if int(n) not in trained]
     if not candidates:
         return []
     rng = np.random.default_rng(seed)
     picked = rng.choice(candidates, size=min(count, len(candidates)), replace=False)
-    what = "outside the trained region" if outside else "random surface node"
+    inside = set(region.tolist())
+    what = {"region": "random surface node", "outside": "outside the trained region",
+            "anywhere": "random node of the surface group"}[where]  # fmt: skip
     return [
-        HeldOutPosition(tuple(float(c) for c in surface.nodes[n]), 0.0, f"{what} (seed {seed})")
+        HeldOutPosition(
+            tuple(float(c) for c in surface.nodes[n]),
+            0.0,
+            f"{what} (seed {seed})"
+            + ("" if where != "anywhere" else ", inside" if n in inside else ", outside"),
+        )
         for n in picked
     ]
 
@@ -224,8 +243,7 @@ def _mesh_file(model: str, info: dict) -> Path:
     return mesh
 
 
-def _plan(model: str, count: int, seed: int | None, softest: bool = False,
-          outside: bool = False) -> HeldOutPlan:  # fmt: skip
+def _plan(model: str, count: int, seed: int | None, method: str) -> HeldOutPlan:
     from hapticrom.shared.artifact import read_artifact
 
     artifact = read_artifact(model)
@@ -238,45 +256,51 @@ def _plan(model: str, count: int, seed: int | None, softest: bool = False,
         raise InputError(f"{model} does not record its training campaign: nothing to repeat")
     mesh = _mesh_file(model, info)
     surface = read_surface(mesh, info["surface_group"])
-    if softest:
+    if method == "softest":
         positions = softest_positions(samples, surface, count)
-    elif outside:
-        positions = random_positions(samples, surface, count, seed or 0, outside=True)
-    elif seed is None:
+    elif method == "centroids":
         positions = centroid_positions(samples, surface, count)
     else:
-        positions = random_positions(samples, surface, count, seed)
+        positions = random_positions(samples, surface, count, seed, RANDOM_NODES[method])
     if not positions:
-        where = "outside" if outside else "of"
-        raise InputError(f"{model}: no surface node {where} the trained region is left to hold out")
+        where = {"outside": "outside the trained region", "anywhere": "of the surface group"}
+        raise InputError(f"{model}: no surface node {where.get(method, 'of the trained region')}"
+                         " is left to hold out")  # fmt: skip
     campaign = json.loads(json.dumps(artifact.attrs["campaign"]))  # a deep copy
     campaign.pop("cutting", None)  # the solves only
     campaign["positions"] = {"points": [list(p.point) for p in positions]}
     campaign.setdefault("campaign", {})["name"] = "held-out"
     campaign["mesh"]["file"] = str(mesh)
-    method = ("softest" if softest else "outside" if outside else
-              "centroids" if seed is None else "random")  # fmt: skip
-    return HeldOutPlan(str(model), campaign, positions, method,
-                       (seed or 0) if outside else seed, count)  # fmt: skip
+    return HeldOutPlan(str(model), campaign, positions, method, seed, count)
+
+
+def selection(seed: int | None, method: str | None) -> tuple[int | None, str]:
+    """(seed, method) with the defaults: centroids without a seed, random nodes of the
+    region with one; the random selections need a seed (0 if none is given)."""
+    method = method or ("centroids" if seed is None else "random")
+    if method not in SELECTIONS:
+        raise InputError(f"held-out selection {method!r}: expected one of {', '.join(SELECTIONS)}")
+    if method in RANDOM_NODES:
+        return (seed or 0), method
+    return None, method
 
 
 def plan_held_out(model: str, count: int, seed: int | None = None, comm=MPI.COMM_WORLD,
-                  softest: bool = False, outside: bool = False):  # fmt: skip
-    """The held-out positions of ``model`` (rank 0 reads; every rank gets the plan)."""
-    return on_rank_zero(comm, _plan, str(model), count, seed, softest, outside)
+                  method: str | None = None):  # fmt: skip
+    """The held-out positions of ``model`` chosen by ``method`` (:data:`SELECTIONS`; default:
+    centroids without a seed, random region nodes with one). Rank 0 reads; every rank gets
+    the plan."""
+    seed, method = selection(seed, method)
+    return on_rank_zero(comm, _plan, str(model), count, seed, method)
 
 
-def default_work(model: str | Path, count: int, seed: int | None, softest: bool = False,
-                 outside: bool = False) -> Path:  # fmt: skip
-    """MODEL.heldout-N (centroids), MODEL.heldout-N-seedS, MODEL.heldout-N-softest or
-    MODEL.heldout-N-outside-seedS: one directory per selection."""
-    if softest:
-        tag = f"{count}-softest"
-    elif outside:
-        tag = f"{count}-outside-seed{seed or 0}"
-    else:
-        tag = f"{count}" if seed is None else f"{count}-seed{seed}"
-    return Path(model).with_suffix(f".heldout-{tag}")
+def default_work(model: str | Path, count: int, seed: int | None,
+                 method: str | None = None) -> Path:  # fmt: skip
+    """MODEL.heldout-N (centroids), MODEL.heldout-N-seedS, MODEL.heldout-N-softest,
+    MODEL.heldout-N-outside-seedS or MODEL.heldout-N-anywhere-seedS: one directory per
+    selection."""
+    seed, method = selection(seed, method)
+    return Path(model).with_suffix(".heldout-" + SELECTIONS[method].format(count=count, seed=seed))
 
 
 # -- the full-order solves --------------------------------------------------------------------
@@ -391,11 +415,12 @@ def force_error(step: Step, name: str) -> float:
     return abs(step.force[name] - step.f_fem) / step.f_fem
 
 
-def summarise(steps: list[Step], names: list[str]) -> dict[str, dict]:
+def summarise(steps: list[Step], names: list[str], outside=frozenset()) -> dict[str, dict]:
     """Per combination, over the steps within its trained depth (the others are counted, and
     their largest force and field errors given apart): the largest force and field errors
     with their targets and verdicts, the largest error of the dent under the tool and the
-    farthest its deepest node lies from the tool (mm).
+    farthest its deepest node lies from the tool (mm); the largest force error inside the
+    trained region and outside it (positions in ``outside``, NaN where there are none).
     The deepest node is "within one element" where it is within one element of the tool or
     of the full order's own deepest node: pressed near the liver's thin border, the whole
     lobe swings and the full order's deepest node lies tens of millimetres away."""
@@ -413,6 +438,12 @@ def summarise(steps: list[Step], names: list[str]) -> dict[str, dict]:
             # field's coordinates linearly (a soft place reaches the trained force deeper)
             "max_force_error_beyond": _nanmax([force_error(s, name) for s in beyond]),
             "max_field_error_beyond": _nanmax([s.field[name] for s in beyond]),
+            "max_force_error_inside": _nanmax(
+                [force_error(s, name) for s in within if s.position not in outside]
+            ),
+            "max_force_error_outside": _nanmax(
+                [force_error(s, name) for s in within if s.position in outside]
+            ),
             "max_dent_error": _nanmax([s.dent.get(name, np.nan) for s in within]),
             "max_deepest_distance_mm": _nanmax([s.deepest.get(name, np.nan) for s in within]),
             "max_deepest_fem_mm": _nanmax([s.deepest_fem for s in within]),
@@ -465,7 +496,8 @@ def compare(plan: HeldOutPlan, work: str | Path, failed: list[int]) -> AccuracyR
             outside.append(index)
     names = combinations(model)
     seconds = {"comparison": time.perf_counter() - t0}
-    return AccuracyResult(plan, steps, summarise(steps, names), names, why, outside, seconds)
+    summary = summarise(steps, names, set(outside))
+    return AccuracyResult(plan, steps, summary, names, why, outside, seconds)
 
 
 # -- output (rank 0) -------------------------------------------------------------------------------
@@ -481,6 +513,9 @@ def positions_text(plan: HeldOutPlan) -> str:
     elif plan.method == "outside":
         how = (f"random surface nodes outside the trained region, seed {plan.seed}: the "
                "runtime clamps the contact to the region's border")  # fmt: skip
+    elif plan.method == "anywhere":
+        how = (f"random nodes of the tool's whole surface group, seed {plan.seed}: inside the "
+               "trained region or outside it (where the runtime clamps the contact)")  # fmt: skip
     else:
         how = f"random surface nodes of the trained region, seed {plan.seed}"
     lines = [
@@ -557,6 +592,7 @@ def summary_text(result: AccuracyResult) -> str:
             )
         lines.append(f"{name:<18} " + " ".join(cells))
     lines += [f"  {q}: {meaning}" for q, meaning in QUANTITIES.items()]
+    lines += region_text(result)
     lines.append(
         f"\n{'combination':<18} {'dent under tool':>15} {'deepest node from tool':>23}"
         f" {'beyond trained depth: steps, force, field':>42}"
@@ -585,6 +621,22 @@ def summary_text(result: AccuracyResult) -> str:
         "trusted, not that the check failed"
     )
     return "\n".join(lines)
+
+
+def region_text(result: AccuracyResult) -> list[str]:
+    """The largest force errors inside the trained region and outside it, per response,
+    when the check has positions on both sides (``--anywhere``)."""
+    positions = {s.position for s in result.steps}
+    outside = positions & set(result.outside)
+    if not outside or outside == positions:
+        return []
+    lines = [f"\nforce by region: {len(positions) - len(outside)} position(s) inside the trained "
+             f"region, {len(outside)} outside it (clamped to its border)"]  # fmt: skip
+    for name in _responses(result.names).values():
+        s = result.summary[name]
+        lines.append(f"{name:<18} inside {100 * s['max_force_error_inside']:6.2f} %   outside "
+                     f"{100 * s['max_force_error_outside']:6.2f} %")  # fmt: skip
+    return lines
 
 
 def result_json(result: AccuracyResult) -> dict:

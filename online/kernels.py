@@ -1435,6 +1435,34 @@ def ring_span(c, r, n):
 
 
 @njit(inline="always")
+def ring_row(c, r, n, shell):
+    """(start, stop, step) of the cells of ring r along the last axis of n cells, in a row
+    whose first two indices are ``shell`` (on the ring's outer layer: every cell within r
+    of c) or not (only the row's two ends, c - r and c + r, those inside the grid): a ring
+    visits its own cells only, O(r^2), not the whole cube around c."""
+    if shell:
+        first, stop = ring_span(c, r, n)
+        return first, stop, 1
+    first = c - r if c - r >= 0 else c + r
+    last = c + r if c + r <= n - 1 else c - r
+    if first > last:
+        return 0, 0, 1
+    return first, last + 1, max(last - first, 1)
+
+
+@njit(inline="always")
+def box_gap2(p, grid, i0, i1, i2):
+    """A lower bound of the squared distance from p to grid cell (i0, i1, i2): a cell no
+    nearer than the best triangle found holds no nearer point of any triangle listed in
+    it (each is listed in every cell its box meets, the nearer part in nearer cells)."""
+    size = grid[3]
+    g0 = cell_gap(p[0], grid[0], size, i0)
+    g1 = cell_gap(p[1], grid[1], size, i1)
+    g2 = cell_gap(p[2], grid[2], size, i2)
+    return max(g0, 0.0) ** 2 + max(g1, 0.0) ** 2 + max(g2, 0.0) ** 2
+
+
+@njit(inline="always")
 def stiffness_nearest(p, grid, starts, ids, corners, stiffness):
     """The tool's linear stiffness (N/mm) at the loadable surface's point nearest p: linear
     on the triangle holding it, found ring by ring through the grid (as
@@ -1444,9 +1472,10 @@ def stiffness_nearest(p, grid, starts, ids, corners, stiffness):
     for r in range(max(n0, n1, n2)):
         for i0 in range(*ring_span(c0, r, n0)):
             for i1 in range(*ring_span(c1, r, n1)):
-                for i2 in range(*ring_span(c2, r, n2)):
-                    if max(abs(i0 - c0), abs(i1 - c1), abs(i2 - c2)) != r:
-                        continue  # an inner ring's cell, searched already
+                shell = abs(i0 - c0) == r or abs(i1 - c1) == r
+                for i2 in range(*ring_row(c2, r, n2, shell)):
+                    if box_gap2(p, grid, i0, i1, i2) >= best:
+                        continue
                     cell = (i0 * n1 + i1) * n2 + i2
                     for q in range(int(starts[cell]), int(starts[cell + 1])):
                         t = int(ids[q])

@@ -34,12 +34,14 @@ from hapticrom.online.kernels import (
     anm_layout,
     anm_section,
     axpy,
+    box_gap2,
     closest_on_triangle,
     f8_1d,
     f8_2d,
     field_depth_weights,
     grid_cell,
     grid_reach,
+    ring_row,
     ring_span,
     ro_f4_3d,
     ro_f8_3d,
@@ -340,9 +342,10 @@ def locate_on_surface(buf, sample_points, sample_normals, vertices, triangles, g
     for r in range(max(n0, n1, n2)):
         for i0 in range(*ring_span(c0, r, n0)):
             for i1 in range(*ring_span(c1, r, n1)):
-                for i2 in range(*ring_span(c2, r, n2)):
-                    if max(abs(i0 - c0), abs(i1 - c1), abs(i2 - c2)) != r:
-                        continue  # an inner ring's cell, searched already
+                shell = abs(i0 - c0) == r or abs(i1 - c1) == r
+                for i2 in range(*ring_row(c2, r, n2, shell)):
+                    if box_gap2(p, grid, i0, i1, i2) >= best:
+                        continue
                     best, found = _nearest_in_cell(p, (i0 * n1 + i1) * n2 + i2, vertices,
                                                    triangles, starts, ids, best, found,
                                                    out_weights)  # fmt: skip

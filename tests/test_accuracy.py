@@ -101,9 +101,9 @@ def test_softest_gives_the_region_nodes_nearest_the_softest_samples(small_artifa
             expected.append(node)
     positions = accuracy.softest_positions(samples, surface, 3)
     assert [node_index(surface, p.point) for p in positions] == expected[:3]
-    plan = accuracy.plan_held_out(small_artifact, 3, comm=MPI.COMM_SELF, softest=True)
+    plan = accuracy.plan_held_out(small_artifact, 3, comm=MPI.COMM_SELF, method="softest")
     assert plan.method == "softest" and plan.positions == positions
-    assert accuracy.default_work(tmp_path / "m.h5", 3, None, softest=True).name == (
+    assert accuracy.default_work(tmp_path / "m.h5", 3, None, "softest").name == (
         "m.heldout-3-softest"
     )
 
@@ -205,6 +205,59 @@ def test_command_prints_positions_tables_verdicts_and_writes_json(small_artifact
     assert {tuple(p["point"]) for p in data["positions"]} == {tuple(r[1]) for r in data["rows"]}
 
 
+
+@pytest.mark.serial
+def test_anywhere_draws_the_whole_group_inside_and_outside(small_artifact, tmp_path):
+    """--anywhere S: random nodes of the whole surface group but training positions, on both
+    sides of the trained region, each labelled as the runtime classifies it."""
+    from hapticrom.online import load
+
+    samples, surface = model_surface(small_artifact)
+    region = set(accuracy.region_nodes(samples, surface).tolist())
+    trained = accuracy.trained_nodes(samples, surface)
+    positions = accuracy.random_positions(samples, surface, 40, 5, "anywhere")
+    nodes = [node_index(surface, p.point) for p in positions]
+    assert len(set(nodes)) == 40 and not set(nodes) & trained
+    assert 0 < sum(n in region for n in nodes) < 40  # both sides drawn
+    sim = load(small_artifact).simulator()
+    for p, n in zip(positions, nodes, strict=True):
+        sim.set_contact(p.point)
+        assert sim.outside_trained_region == (n not in region)
+        assert p.source.endswith(", inside" if n in region else ", outside"), p.source
+    every = accuracy.random_positions(samples, surface, 10_000, 5, "anywhere")
+    assert len(every) == len(surface.nodes) - len(trained)
+    plan = accuracy.plan_held_out(small_artifact, 40, 5, comm=MPI.COMM_SELF, method="anywhere")
+    assert plan.method == "anywhere" and plan.positions == positions and plan.seed == 5
+    assert accuracy.default_work(tmp_path / "m.h5", 4, 5, "anywhere").name == (
+        "m.heldout-4-anywhere-seed5"
+    )
+    with pytest.raises(accuracy.InputError, match="held-out selection 'everywhere'"):
+        accuracy.default_work(tmp_path / "m.h5", 4, 5, "everywhere")
+
+
+def test_the_summary_splits_the_force_error_by_region():
+    """The largest force error inside the region and outside it, each over its own positions'
+    steps within the trained depth (a step beyond it counts in neither)."""
+    name = "podi+curves"
+
+    def step(position, error, beyond=False):
+        return accuracy.Step(position, [0.0, 0.0, 0.0], 1.0, 1.0, force={name: 1.0 + error},
+                             beyond={name: beyond}, field={name: 0.01})  # fmt: skip
+
+    steps = [step(0, 0.01), step(0, 0.03), step(1, 0.02), step(2, 0.05), step(2, 0.5, True)]
+    entry = accuracy.summarise(steps, [name], outside={1, 2})[name]
+    assert entry["max_force_error_inside"] == pytest.approx(0.03)
+    assert entry["max_force_error_outside"] == pytest.approx(0.05)
+    assert entry["max_force_error"] == pytest.approx(0.05)
+    assert np.isnan(accuracy.summarise(steps, [name])[name]["max_force_error_outside"])
+    result = accuracy.AccuracyResult(None, steps, {name: entry}, [name], {}, [1, 2], {})
+    text = "\n".join(accuracy.region_text(result))
+    assert "1 position(s) inside the trained region, 2 outside it" in text
+    assert "inside   3.00 %   outside   5.00 %" in text
+    only_outside = dataclasses.replace(result, outside=[0, 1, 2])
+    assert accuracy.region_text(only_outside) == []
+
+
 # -- two ranks ----------------------------------------------------------------------------------
 @pytest.mark.mpi
 def test_two_ranks_give_the_serial_result(mesh_dir, tmp_path_factory):
@@ -263,17 +316,17 @@ def test_outside_draws_nodes_of_the_tools_group_the_runtime_clamps(small_artifac
     samples, surface = model_surface(small_artifact)
     region = set(accuracy.region_nodes(samples, surface).tolist())
     trained = accuracy.trained_nodes(samples, surface)
-    positions = accuracy.random_positions(samples, surface, 5, 3, outside=True)
+    positions = accuracy.random_positions(samples, surface, 5, 3, "outside")
     nodes = [node_index(surface, p.point) for p in positions]
     assert len(set(nodes)) == 5 and not (set(nodes) & (region | trained))
-    again = accuracy.random_positions(samples, surface, 5, 3, outside=True)
+    again = accuracy.random_positions(samples, surface, 5, 3, "outside")
     assert [p.point for p in again] == [p.point for p in positions]
     sim = load(small_artifact).simulator()
     for p in positions:
         sim.set_contact(p.point)
         assert sim.outside_trained_region
-    plan = accuracy.plan_held_out(small_artifact, 5, 3, comm=MPI.COMM_SELF, outside=True)
+    plan = accuracy.plan_held_out(small_artifact, 5, 3, comm=MPI.COMM_SELF, method="outside")
     assert plan.method == "outside" and plan.positions == positions and plan.seed == 3
-    assert accuracy.default_work(tmp_path / "m.h5", 5, 3, outside=True).name == (
+    assert accuracy.default_work(tmp_path / "m.h5", 5, 3, "outside").name == (
         "m.heldout-5-outside-seed3"
     )

@@ -24,6 +24,7 @@ from hapticrom.online import load
 from hapticrom.online.reference import linear_dent, nearest_on_triangles
 from hapticrom.online.simulator import Simulator
 from hapticrom.shared.errors import InputError
+from hapticrom.shared.geometry import vertex_normals
 
 pytestmark = pytest.mark.serial
 RNG = np.random.default_rng(3)
@@ -344,6 +345,57 @@ def test_outside_the_force_is_the_borders_scaled_as_the_reference_scales_it(mode
         np.testing.assert_allclose(sim.step_displacement(d), ref.step_displacement(d),
                                    rtol=1e-8, atol=1e-13)  # fmt: skip
     assert np.ptp(ratios) > 0.05, ratios
+
+
+def test_off_the_surface_the_ring_searches_find_what_brute_force_finds(model):
+    """Contacts 0.3 to 30 mm off the surface outside the region (the stiffness search and
+    the compliance surface's triangle search go through many rings of their grids): the
+    force equals the reference's (brute force over every loadable triangle), and so does
+    the linear dent the compliance surface adds at the contact."""
+    from hapticrom.online.reference import NumpySimulator, barycentric
+
+    sim = Simulator(model, response="curves")
+    ref = NumpySimulator(model, response="curves")
+    compliance = Simulator(model, "compliance", response="curves")
+    podi = Simulator(model, "podi", response="curves")
+    normals = vertex_normals(model.vertices, model.triangles)
+    for point in _outside_vertices(model, 4):
+        node = int(np.argmin(np.linalg.norm(model.vertices - point, axis=1)))
+        for lift in (0.3, 3.0, 30.0):
+            x = point + lift * normals[node]
+            sim.set_contact(x)
+            ref.set_contact(x)
+            d = -0.5 * model.trained_depth * sim.contact_normal
+            np.testing.assert_allclose(sim.step_displacement(d), ref.step_displacement(d),
+                                       rtol=1e-8, atol=1e-13)  # fmt: skip
+            samples, weights, clamped = barycentric(model, x)
+            assert clamped and sim.outside_trained_region
+            for other in (compliance, podi):
+                other.set_contact(x)
+                other.step_displacement(d)
+            got = _surface_field(compliance) - _surface_field(podi)
+            expected = linear_dent(model, x, samples, weights, compliance.depth)
+            assert np.max(np.abs(got - expected)) <= 1e-9 + 1e-6 * np.max(np.abs(expected))
+
+
+def test_a_ring_visits_exactly_the_cells_at_its_distance():
+    """kernels.ring_row over a ring's rows: every cell at Chebyshev distance r from c, once,
+    in grids the ring leaves on any side."""
+    from hapticrom.online.kernels import ring_row, ring_span
+
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        n = rng.integers(1, 7, size=3)
+        c = [int(rng.integers(0, k)) for k in n]
+        for r in range(int(max(n)) + 1):
+            got = []
+            for i0 in range(*ring_span(c[0], r, int(n[0]))):
+                for i1 in range(*ring_span(c[1], r, int(n[1]))):
+                    shell = abs(i0 - c[0]) == r or abs(i1 - c[1]) == r
+                    got += [(i0, i1, i2) for i2 in range(*ring_row(c[2], r, int(n[2]), shell))]
+            cells = np.argwhere(np.ones(n, dtype=bool))
+            want = {tuple(x) for x in cells if np.max(np.abs(x - c)) == r}
+            assert len(got) == len(set(got)) and set(got) == want, (n, c, r)
 
 
 def test_the_force_is_continuous_where_a_contact_leaves_the_region(model):

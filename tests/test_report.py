@@ -144,6 +144,35 @@ def test_field_errors_per_position_and_field_verdicts(small_artifact, tmp_path, 
     assert_readable_figure((tmp_path / "out" / "held-out-error.png").read_bytes())
 
 
+def test_outside_positions_dotted_and_extrapolated_steps_open(tmp_path):
+    """Format 3: a position clamped to the trained region is drawn dotted, a step beyond
+    the solved depth with an open marker; the rest solid with filled markers."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from hapticrom.report.figures import _plot_errors
+    from hapticrom.report.heldout import read_accuracy
+
+    path = accuracy_json(tmp_path / "accuracy.json", field_errors=True)
+    data = json.loads(path.read_text())
+    data["outside_trained_region"] = [1]
+    data["beyond_trained_depth"] = [[r[0] == 1 and r[2] > 0.25] * 2 for r in data["rows"]]
+    path.write_text(json.dumps(data))
+    results = read_accuracy(path)
+    assert results.outside == {1} and results.beyond.sum() == 2
+    ax = Figure().add_subplot()
+    _plot_errors(ax, results, 100 * results.errors, "force")
+    styles = [(line.get_linestyle(), line.get_marker(), line.get_markerfacecolor(),
+               len(line.get_xdata())) for line in ax.lines]  # fmt: skip
+    dotted = [s for s in styles if s[0] == ":" and s[3] == 3]
+    assert len(dotted) == 2  # position 1, one line per response
+    assert sum(s[1] == "o" and s[2] == "none" and s[3] == 1 for s in styles) == 2
+    labels = [line.get_label() for line in ax.lines]
+    assert "outside the trained region" in labels and "beyond the solved depth" in labels
+
+
 @pytest.mark.parametrize(
     "content, message",
     [
@@ -153,6 +182,16 @@ def test_field_errors_per_position_and_field_verdicts(small_artifact, tmp_path, 
             '{"summary": {"podi+curves": {}}, "rows": [[0, [0, 0, 0], 0.1, 0.01, 0.01]], '
             '"field_errors": [[0.1, 0.2]]}',
             "'field_errors' must have one row per row and one column per PODI combination",
+        ),
+        (
+            '{"summary": {"podi+curves": {}}, "rows": [[0, [0, 0, 0], 0.1, 0.01, 0.01]], '
+            '"beyond_trained_depth": [[1]]}',
+            "'beyond_trained_depth' must hold one row of 1 booleans per row",
+        ),
+        (
+            '{"summary": {"podi+curves": {}}, "rows": [[0, [0, 0, 0], 0.1, 0.01, 0.01]], '
+            '"outside_trained_region": [true]}',
+            "'outside_trained_region' must be a list of position indices",
         ),
     ],
 )

@@ -404,16 +404,23 @@ def cmd_accuracy(args, petsc) -> int:
     from hapticrom.offline.accuracy import default_work, plan_held_out
 
     json_path = check_out_file(args.json, f"accuracy --json {args.json}") if args.json else None
-    outside = args.outside is not None
-    seed = args.outside if outside else args.seed
-    plan = plan_held_out(args.model, args.positions, seed, softest=args.softest, outside=outside)
-    work = args.work or str(default_work(args.model, args.positions, seed, args.softest, outside))
+    method, seed = held_out_selection(args)
+    plan = plan_held_out(args.model, args.positions, seed, method=method)
+    work = args.work or str(default_work(args.model, args.positions, seed, method))
     work = check_campaign_dir(work, f"accuracy --work {work}", args.restart)
     petsc.start()
     from hapticrom.offline.accuracy import run_accuracy
 
     result = run_accuracy(plan, work, restart=args.restart, json_path=json_path)
     return 1 if result is not None and result.failed else 0
+
+
+def held_out_selection(args) -> tuple[str | None, int | None]:
+    """(method, seed) of ``hapticrom accuracy``'s exclusive selection options."""
+    for method in ("outside", "anywhere"):
+        if getattr(args, method) is not None:
+            return method, getattr(args, method)
+    return ("softest" if args.softest else None), args.seed
 
 
 def accuracy_description() -> str:
@@ -466,12 +473,19 @@ def add_accuracy(sub) -> None:
         help="random nodes of the tool's surface group outside the trained region, "
         "reproducible from S: where the runtime clamps the contact to the region's border",
     )
+    where.add_argument(
+        "--anywhere",
+        type=int_in(0, 2**32 - 1),
+        metavar="S",
+        help="random nodes of the tool's whole surface group, inside the trained region or "
+        "not, reproducible from S; the summary gives the force error on each side",
+    )
     p.add_argument(
         "--work",
         metavar="DIR",
         help="held-out campaign directory, resumed if it exists "
-        "(default: MODEL with suffix .heldout-N, .heldout-N-seedS, .heldout-N-softest or "
-        ".heldout-N-outside-seedS)",
+        "(default: MODEL with suffix .heldout-N, .heldout-N-seedS, .heldout-N-softest, "
+        ".heldout-N-outside-seedS or .heldout-N-anywhere-seedS)",
     )
     p.add_argument("--restart", action="store_true", help="discard what the work directory holds")
     p.add_argument(

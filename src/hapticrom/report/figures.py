@@ -166,7 +166,8 @@ def accuracy_figure(results: HeldOutResults, trained_depth: float) -> Png:
     for ax, (quantity, errors, ylabel) in zip(fig.subplots(1, len(panels), squeeze=False)[0],
                                               panels, strict=True):  # fmt: skip
         _plot_errors(ax, results, errors, quantity)
-        if results.depths.max() > trained_depth:  # force-controlled checks may press deeper
+        # force-controlled checks may press deeper; per step where the file says (format 3)
+        if results.beyond is None and results.depths.max() > trained_depth:
             label = f"trained depth {trained_depth:.3g} mm (beyond: extrapolated)"
             ax.axvline(trained_depth, color="0.3", ls=":", lw=1, label=label)
         title = "Force" if quantity == "force" else "Surface-field"
@@ -183,22 +184,27 @@ def accuracy_figure(results: HeldOutResults, trained_depth: float) -> Png:
 
 
 def _plot_errors(ax, results: HeldOutResults, errors: np.ndarray, quantity: str) -> None:
-    """One line per position and response, and each response's target (dashed)."""
+    """One line per position and response (dotted where the runtime clamped the contact to
+    its trained region), open markers at the steps it extrapolated in depth, and each
+    response's target (dashed)."""
+    positions = list(dict.fromkeys(results.positions.tolist()))
     for c, name in enumerate(results.responses):
-        for k, position in enumerate(dict.fromkeys(results.positions.tolist())):
+        for k, position in enumerate(positions):
             mask = results.positions == position
             order = np.argsort(results.depths[mask])
-            ax.plot(
-                results.depths[mask][order],
-                errors[mask, c][order],
-                "o-",
-                color=f"C{c}",
-                alpha=0.6,
-                lw=1,
-                ms=3,
-                label=name if k == 0 else None,
-            )
+            depths, values = results.depths[mask][order], errors[mask, c][order]
+            ax.plot(depths, values, ls=":" if position in results.outside else "-",
+                    color=f"C{c}", alpha=0.6, lw=1, label=name if k == 0 else None)  # fmt: skip
+            beyond = (np.zeros(len(depths), bool) if results.beyond is None
+                      else results.beyond[mask, c][order])  # fmt: skip
+            ax.plot(depths[~beyond], values[~beyond], "o", color=f"C{c}", alpha=0.6, ms=3)
+            ax.plot(depths[beyond], values[beyond], "o", mfc="none", color=f"C{c}", alpha=0.8,
+                    ms=4)  # fmt: skip
         limit = target(quantity, name)
+        if c == 0 and results.outside & set(positions):
+            ax.plot([], [], ls=":", color="0.4", label="outside the trained region")
+        if c == 0 and results.beyond is not None and results.beyond.any():
+            ax.plot([], [], "o", mfc="none", color="0.4", label="beyond the solved depth")
         if limit is not None:
             ax.axhline(
                 100 * limit,

@@ -30,6 +30,8 @@ class HeldOutResults:
     fem: np.ndarray  # (R,) N
     rom: np.ndarray  # (R, C) N, one column per response
     field: np.ndarray | None = None  # (R, C) relative L2 surface-field errors (format 2)
+    beyond: np.ndarray | None = None  # (R, C) bool: the runtime extrapolated in depth (3)
+    outside: frozenset[int] = frozenset()  # positions clamped to the trained region (3)
 
     @property
     def errors(self) -> np.ndarray:
@@ -92,7 +94,38 @@ def read_accuracy(path: str | Path) -> HeldOutResults:
         fem=np.array([r[3] for r in table]),
         rom=np.array([r[4] for r in table]),
         field=_field_errors(path, data.get("field_errors"), len(table), len(responses)),
+        beyond=_beyond(path, data.get("beyond_trained_depth"), len(table), len(responses)),
+        outside=_outside(path, data.get("outside_trained_region")),
     )
+
+
+def _beyond(path: Path, beyond, rows: int, columns: int) -> np.ndarray | None:
+    """The per-row flags (R, C) of the steps extrapolated in depth, or None (before format 3)."""
+    if beyond is None:
+        return None
+    ok = isinstance(beyond, list) and len(beyond) == rows and all(
+        isinstance(r, list) and len(r) == columns and all(isinstance(b, bool) for b in r)
+        for r in beyond
+    )
+    if not ok:
+        raise HapticromError(
+            f"accuracy file {path}: 'beyond_trained_depth' must hold one row of {columns} "
+            f"booleans per row ({rows})"
+        )
+    return np.array(beyond, dtype=bool).reshape(rows, columns)
+
+
+def _outside(path: Path, outside) -> frozenset[int]:
+    """The positions the runtime clamped to its trained region (none before format 3)."""
+    if outside is None:
+        return frozenset()
+    if not isinstance(outside, list) or not all(
+        isinstance(i, int) and not isinstance(i, bool) for i in outside
+    ):
+        raise HapticromError(
+            f"accuracy file {path}: 'outside_trained_region' must be a list of position indices"
+        )
+    return frozenset(outside)
 
 
 def _field_errors(path: Path, field, rows: int, columns: int) -> np.ndarray | None:
