@@ -447,10 +447,11 @@ def contact_table(points, normals, forces, slopes, solved_depth, triangles, reco
 def outside_part(corners, stiffness, grid, starts, ids, blend: float) -> np.ndarray:
     """The table's outside part (:func:`scale_outside`): [TL, cells, ids, the blend length
     (mm), grid (origin (3), cell size, dims (3)), cell starts (cells + 1), triangle ids by
-    cell, the loadable triangles' corners (TL, 3, 3), the tool's linear stiffness at them
-    (TL, 3)], from the contact fields' triangle grid (``model._contact_fields``)."""
+    cell, the loadable triangles' corners (TL, 3, 3), the tool's linear stiffness at the
+    corners and at the edges' midpoints opposite them (TL, 6)], from the contact fields'
+    triangle grid (``model._contact_fields``)."""
     corners, stiffness = np.asarray(corners, np.float64), np.asarray(stiffness, np.float64)
-    if corners.shape != (len(stiffness), 3, 3) or np.shape(stiffness)[1:] != (3,):
+    if corners.shape != (len(stiffness), 3, 3) or np.shape(stiffness)[1:] != (6,):
         raise ValueError(f"corners {corners.shape} and stiffness {np.shape(stiffness)} differ")
     if not blend > 0.0:
         raise ValueError(f"the blend length must be positive, got {blend!r}")
@@ -1389,7 +1390,7 @@ MIN_OUTSIDE_RATIO, MAX_OUTSIDE_RATIO = 0.1, 10.0
 @njit(inline="always")
 def outside_views(table):
     """The outside part (:func:`outside_part`): blend length, grid, cell starts, ids, corners
-    (TL 9), stiffness (TL 3), flat."""
+    (TL 9), stiffness (TL 6), flat."""
     o = int(table[T_OUTSIDE])
     count, cells, listed = int(table[o]), int(table[o + 1]), int(table[o + 2])
     g = o + 4
@@ -1398,7 +1399,7 @@ def outside_views(table):
     c = b + listed
     d = c + 9 * count
     return (table[o + 3], table[g:a], table[a:b], table[b:c], table[c:d],
-            table[d : d + 3 * count])  # fmt: skip
+            table[d : d + 6 * count])  # fmt: skip
 
 
 @njit(inline="always")
@@ -1463,10 +1464,24 @@ def box_gap2(p, grid, i0, i1, i2):
 
 
 @njit(inline="always")
+def quadratic_on_triangle(values, o, u, v, w):
+    """The quadratic through a triangle's corners' values (values[o:o + 3]) and its edges'
+    midpoints' (values[o + 3:o + 6], the edge opposite each corner) at barycentric (u, v,
+    w), clamped to the six values' range (a quadratic overshoots them between)."""
+    k = (u * (2.0 * u - 1.0) * values[o] + v * (2.0 * v - 1.0) * values[o + 1]
+         + w * (2.0 * w - 1.0) * values[o + 2]
+         + 4.0 * (v * w * values[o + 3] + w * u * values[o + 4] + u * v * values[o + 5]))
+    lo, hi = values[o], values[o]
+    for i in range(1, 6):
+        lo, hi = min(lo, values[o + i]), max(hi, values[o + i])
+    return min(max(k, lo), hi)
+
+
+@njit(inline="always")
 def stiffness_nearest(p, grid, starts, ids, corners, stiffness):
-    """The tool's linear stiffness (N/mm) at the loadable surface's point nearest p: linear
-    on the triangle holding it, found ring by ring through the grid (as
-    ``surface_kernels.locate_on_surface``)."""
+    """The tool's linear stiffness (N/mm) at the loadable surface's point nearest p:
+    quadratic on the triangle holding it (:func:`quadratic_on_triangle`), found ring by ring
+    through the grid (as ``surface_kernels.locate_on_surface``)."""
     (c0, c1, c2), (n0, n1, n2) = grid_cell(p, grid)
     best, k = np.inf, 0.0
     for r in range(max(n0, n1, n2)):
@@ -1484,8 +1499,7 @@ def stiffness_nearest(p, grid, starts, ids, corners, stiffness):
                             vertex(corners, 3 * t + 2),
                         )  # fmt: skip
                         if d2 < best:
-                            best, k = d2, u * stiffness[3 * t] + v * stiffness[3 * t + 1]
-                            k += w * stiffness[3 * t + 2]
+                            best, k = d2, quadratic_on_triangle(stiffness, 6 * t, u, v, w)
         if best <= grid_reach(p, grid, (c0, c1, c2), r) ** 2:
             break
     return k

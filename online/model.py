@@ -307,7 +307,9 @@ def _contact_fields(artifact: Artifact) -> dict:
     (P,), the loadable triangles (TL, 3) as vertex indices and as rows (``triangle_rows``),
     a uniform grid of them (``grid``, ``grid_starts``, ``grid_ids``: where the surface
     looks for the triangle under the contact), and the tool's linear stiffness at their
-    corners (``corner_stiffness`` (TL, 3), or None)."""
+    corners and edges' midpoints (``stiffness_nodes`` (TL, 6): the corners, then the edge
+    opposite each; the midpoints the mean of their corners in files before 2.4, so that
+    the quadratic is the linear interpolant; or None)."""
     c, s = artifact["contact_fields"], artifact["surface"]
     triangles = _i8(s["triangles"][np.asarray(s["groups"]) == 1])
     row_of = np.full(len(s["vertices"]), -1, dtype=np.int64)
@@ -325,11 +327,22 @@ def _contact_fields(artifact: Artifact) -> dict:
         "grid": np.array([*origin, size, *dims], dtype=np.float64),  # the triangles' grid
         "grid_starts": _i8(starts),
         "grid_ids": _i8(ids),
-        # the tool's linear stiffness at each loadable triangle's corners (format 2.3), or None
-        "corner_stiffness": (
-            _f8(np.asarray(c["stiffness"])[row_of[triangles]]) if "stiffness" in c else None
-        ),  # fmt: skip
+        "stiffness_nodes": _stiffness_nodes(c, row_of[triangles]),
     }
+
+
+def _stiffness_nodes(c, rows: np.ndarray) -> np.ndarray | None:
+    """(TL, 6) N/mm: the tool's linear stiffness at each loadable triangle's corners (format
+    2.3) and at the midpoints of the edges opposite them (2.4; before, the corners' means),
+    or None without it."""
+    if "stiffness" not in c:
+        return None
+    corners = np.asarray(c["stiffness"], dtype=np.float64)[rows]
+    if "edge_stiffness" in c:
+        edges = np.asarray(c["edge_stiffness"], dtype=np.float64)
+    else:
+        edges = 0.5 * (corners[:, [1, 2, 0]] + corners[:, [2, 0, 1]])
+    return np.ascontiguousarray(np.hstack([corners, edges]))
 
 
 def _anm_records(artifact: Artifact) -> dict:

@@ -67,7 +67,7 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
     k linear on the loadable triangle nearest each point, by brute force over all of them
     (:func:`nearest_on_triangles`, not the kernel's grid); 1 without the stiffness."""
     f = model.contact_fields
-    if f is None or f["corner_stiffness"] is None:
+    if f is None or f["stiffness_nodes"] is None:
         return 1.0
 
     grid = f["grid"]  # the kernel moves a query into the grid's box widened by 2 cells
@@ -76,7 +76,7 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
     def stiffness(p):
         q = np.clip(np.asarray(p, float), lo, hi)
         t, beta = nearest_on_triangles(q, model.vertices, f["triangles"])
-        return float(beta @ f["corner_stiffness"][t])
+        return quadratic(f["stiffness_nodes"][t], beta)
 
     clamp = np.asarray(weights) @ model.sample_points[vertices]
     n = np.asarray(weights) @ model.sample_normals[vertices]
@@ -90,6 +90,14 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
         aside = np.linalg.norm(np.asarray(point, float) - level)
         denominator += (at_clamp - denominator) * min(1.0, aside / model.contact_radius)
     return float(np.clip(stiffness(point) / denominator, 0.1, 10.0))
+
+
+def quadratic(nodes: np.ndarray, beta: np.ndarray) -> float:
+    """The P2 interpolant through a triangle's six nodal values (corners, then the midpoints
+    of the edges opposite them) at barycentric ``beta``, clamped to their range (the
+    shape functions written out, not the kernel's arithmetic)."""
+    shapes = np.concatenate([beta * (2 * beta - 1), 4 * beta[[1, 2, 0]] * beta[[2, 0, 1]]])
+    return float(np.clip(shapes @ nodes, nodes.min(), nodes.max()))
 
 
 def _corner_value(model: ReducedModel, sample: int) -> float:

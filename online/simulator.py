@@ -201,10 +201,10 @@ def _outside_part(model: ReducedModel) -> tuple | None:
     stiffness and their grid (a contact outside the trained region is scaled by them), or
     None without the stiffness (artifact 2.3)."""
     f = model.contact_fields
-    if f is None or f["corner_stiffness"] is None:
+    if f is None or f["stiffness_nodes"] is None:
         return None
     corners = model.vertices[f["triangles"]]
-    return (corners, f["corner_stiffness"], f["grid"], f["grid_starts"], f["grid_ids"],
+    return (corners, f["stiffness_nodes"], f["grid"], f["grid_starts"], f["grid_ids"],
             model.contact_radius)  # fmt: skip
 
 

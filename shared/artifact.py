@@ -48,8 +48,9 @@ FORMAT = "hapticrom"
 # 2.1: the tool's linear stiffness on a lattice of each sample triangle (samples 2.1);
 # 2.2: the tool's linear surface field at the loadable vertices (contact_fields);
 # 2.3: the depth grid to the deepest sample, each sample's solved depth (samples 2.2); the
-# tool's linear stiffness at the loadable vertices (contact_fields 1.1).
-FORMAT_VERSION = (2, 3)
+# tool's linear stiffness at the loadable vertices (contact_fields 1.1);
+# 2.4: and at the midpoints of the loadable triangles' edges (contact_fields 1.2).
+FORMAT_VERSION = (2, 4)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -266,7 +267,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "contact_fields",
         "linear-contact-fields",
-        (1, 1),
+        (1, 2),
         _fields(
             ("vertices", "i", ("Lv",), "1", "the surface vertex the tool is centred at, a row",
              "index:V", "distinct"),
@@ -276,6 +277,10 @@ SCHEMA: tuple[Group, ...] = (
         ) + _fields(
             # group version 1.1 (format 2.3): what a contact outside the region is scaled by
             ("stiffness", "f", ("Lv",), "N/mm", "the tool's linear stiffness there",
+             "positive"),
+            # group version 1.2 (format 2.4): with the vertices', a quadratic interpolant
+            ("edge_stiffness", "f", ("Tl", 3), "N/mm",
+             "the same at the midpoint of each loadable triangle's edge opposite each corner",
              "positive"),
             required=False,
         ),

@@ -419,6 +419,34 @@ def contact_field_reach(fields: np.ndarray, sample_rows: np.ndarray) -> float:
     return float(largest.max(initial=0.0) + largest[sample_rows].max(initial=0.0))
 
 
+def _edge_stiffness(artifact, c, s) -> None:
+    """``contact_fields/edge_stiffness`` (optional, format 2.4): with the vertices'
+    ``stiffness`` only; one row per loadable triangle, in the surface's order; within the
+    stiffness range; and equal in the two triangles that share an edge (the trainer solves
+    each edge once), so that the quadratic interpolant is continuous across it."""
+    if "edge_stiffness" not in c:
+        return
+    if "stiffness" not in c:
+        raise _fail(artifact, "contact_fields/edge_stiffness needs contact_fields/stiffness")
+    triangles = np.asarray(s["triangles"])[np.asarray(s["groups"]) == 1]
+    k = np.asarray(c["edge_stiffness"])
+    if k.shape != (len(triangles), 3):
+        raise _fail(artifact, f"contact_fields/edge_stiffness has {k.shape[0]} rows, expected "
+                              f"one per loadable triangle ({len(triangles)})")  # fmt: skip
+    low, high = TOOL_STIFFNESS_RANGE
+    if np.any(k < low) or np.any(k > high):
+        raise _fail(artifact, f"contact_fields/edge_stiffness has values outside {low:g} to "
+                              f"{high:g} N/mm")  # fmt: skip
+    pairs = np.stack([triangles[:, [1, 2]], triangles[:, [2, 0]], triangles[:, [0, 1]]], axis=1)
+    keys = np.sort(pairs, axis=2).reshape(-1, 2)
+    order = np.lexsort((keys[:, 1], keys[:, 0]))
+    same = np.all(keys[order][1:] == keys[order][:-1], axis=1)
+    values = k.reshape(-1)[order]
+    if np.any(values[1:][same] != values[:-1][same]):
+        raise _fail(artifact, "contact_fields/edge_stiffness differs between the two triangles "
+                              "of an edge")  # fmt: skip
+
+
 def _contact_fields(artifact) -> None:
     """The tool's linear fields (optional): one row for exactly each vertex of a loadable
     triangle (the runtime reads the rows of the loadable triangle under the contact); each
@@ -450,6 +478,7 @@ def _contact_fields(artifact) -> None:
         if np.any(c["stiffness"] < low) or np.any(c["stiffness"] > high):
             raise _fail(artifact, f"contact_fields/stiffness has values outside {low:g} to "
                                   f"{high:g} N/mm")  # fmt: skip
+    _edge_stiffness(artifact, c, s)
     reach = contact_field_reach(c["fields"], c["sample_rows"])
     if not reach <= MAX_FIELD_SUM:
         raise _fail(artifact, f"contact_fields/fields: a row's largest value plus a sample's "

@@ -1012,6 +1012,60 @@ def test_contact_field_stiffness_outside_its_range_is_refused(force_artifact, tm
     refused(path, "contact_fields/stiffness (has values outside|has values that are not positive)")
 
 
+@pytest.mark.parametrize("value", [1e-12, 1e12])
+def test_edge_stiffness_outside_its_range_is_refused(force_artifact, tmp_path, value):
+    """contact_fields/edge_stiffness (format 2.4) within the stiffness range, as the
+    vertices' (the same value in both triangles of the edge, so that only the range fails)."""
+    path = copy(force_artifact, tmp_path)
+    rewrite(path, "contact_fields/edge_stiffness", np.full_like(
+        read_artifact(force_artifact)["contact_fields"]["edge_stiffness"], value))
+    refused(path, "contact_fields/edge_stiffness has values outside")
+
+
+def test_edge_stiffness_that_differs_across_an_edge_is_refused(force_artifact, tmp_path):
+    """The two triangles of an edge hold one value (the quadratic is continuous across it):
+    one of them changed by 1e-12 relative is refused."""
+    path = copy(force_artifact, tmp_path)
+
+    def put(k):
+        k[0, 0] *= 1 + 1e-12
+        return k
+
+    rewrite(path, "contact_fields/edge_stiffness", put)
+    refused(path, "contact_fields/edge_stiffness differs between the two triangles of an edge")
+
+
+def test_edge_stiffness_needs_the_vertices_and_a_row_per_loadable_triangle(force_artifact,
+                                                                          tmp_path):  # fmt: skip
+    path = copy(force_artifact, tmp_path)
+    mutate(path, lambda f: f["contact_fields"].__delitem__("stiffness"))
+    refused(path, "contact_fields/edge_stiffness needs contact_fields/stiffness")
+    path = copy(force_artifact, tmp_path, "short.h5")
+    rewrite(path, "contact_fields/edge_stiffness", lambda k: k[:-1])
+    refused(path, r"contact_fields/edge_stiffness has \d+ rows, expected one per loadable")
+
+
+def test_a_file_without_edge_stiffness_reads_as_the_linear_interpolant(force_artifact, tmp_path):
+    """A 2.3 file (no edge_stiffness): the midpoints are the corners' means, and the force
+    outside the region is the linear interpolant's; here, where the trainer wrote the means
+    too (no free border on the test cornea), exactly the 2.4 file's force."""
+    from hapticrom.online.simulator import Simulator
+
+    path = copy(force_artifact, tmp_path)
+    mutate(path, lambda f: f["contact_fields"].__delitem__("edge_stiffness"))
+    old, new = load(path, isolate=False), load(force_artifact, isolate=False)
+    nodes = old.contact_fields["stiffness_nodes"]
+    np.testing.assert_allclose(nodes[:, 3], 0.5 * (nodes[:, 1] + nodes[:, 2]), rtol=1e-15)
+    np.testing.assert_array_equal(nodes, new.contact_fields["stiffness_nodes"])
+    a, b = Simulator(old, response="curves"), Simulator(new, response="curves")
+    points = old.vertices[np.unique(old.contact_fields["triangles"])]
+    for point in points[~old.inside_trained_region(points)][:8]:
+        a.set_contact(point)
+        b.set_contact(point)
+        d = -0.5 * old.trained_depth * np.array(a.contact_normal)
+        np.testing.assert_array_equal(a.step_displacement(d), b.step_displacement(d))
+
+
 def test_a_curve_that_is_not_linear_beyond_its_solved_depth_is_refused(force_artifact, tmp_path):
     """A file claiming a sample (a ring sample; the centre is the deepest) was solved to its
     first knot only: its stored curve beyond is the cubic through its solves."""

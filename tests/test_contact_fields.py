@@ -318,6 +318,83 @@ def test_the_stiffness_at_the_samples_rows_is_the_linear_stiffness_there(model, 
     assert np.ptp(stiffness) > 0.05 * stiffness.max()  # it does vary over the surface
 
 
+def test_the_edge_stiffness_is_solved_at_the_free_border_only(monkeypatch):
+    """contact_fields.edge_stiffness on a strip of loadable triangles beside a free and a
+    clamped face: the edges that touch a vertex shared with the free face but no clamped
+    face are solved at their midpoints, pushed along their vertices' mean push; the others
+    get their vertices' mean; a shared edge has one value in both its triangles."""
+    from types import SimpleNamespace
+
+    from hapticrom.offline.reduce import contact_fields as cf
+    from hapticrom.offline.reduce import tool_stiffness
+
+    x = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [1, 1, 0], [2, 1, 0],
+                  [3, 0, 0], [-1, 1, 0]], dtype=float)  # fmt: skip
+    triangles = np.array([[0, 1, 4], [0, 4, 3], [1, 2, 5], [1, 5, 4],  # loadable
+                          [2, 6, 5],  # free: 2 and 5 are on the free border
+                          [0, 3, 7]])  # clamped: 0 and 3 are not  # fmt: skip
+    surface = SimpleNamespace(vertices=x, triangles=triangles,
+                              groups=np.array([1, 1, 1, 1, cf.FREE, cf.CLAMPED]))  # fmt: skip
+    np.testing.assert_array_equal(cf.free_border(surface), [2, 5])
+    vertices = np.arange(6)
+    stiffness = 1.0 + np.arange(6.0)
+    pushes = np.tile([0.0, 0.0, -1.0], (6, 1))
+    pushes[2] = [0.0, 0.6, -0.8]
+    asked = []
+
+    def solve(K0, supported, loads, centres, push):
+        asked.append((centres.copy(), push.copy()))
+        return 100.0 + centres[:, 0] + 10 * centres[:, 1]
+
+    monkeypatch.setattr(tool_stiffness, "linear_stiffness", solve)
+    got = cf.edge_stiffness(None, None, None, surface, vertices, pushes, stiffness)
+    assert got.shape == (4, 3)
+    centres, push = asked[0]
+    solved = {tuple(sorted(e)) for e in [(1, 2), (2, 5), (5, 4), (1, 5)]}  # touch 2 or 5
+    assert {tuple(c) for c in centres.tolist()} == {
+        tuple(x[list(e)].mean(axis=0)) for e in solved
+    }  # fmt: skip
+    np.testing.assert_allclose(np.linalg.norm(push, axis=1), 1.0)
+    for t, corners in enumerate(triangles[:4]):
+        for i in range(3):
+            a, b = corners[(i + 1) % 3], corners[(i + 2) % 3]  # the edge opposite corner i
+            middle = x[[a, b]].mean(axis=0)
+            if tuple(sorted((a, b))) in solved:
+                assert got[t, i] == 100.0 + middle[0] + 10 * middle[1]
+            else:
+                assert got[t, i] == 0.5 * (stiffness[a] + stiffness[b])
+    i25 = [(t, i) for t, c in enumerate(triangles[:4]) for i in range(3)
+           if {c[(i + 1) % 3], c[(i + 2) % 3]} == {1, 5}]  # fmt: skip
+    assert len(i25) == 2 and got[i25[0]] == got[i25[1]]
+
+
+def test_the_runtime_interpolates_the_stiffness_quadratically_as_the_reference(model):
+    """With edge values off their corners' mean (a border's drop), the runtime's force
+    outside the region, on and off the surface, equals the reference's (the quadratic's
+    shape functions written out), and differs from the linear interpolant's."""
+    from hapticrom.online.reference import NumpySimulator
+
+    bent = load(model.path)
+    nodes = bent.contact_fields["stiffness_nodes"].copy()  # the model's arrays are read-only
+    nodes[:, 3:] *= 1.0 + 0.3 * np.sin(np.arange(nodes[:, 3:].size)).reshape(-1, 3)
+    bent.contact_fields["stiffness_nodes"] = nodes
+    sim, plain = Simulator(bent, response="curves"), Simulator(model, response="curves")
+    ref = NumpySimulator(bent, response="curves")
+    normals = vertex_normals(model.vertices, model.triangles)
+    changed = 0
+    for point in _outside_vertices(model, 6):
+        node = int(np.argmin(np.linalg.norm(model.vertices - point, axis=1)))
+        for lift in (0.0, 0.3):
+            x = point + lift * normals[node] + 0.3 * np.cross(normals[node], [0.0, 0.0, 1.0])
+            for s in (sim, plain, ref):
+                s.set_contact(x)
+            d = -0.5 * model.trained_depth * sim.contact_normal
+            force = sim.step_displacement(d).copy()
+            np.testing.assert_allclose(force, ref.step_displacement(d), rtol=1e-9, atol=1e-13)
+            changed += not np.allclose(force, plain.step_displacement(d), rtol=1e-6)
+    assert changed >= 4  # not all: where the level point b is next to x, k(x) / k(b) stays
+
+
 def _outside_vertices(model, count):
     f = model.contact_fields
     points = model.vertices[np.unique(f["triangles"])]

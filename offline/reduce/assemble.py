@@ -72,7 +72,8 @@ def artifact_content(model: ReducedModel, region: CutRegion | None = None) -> di
         f = model.contact_fields
         content["contact_fields"] = {"vertices": f.vertices, "fields": f.fields,
                                      "sample_rows": f.sample_rows,
-                                     "stiffness": f.stiffness}  # fmt: skip
+                                     "stiffness": f.stiffness,
+                                     "edge_stiffness": f.edge_stiffness}  # fmt: skip
     if model.series is not None:
         content["anm"] = anm_group(model.series, model.config)
     if model.cut is not None and region is not None:

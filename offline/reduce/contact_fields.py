@@ -16,7 +16,21 @@ Measured with the campaigns' own held-out solves (prototype, README "The rendere
 surface"): the liver's surface field 38 % -> 0.8 %, the cornea's 14 % -> 3 %.
 
 phi(x) is linear between the vertices of the surface triangle under the contact (their
-fields are a few per cent of the dent's width apart). The fields are stored whole, V x 3
+fields are a few per cent of the dent's width apart). The tool's linear stiffness, which
+scales the force outside the trained region, is stored at the vertices and at the midpoints
+of the loadable triangles' edges (format 2.4), for a quadratic interpolant. At a vertex on
+the loadable group's border the tool's load loses the part of its patch beyond the group,
+and the stiffness drops within a fraction of an edge (on the liver 1.26 N/mm against 1.50 at
+its neighbours; linear between them it was 4 % low at the middle of an edge, 1.379 against
+the solve's 1.439 N/mm, and that put the force 2.7 % off at a held-out place). So the edges
+that touch the group's border with the free surface are solved at their midpoints; elsewhere
+a midpoint gets the mean of its corners, and the quadratic is the linear interpolant. Inside
+the group the stiffness between nodes oscillates at the element's scale on a coarse mesh
+(the test cornea's midpoints 11-25 % above their corners, an artefact of the
+discretisation), which a quadratic turned into 3 % force steps where a contact leaves the
+region near a sample; at a clamped border it climbs steeply towards the supports (the test
+cornea: 0.3 N/mm at a node an edge from its rim, 3-4 at the rim, 6 between), and a quadratic
+overshoots it (70 % off a quarter edge from the rim, the linear interpolant 60 %). The fields are stored whole, V x 3
 floats a loadable vertex, so a model whose fields pass ``MAX_BYTES`` gets none (the cornea
 demo: 2,161 vertices x 4,514, 117 MB; it keeps the transported field).
 """
@@ -37,6 +51,7 @@ from hapticrom.offline.reduce.tool_stiffness import (
 from hapticrom.shared.artifact_rules import MAX_FIELD_SUM, contact_field_reach
 from hapticrom.shared.geometry import vertex_normals
 
+CLAMPED, FREE = 0, 2  # RenderSurface.groups (LOADABLE is 1)
 MAX_BYTES = 32_000_000  # float32 fields beyond this are not written (see module)
 SAME_POINT = 1e-9  # mm: a sample this close to a loadable vertex is that vertex
 
@@ -49,6 +64,51 @@ class ContactFields:
     fields: np.ndarray  # (R, 3V) float32, mm per mm of depth, surface DOF order
     sample_rows: np.ndarray  # (P,) int64 the row of each sample
     stiffness: np.ndarray  # (R,) N/mm the tool's linear stiffness W^2 / (g^T K0^-1 g) there
+    # (TL, 3) N/mm the same at the midpoint of each loadable triangle's edge opposite each
+    # corner (the surface's loadable triangles in order)
+    edge_stiffness: np.ndarray
+
+
+def loadable_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (E, 2) vertex pairs, index (TL, 3)): the distinct edges of the triangles and,
+    per triangle, the edge opposite each corner (corners 1-2, 2-0, 0-1): a shared edge is
+    one entry, so both its triangles get the same value."""
+    t = np.asarray(triangles, dtype=np.int64)
+    pairs = np.stack([t[:, [1, 2]], t[:, [2, 0]], t[:, [0, 1]]], axis=1)  # (TL, 3, 2)
+    edges, index = np.unique(np.sort(pairs, axis=2).reshape(-1, 2), axis=0, return_inverse=True)
+    return edges, index.reshape(-1, 3)
+
+
+def free_border(surface) -> np.ndarray:
+    """The loadable group's vertices on its border with the free surface: in a free face
+    too, and in no clamped face."""
+    groups, triangles = surface.groups, surface.triangles
+    shared = np.intersect1d(triangles[groups == LOADABLE], triangles[groups == FREE])
+    return np.setdiff1d(shared, triangles[groups == CLAMPED])
+
+
+def edge_stiffness(K0, supported_nodes, loads, surface, vertices, pushes,
+                   stiffness) -> np.ndarray:  # fmt: skip
+    """(TL, 3) N/mm: the tool's linear stiffness at the midpoint of each loadable triangle's
+    edge opposite each corner: solved (pushed along the normalised mean of its two vertices'
+    ``pushes``) where the edge touches the loadable group's border with the free surface
+    (:func:`free_border`), else the mean of its vertices' ``stiffness`` (see the module). One
+    value per distinct edge."""
+    from hapticrom.offline.reduce.tool_stiffness import linear_stiffness
+
+    triangles = surface.triangles[surface.groups == LOADABLE]
+    edges, index = loadable_edges(triangles)
+    row_of = np.full(len(surface.vertices), -1, dtype=np.int64)
+    row_of[vertices] = np.arange(len(vertices))
+    rows = row_of[edges]  # (E, 2)
+    values = 0.5 * (stiffness[rows[:, 0]] + stiffness[rows[:, 1]])
+    border = np.isin(edges, free_border(surface)).any(axis=1)
+    if border.any():
+        middles = 0.5 * (surface.vertices[edges[border, 0]] + surface.vertices[edges[border, 1]])
+        push = pushes[rows[border, 0]] + pushes[rows[border, 1]]
+        push /= np.linalg.norm(push, axis=1, keepdims=True)
+        values[border] = linear_stiffness(K0, supported_nodes, loads, middles, push)
+    return values[index]
 
 
 def field_points(surface, sample_points, sample_normals, direction) -> tuple:
@@ -109,11 +169,14 @@ def contact_fields(config, store, surface, sample_points, sample_normals,
         depth = np.einsum("ij,ij->j", G, X) / W  # the campaign's measure: g^T u / W
         fields[chunk.start : chunk.stop, moving] = (X[rows[moving]] / depth).T
         stiffness[chunk.start : chunk.stop] = W / depth  # tool_stiffness.linear_stiffness's
+    edges = edge_stiffness(K0, data["supported_nodes"], ToolLoads(config), surface, vertices,
+                           pushes, stiffness)  # fmt: skip
     reach = contact_field_reach(fields, sample_rows)
     if not reach <= MAX_FIELD_SUM:  # the reader would refuse the file
         say(f"no contact fields: a row plus a sample's reach {reach:.3g} per unit depth (at "
             f"most {MAX_FIELD_SUM:.3g})")  # fmt: skip
         return None
     say(f"the tool's linear field at {len(vertices)} loadable vertices "
-        f"({fields.nbytes / 1e6:.1f} MB) in {time.perf_counter() - t0:.1f} s")  # fmt: skip
-    return ContactFields(vertices, fields, sample_rows, stiffness)
+        f"({fields.nbytes / 1e6:.1f} MB) and the tool's stiffness there and at the loadable "
+        f"group's border edges, in {time.perf_counter() - t0:.1f} s")  # fmt: skip
+    return ContactFields(vertices, fields, sample_rows, stiffness, edges)
