@@ -11,6 +11,7 @@ import sys
 import textwrap
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from hapticrom.cli import main
@@ -171,6 +172,23 @@ def test_outside_positions_dotted_and_extrapolated_steps_open(tmp_path):
     assert sum(s[1] == "o" and s[2] == "none" and s[3] == 1 for s in styles) == 2
     labels = [line.get_label() for line in ax.lines]
     assert "outside the trained region" in labels and "beyond the solved depth" in labels
+
+
+def test_the_field_panel_goes_logarithmic_where_one_response_is_far_off():
+    """PODI's field 50-220 % off beside the compliance surface's 1-2 %: a log axis, so that
+    both show; errors within ten times the target keep a linear axis from zero."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from hapticrom.report.figures import _log_if_spread
+
+    far, near = Figure().add_subplot(), Figure().add_subplot()
+    _log_if_spread(far, np.array([[1.0, 50.0], [2.0, 220.0], [np.nan, 0.0]]), "field")
+    _log_if_spread(near, np.array([[1.0, 25.0], [2.0, 3.0]]), "field")
+    assert far.get_yscale() == "log" and far.get_ylim() == pytest.approx((0.5, 440.0))
+    assert near.get_yscale() == "linear"
 
 
 @pytest.mark.parametrize(
