@@ -677,12 +677,28 @@ def result_json(result: AccuracyResult) -> dict:
     }
 
 
+def strict_json(value):
+    """``value`` with every non-finite float as None: JSON has no NaN (a strict parser
+    refuses ``NaN``; an error is NaN where a check has no step of its kind, e.g. the force
+    error outside the region when every position is inside)."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    if isinstance(value, np.generic):
+        return strict_json(value.item())
+    return value
+
+
 def write_json(result: AccuracyResult, path: str | Path) -> None:
     """Write the JSON atomically: a failed write leaves the old file (or nothing)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
     try:
-        tmp.write_text(json.dumps(result_json(result), indent=1) + "\n")
+        text = json.dumps(strict_json(result_json(result)), indent=1, allow_nan=False)
+        tmp.write_text(text + "\n")
         os.replace(tmp, path)
     except OSError as exc:
         tmp.unlink(missing_ok=True)

@@ -76,7 +76,8 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
     def stiffness(p):
         q = np.clip(np.asarray(p, float), lo, hi)
         t, beta = nearest_on_triangles(q, model.vertices, f["triangles"])
-        return quadratic(f["stiffness_nodes"][t], beta)
+        nodes = f["stiffness_nodes"]
+        return float(np.clip(quadratic(nodes[t], beta), nodes.min(), nodes.max()))
 
     clamp = np.asarray(weights) @ model.sample_points[vertices]
     n = np.asarray(weights) @ model.sample_normals[vertices]
@@ -94,10 +95,10 @@ def outside_ratio(model: ReducedModel, point, vertices, weights) -> float:
 
 def quadratic(nodes: np.ndarray, beta: np.ndarray) -> float:
     """The P2 interpolant through a triangle's six nodal values (corners, then the midpoints
-    of the edges opposite them) at barycentric ``beta``, clamped to their range (the
-    shape functions written out, not the kernel's arithmetic)."""
+    of the edges opposite them) at barycentric ``beta`` (the shape functions written out,
+    not the kernel's arithmetic)."""
     shapes = np.concatenate([beta * (2 * beta - 1), 4 * beta[[1, 2, 0]] * beta[[2, 0, 1]]])
-    return float(np.clip(shapes @ nodes, nodes.min(), nodes.max()))
+    return float(shapes @ nodes)
 
 
 def _corner_value(model: ReducedModel, sample: int) -> float:

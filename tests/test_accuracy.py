@@ -191,8 +191,12 @@ def test_command_prints_positions_tables_verdicts_and_writes_json(small_artifact
         target_force = f"{100 * FORCE_TARGETS[name.split('+')[1]]:.0f} %"
         assert target_force in line and "3 %" in line, line
         assert line.split().count("met") + line.split().count("missed") == 2, line
-    data = json.loads(out.read_text())
+    def no_constants(name):  # NaN, Infinity: not JSON (a strict parser refuses them)
+        raise AssertionError(f"{out} holds {name}")
+
+    data = json.loads(out.read_text(), parse_constant=no_constants)
     assert data["format"] == "hapticrom-accuracy" and data["version"] == 3
+    assert all(entry["max_force_error_outside"] is None for entry in data["summary"].values())
     assert data["targets"] == json.loads(json.dumps(TARGETS))
     assert data["selection"] == {"method": "random", "seed": 3, "requested": 2}
     assert len(data["positions"]) == 2 and len(data["rows"]) == 2 * 4

@@ -154,12 +154,17 @@ def _error_cells(quantity: str, name: str, error: float) -> tuple[str, str, str]
     )
 
 
+def _number(value) -> float:
+    """A summary's error: NaN where the file has null (no step of its kind) or nothing."""
+    return np.nan if value is None else float(value)
+
+
 def accuracy_summary_rows(results: HeldOutResults) -> list[tuple[str, ...]]:
     """(combination, then error, target and verdict of the force and of the surface field)."""
     rows = []
     for name, s in results.summary.items():
-        force = float(s.get("max_force_error", np.nan))
-        field = float(s.get("max_field_error", np.nan))
+        force = _number(s.get("max_force_error"))
+        field = _number(s.get("max_field_error"))
         rows.append(
             (name, *_error_cells("force", name, force), *_error_cells("field", name, field))
         )
