@@ -1469,9 +1469,12 @@ def quadratic_on_triangle(values, o, u, v, w):
     """The quadratic through a triangle's corners' values (values[o:o + 3]) and its edges'
     midpoints' (values[o + 3:o + 6], the edge opposite each corner) at barycentric (u, v,
     w). On an edge it depends on that edge's three values only: continuous across it."""
-    return (u * (2.0 * u - 1.0) * values[o] + v * (2.0 * v - 1.0) * values[o + 1]
-            + w * (2.0 * w - 1.0) * values[o + 2]
-            + 4.0 * (v * w * values[o + 3] + w * u * values[o + 4] + u * v * values[o + 5]))
+    return (
+        u * (2.0 * u - 1.0) * values[o]
+        + v * (2.0 * v - 1.0) * values[o + 1]
+        + w * (2.0 * w - 1.0) * values[o + 2]
+        + 4.0 * (v * w * values[o + 3] + w * u * values[o + 4] + u * v * values[o + 5])
+    )
 
 
 @njit(inline="always")

@@ -191,6 +191,7 @@ def test_command_prints_positions_tables_verdicts_and_writes_json(small_artifact
         target_force = f"{100 * FORCE_TARGETS[name.split('+')[1]]:.0f} %"
         assert target_force in line and "3 %" in line, line
         assert line.split().count("met") + line.split().count("missed") == 2, line
+
     def no_constants(name):  # NaN, Infinity: not JSON (a strict parser refuses them)
         raise AssertionError(f"{out} holds {name}")
 
@@ -207,7 +208,6 @@ def test_command_prints_positions_tables_verdicts_and_writes_json(small_artifact
     assert results.responses == ["transport+curves", "podi+curves", "transport+anm", "podi+anm"]
     assert results.field.shape == (8, 4) and np.all(results.field > 0)
     assert {tuple(p["point"]) for p in data["positions"]} == {tuple(r[1]) for r in data["rows"]}
-
 
 
 @pytest.mark.serial

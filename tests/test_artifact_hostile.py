@@ -1017,8 +1017,11 @@ def test_edge_stiffness_outside_its_range_is_refused(force_artifact, tmp_path, v
     """contact_fields/edge_stiffness (format 2.4) within the stiffness range, as the
     vertices' (the same value in both triangles of the edge, so that only the range fails)."""
     path = copy(force_artifact, tmp_path)
-    rewrite(path, "contact_fields/edge_stiffness", np.full_like(
-        read_artifact(force_artifact)["contact_fields"]["edge_stiffness"], value))
+    rewrite(
+        path,
+        "contact_fields/edge_stiffness",
+        np.full_like(read_artifact(force_artifact)["contact_fields"]["edge_stiffness"], value),
+    )
     refused(path, "contact_fields/edge_stiffness has values outside")
 
 

@@ -405,8 +405,10 @@ def test_reduce_onto_a_full_disk_leaves_nothing_behind(
         (["--seed", "1", "--softest"], "argument --softest: not allowed with argument --seed"),
         (["--outside", "1", "--seed", "2"], "argument --seed: not allowed with argument --outside"),
         (["--outside", "-1"], "argument --outside: must lie in [0, 4,294,967,295], got -1"),
-        (["--anywhere", "1", "--outside", "2"],
-         "argument --outside: not allowed with argument --anywhere"),
+        (
+            ["--anywhere", "1", "--outside", "2"],
+            "argument --outside: not allowed with argument --anywhere",
+        ),
         (["--anywhere", "x"], "argument --anywhere: expected an integer, got 'x'"),
     ],
 )

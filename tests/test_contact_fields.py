@@ -391,7 +391,8 @@ def test_the_stiffness_is_continuous_across_the_loadable_triangles_edges(model):
 
     bent = _with_bent_edges(model)
     _, grid, starts, ids, corners, stiffness, bounds = kernels.outside_views(
-        Simulator(bent, response="curves")._table)
+        Simulator(bent, response="curves")._table
+    )
     triangles = bent.contact_fields["triangles"]
     edges, index = loadable_edges(triangles)
     x = bent.vertices

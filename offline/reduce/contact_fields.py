@@ -16,7 +16,9 @@ Measured with the campaigns' own held-out solves (prototype, README "The rendere
 surface"): the liver's surface field 38 % -> 0.8 %, the cornea's 14 % -> 3 %.
 
 phi(x) is linear between the vertices of the surface triangle under the contact (their
-fields are a few per cent of the dent's width apart). The tool's linear stiffness, which
+fields are a few per cent of the dent's width apart).
+
+The tool's linear stiffness, which
 scales the force outside the trained region, is stored at the vertices and at the midpoints
 of the loadable triangles' edges (format 2.4), for a quadratic interpolant. At a vertex on
 the loadable group's border the tool's load loses the part of its patch beyond the group,
@@ -30,9 +32,11 @@ the group the stiffness between nodes oscillates at the element's scale on a coa
 discretisation), which a quadratic turned into 3 % force steps where a contact leaves the
 region near a sample; at a clamped border it climbs steeply towards the supports (the test
 cornea: 0.3 N/mm at a node an edge from its rim, 3-4 at the rim, 6 between), and a quadratic
-overshoots it (70 % off a quarter edge from the rim, the linear interpolant 60 %). The fields are stored whole, V x 3
-floats a loadable vertex, so a model whose fields pass ``MAX_BYTES`` gets none (the cornea
-demo: 2,161 vertices x 4,514, 117 MB; it keeps the transported field).
+overshoots it (70 % off a quarter edge from the rim, the linear interpolant 60 %).
+
+The fields are stored whole, V x 3 floats a loadable vertex, so a model whose fields pass
+``MAX_BYTES`` gets none (the cornea demo: 2,161 vertices x 4,514, 117 MB; it keeps the
+transported field).
 """
 
 from __future__ import annotations

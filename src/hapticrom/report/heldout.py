@@ -103,9 +103,13 @@ def _beyond(path: Path, beyond, rows: int, columns: int) -> np.ndarray | None:
     """The per-row flags (R, C) of the steps extrapolated in depth, or None (before format 3)."""
     if beyond is None:
         return None
-    ok = isinstance(beyond, list) and len(beyond) == rows and all(
-        isinstance(r, list) and len(r) == columns and all(isinstance(b, bool) for b in r)
-        for r in beyond
+    ok = (
+        isinstance(beyond, list)
+        and len(beyond) == rows
+        and all(
+            isinstance(r, list) and len(r) == columns and all(isinstance(b, bool) for b in r)
+            for r in beyond
+        )
     )
     if not ok:
         raise HapticromError(
