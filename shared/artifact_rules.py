@@ -28,6 +28,7 @@ import numpy as np
 from numpy.polynomial import polynomial as poly
 
 from hapticrom.shared.errors import ArtifactError
+from hapticrom.shared.geometry import triangle_edges
 from hapticrom.shared.lattice import lattice_corners, lattice_subdivisions
 
 # Bounds on attributes (the writer's are a few hundred bytes; a JSON campaign a few kB).
@@ -437,12 +438,10 @@ def _edge_stiffness(artifact, c, s) -> None:
     if np.any(k < low) or np.any(k > high):
         raise _fail(artifact, f"contact_fields/edge_stiffness has values outside {low:g} to "
                               f"{high:g} N/mm")  # fmt: skip
-    pairs = np.stack([triangles[:, [1, 2]], triangles[:, [2, 0]], triangles[:, [0, 1]]], axis=1)
-    keys = np.sort(pairs, axis=2).reshape(-1, 2)
-    order = np.lexsort((keys[:, 1], keys[:, 0]))
-    same = np.all(keys[order][1:] == keys[order][:-1], axis=1)
-    values = k.reshape(-1)[order]
-    if np.any(values[1:][same] != values[:-1][same]):
+    edges, index = triangle_edges(triangles)
+    first = np.empty(len(edges))
+    first[index.ravel()[::-1]] = k.ravel()[::-1]  # each edge's value in its first triangle
+    if np.any(k.ravel() != first[index.ravel()]):
         raise _fail(artifact, "contact_fields/edge_stiffness differs between the two triangles "
                               "of an edge")  # fmt: skip
 

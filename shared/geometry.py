@@ -40,6 +40,16 @@ def vertex_normals(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return sums / np.maximum(lengths, np.finfo(np.float64).tiny)[:, None]
 
 
+def triangle_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (E, 2) sorted vertex pairs, index (T, 3)): the distinct edges of the triangles
+    and, per triangle, the edge opposite each corner (corners 1-2, 2-0, 0-1); a shared edge
+    is one entry (the layout of ``contact_fields/edge_stiffness``)."""
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    pairs = np.stack([t[:, [1, 2]], t[:, [2, 0]], t[:, [0, 1]]], axis=1)  # (T, 3, 2)
+    edges, index = np.unique(np.sort(pairs, axis=2).reshape(-1, 2), axis=0, return_inverse=True)
+    return edges, index.reshape(-1, 3)
+
+
 def plan_view(points: np.ndarray, normals: np.ndarray):
     """A plane through points (P, 3) seen along their mean outward normal: its origin (3,)
     (their mean), orthonormal axes (2, 3) and the points' coordinates in it (P, 2), mm.

@@ -372,11 +372,11 @@ def _with_bent_edges(model):
     """The model loaded again with each edge's midpoint stiffness 0.6 to 1.4 times its
     corners' mean (one factor an edge, as the trainer writes one value an edge): quadratics
     that overshoot their corners."""
-    from hapticrom.offline.reduce.contact_fields import loadable_edges
+    from hapticrom.shared.geometry import triangle_edges
 
     bent = load(model.path)
     nodes = bent.contact_fields["stiffness_nodes"].copy()  # the model's arrays are read-only
-    edges, index = loadable_edges(bent.contact_fields["triangles"])
+    edges, index = triangle_edges(bent.contact_fields["triangles"])
     nodes[:, 3:] *= (1.0 + 0.4 * np.sin(1.0 + np.arange(len(edges))))[index]
     bent.contact_fields["stiffness_nodes"] = nodes
     return bent
@@ -386,15 +386,15 @@ def test_the_stiffness_is_continuous_across_the_loadable_triangles_edges(model):
     """kernels.stiffness_nearest just either side of every shared loadable edge, with
     midpoints that make the quadratics overshoot: the same value from both triangles (a
     clamp to each triangle's own range gave 1.45 % steps at 22 of the liver's edges)."""
-    from hapticrom.offline.reduce.contact_fields import loadable_edges
     from hapticrom.online import kernels
+    from hapticrom.shared.geometry import triangle_edges
 
     bent = _with_bent_edges(model)
     _, grid, starts, ids, corners, stiffness, bounds = kernels.outside_views(
         Simulator(bent, response="curves")._table
     )
     triangles = bent.contact_fields["triangles"]
-    edges, index = loadable_edges(triangles)
+    edges, index = triangle_edges(triangles)
     x = bent.vertices
     pairs = [np.argwhere(index == e) for e in range(len(edges))]
     shared = [p for p in pairs if len(p) == 2]

@@ -53,7 +53,7 @@ from hapticrom.offline.reduce.tool_stiffness import (
     linear_responses,
 )
 from hapticrom.shared.artifact_rules import MAX_FIELD_SUM, contact_field_reach
-from hapticrom.shared.geometry import vertex_normals
+from hapticrom.shared.geometry import triangle_edges, vertex_normals
 
 CLAMPED, FREE = 0, 2  # RenderSurface.groups (LOADABLE is 1)
 MAX_BYTES = 32_000_000  # float32 fields beyond this are not written (see module)
@@ -71,16 +71,6 @@ class ContactFields:
     # (TL, 3) N/mm the same at the midpoint of each loadable triangle's edge opposite each
     # corner (the surface's loadable triangles in order)
     edge_stiffness: np.ndarray
-
-
-def loadable_edges(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(edges (E, 2) vertex pairs, index (TL, 3)): the distinct edges of the triangles and,
-    per triangle, the edge opposite each corner (corners 1-2, 2-0, 0-1): a shared edge is
-    one entry, so both its triangles get the same value."""
-    t = np.asarray(triangles, dtype=np.int64)
-    pairs = np.stack([t[:, [1, 2]], t[:, [2, 0]], t[:, [0, 1]]], axis=1)  # (TL, 3, 2)
-    edges, index = np.unique(np.sort(pairs, axis=2).reshape(-1, 2), axis=0, return_inverse=True)
-    return edges, index.reshape(-1, 3)
 
 
 def free_border(surface) -> np.ndarray:
@@ -101,7 +91,7 @@ def edge_stiffness(K0, supported_nodes, loads, surface, vertices, pushes,
     from hapticrom.offline.reduce.tool_stiffness import linear_stiffness
 
     triangles = surface.triangles[surface.groups == LOADABLE]
-    edges, index = loadable_edges(triangles)
+    edges, index = triangle_edges(triangles)
     row_of = np.full(len(surface.vertices), -1, dtype=np.int64)
     row_of[vertices] = np.arange(len(vertices))
     rows = row_of[edges]  # (E, 2)

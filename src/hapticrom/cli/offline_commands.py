@@ -415,11 +415,20 @@ def cmd_accuracy(args, petsc) -> int:
     return 1 if result is not None and result.failed else 0
 
 
+# hapticrom accuracy's seeded selections beside --seed: option -> help (its method is its name)
+RANDOM_SELECTIONS = {
+    "--outside": "random nodes of the tool's surface group outside the trained region, "
+    "reproducible from S: where the runtime clamps the contact to the region's border",
+    "--anywhere": "random nodes of the tool's whole surface group, inside the trained region "
+    "or not, reproducible from S; the summary gives the force error on each side",
+}
+
+
 def held_out_selection(args) -> tuple[str | None, int | None]:
     """(method, seed) of ``hapticrom accuracy``'s exclusive selection options."""
-    for method in ("outside", "anywhere"):
-        if getattr(args, method) is not None:
-            return method, getattr(args, method)
+    for flag in RANDOM_SELECTIONS:
+        if (seed := getattr(args, flag[2:])) is not None:
+            return flag[2:], seed
     return ("softest" if args.softest else None), args.seed
 
 
@@ -466,20 +475,8 @@ def add_accuracy(sub) -> None:
         help="the trained region's nodes nearest the softest samples: where a force-"
         "controlled model reaches the trained force deepest and extrapolates in depth",
     )
-    where.add_argument(
-        "--outside",
-        type=int_in(0, 2**32 - 1),
-        metavar="S",
-        help="random nodes of the tool's surface group outside the trained region, "
-        "reproducible from S: where the runtime clamps the contact to the region's border",
-    )
-    where.add_argument(
-        "--anywhere",
-        type=int_in(0, 2**32 - 1),
-        metavar="S",
-        help="random nodes of the tool's whole surface group, inside the trained region or "
-        "not, reproducible from S; the summary gives the force error on each side",
-    )
+    for flag, text in RANDOM_SELECTIONS.items():  # seeded like --seed, elsewhere
+        where.add_argument(flag, type=int_in(0, 2**32 - 1), metavar="S", help=text)
     p.add_argument(
         "--work",
         metavar="DIR",
