@@ -270,18 +270,17 @@ SURFACE_ARRAYS = (
     "series",  # POD-ANM: the series' coefficients (Z, N1, n) float64; curves: unused
     "surface_basis_t",  # (P, n, 3V) float32
     "node_basis",  # transport: the chart's (P, n, 3, N) float32 (the others too)
-    "sample_plan",  # (P, 2)
+    "sample_grid",  # (P, 2): the samples' places on the chart's grid, in nodes
     "sample_normals",  # (P, 3)
     "chart_shape",  # (3,) int64
     "read_rows",  # (2,) int64
     "read_columns",  # (2,) int64
-    "spacing",  # (1,) float64
     "halo",  # (1,) int64
     "charted",  # (C,) int64
     "charted_node",  # (C,) int64
     "charted_frac",  # (C, 2)
     "uncharted",  # (U,) int64
-    "fields",  # (3, 3, N) float32 scratch
+    "fields",  # (2, 3, N) float32 scratch
     "rectangles",  # (3, 5) int64 scratch
     "shifts",  # (3, 12) float64 scratch
     "sample_points",  # compliance: (P, 3) float64
@@ -296,8 +295,8 @@ SURFACE_ARRAYS = (
     "grid_ids",  # (entries,) int64
 )
 DIMS = 4
-(A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_SAMPLE_PLAN,
- A_SAMPLE_NORMALS, A_SHAPE, A_ROWS, A_COLUMNS, A_SPACING, A_HALO, A_CHARTED, A_CHARTED_NODE,
+(A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_SAMPLE_GRID,
+ A_SAMPLE_NORMALS, A_SHAPE, A_ROWS, A_COLUMNS, A_HALO, A_CHARTED, A_CHARTED_NODE,
  A_CHARTED_FRAC, A_UNCHARTED, A_FIELDS, A_RECTANGLES, A_SHIFTS, A_SAMPLE_POINTS,
  A_SURFACE_VERTICES, A_FIELD_TRIANGLES, A_CONTACT_FIELDS, A_TRIANGLE_ROWS, A_SAMPLE_ROWS,
  A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS) = range(len(SURFACE_ARRAYS))  # fmt: skip
@@ -345,11 +344,11 @@ def _transported(arrays, dims, buf, c, out):
     """``surface_kernels.transported_surface`` on the packed arrays."""
     sk.transported_surface(
         buf, c, _view4(arrays, dims, A_NODE_BASIS, np.float32),
-        _view2(arrays, dims, A_SAMPLE_PLAN, np.float64),
+        _view2(arrays, dims, A_SAMPLE_GRID, np.float64),
         _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
         _view1(arrays, dims, A_SHAPE, np.int64), _view1(arrays, dims, A_ROWS, np.int64),
         _view1(arrays, dims, A_COLUMNS, np.int64),
-        _view1(arrays, dims, A_SPACING, np.float64)[0], _view1(arrays, dims, A_HALO, np.int64)[0],
+        _view1(arrays, dims, A_HALO, np.int64)[0],
         _view1(arrays, dims, A_CHARTED, np.int64), _view1(arrays, dims, A_CHARTED_NODE, np.int64),
         _view2(arrays, dims, A_CHARTED_FRAC, np.float64),
         _view1(arrays, dims, A_UNCHARTED, np.int64),
@@ -512,13 +511,12 @@ def _surface_arrays(sim: Simulator) -> dict[str, np.ndarray]:
         ch = m.chart
         nodes = int(np.prod(ch.shape))
         arrays |= {
-            "node_basis": ch.node_basis, "sample_plan": ch.sample_plan,
+            "node_basis": ch.node_basis, "sample_grid": ch.sample_grid,
             "sample_normals": m.sample_normals, "chart_shape": ch.shape,
             "read_rows": ch.read_rows, "read_columns": ch.read_columns,
-            "spacing": np.array([ch.spacing], dtype=np.float64),
             "halo": np.array([ch.halo], dtype=np.int64), "charted": ch.charted,
             "charted_node": ch.charted_node, "charted_frac": ch.charted_frac,
-            "uncharted": ch.uncharted, "fields": np.zeros((3, 3, nodes), dtype=np.float32),
+            "uncharted": ch.uncharted, "fields": np.zeros((2, 3, nodes), dtype=np.float32),
             "rectangles": np.zeros((3, 5), dtype=np.int64), "shifts": np.zeros((3, 12)),
         }  # fmt: skip
     if sim.interpolation == "compliance":

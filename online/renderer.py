@@ -34,7 +34,7 @@ class SurfaceWork:
         # The transported field: each neighbour's field at the chart's nodes, its rectangle
         # on the grid and its shift.
         nodes = int(np.prod(model.chart.shape)) if interpolation == "transport" else 1
-        self.chart_fields = np.zeros((3, 3, nodes), dtype=np.float32)
+        self.chart_fields = np.zeros((2, 3, nodes), dtype=np.float32)
         self.chart_rectangles = np.zeros((3, 5), dtype=np.int64)
         self.chart_shifts = np.zeros((3, 12))
         self.frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
@@ -57,10 +57,9 @@ def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork,
     if interpolation == "transport":
         ch = m.chart
         surface_kernels.transported_surface(
-            buf, c, ch.node_basis, ch.sample_plan, m.sample_normals, ch.shape, ch.read_rows,
-            ch.read_columns, ch.spacing, ch.halo, ch.charted, ch.charted_node, ch.charted_frac,
-            ch.uncharted, m.surface_basis_t, work.chart_fields, work.chart_rectangles,
-            work.chart_shifts, out,
+            buf, c, ch.node_basis, ch.sample_grid, m.sample_normals, ch.shape, ch.read_rows,
+            ch.read_columns, ch.halo, ch.charted, ch.charted_node, ch.charted_frac, ch.uncharted,
+            m.surface_basis_t, work.chart_fields, work.chart_rectangles, work.chart_shifts, out,
         )  # fmt: skip
     elif interpolation == "grassmann":
         g = m.grassmann

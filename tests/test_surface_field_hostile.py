@@ -95,57 +95,52 @@ def write_model(path, vertices, triangles, points, normals, sample_triangles, ba
 
 
 # -- a Python mirror of transported_surface's index arithmetic ---------------------------
-def kernel_shifts(chart: SurfaceChart, samples, weights) -> list[tuple[float, float]]:
-    """The shifts (in grid nodes, before the clamp) transported_surface computes for the
-    neighbours with a weight: (x_j - x) / spacing in plan view, x = sum_j w_j x_j."""
-    samples = np.asarray(samples, dtype=np.int64)
-    plan = chart.sample_plan[samples]
-    x = np.asarray(weights) @ plan
-    return [tuple((plan[j] - x) / chart.spacing) for j in range(3) if weights[j] != 0.0]
+def kernel_offsets(chart: SurfaceChart, samples, weights) -> list[tuple[float, float]]:
+    """The whole-node offsets (before the clamp) transported_surface computes for the
+    neighbours with a weight: floor(g_j) - floor(x), g_j the samples' places on the grid in
+    nodes and x = sum_j w_j g_j."""
+    g = chart.sample_grid[np.asarray(samples, dtype=np.int64)]
+    x = np.asarray(weights) @ g
+    return [tuple(np.floor(g[j]) - np.floor(x)) for j in range(3) if weights[j] != 0.0]
 
 
-def clamped(chart: SurfaceChart, s: float) -> float:
-    limit = float(chart.halo - 2)
-    return min(max(s, -limit), limit)
+def clamped(chart: SurfaceChart, o: float) -> int:
+    limit = float(chart.halo - 1)
+    return int(min(max(o, -limit), limit))
 
 
-def index_violations(chart: SurfaceChart, sa: float, sb: float) -> list[str]:
-    """What transported_surface would index outside the grid, or read outside the rectangle it
-    contracted, for one neighbour at the clamped shift (sa, sb) nodes (empty: none)."""
+def index_violations(chart: SurfaceChart, oa: int, ob: int) -> list[str]:
+    """What transported_surface would index outside the grid, or read outside the rectangles
+    it wrote, for one neighbour at the clamped offset (oa, ob) nodes (empty: none)."""
     _, rows, cols = (int(v) for v in chart.shape)
-    ia, ib = int(np.floor(sa)), int(np.floor(sb))
-    r0, r1 = int(chart.read_rows[0]) + ia, int(chart.read_rows[1]) + ia + 1
-    c0, c1 = int(chart.read_columns[0]) + ib, int(chart.read_columns[1]) + ib + 1
+    g0, g1 = int(chart.read_rows[0]) - 1, int(chart.read_rows[1])  # the summed grid's rows
+    h0, h1 = int(chart.read_columns[0]) - 1, int(chart.read_columns[1])
     problems = []
-    # contract_rectangle: field[comp, first:first + (c1 - c0)], first = (l rows + a) cols + c0
-    if r0 < 0 or r1 > rows or c0 < 0 or c1 > cols:
-        first = [(layer * rows + a) * cols + c0 for layer in (0, 1) for a in range(r0, r1)]
+    # contract_rectangle and add_rotated: the summed grid's rectangle moved by the offset
+    r0, r1, c0, c1 = g0 + oa, g1 + oa, h0 + ob, h1 + ob
+    if g0 < 0 or r0 < 0 or r1 > rows or c0 < 0 or c1 > cols:
         problems.append(
             f"contract_rectangle rows [{r0}, {r1}) columns [{c0}, {c1}) leave the {rows} x "
-            f"{cols} grid (slice starts {min(first)}..{max(first)}, "
-            f"{'-1: an empty slice that is then written' if -1 in first else 'wrapped'})"
+            f"{cols} grid (the summed grid's rows [{g0}, {g1}))"
         )
-    # read_shifted: s + da cols + db and its three neighbours, per charted vertex
-    fa = chart.charted_frac[:, 0] + (sa - ia)
-    fb = chart.charted_frac[:, 1] + (sb - ib)
-    da, db = fa.astype(np.int64), fb.astype(np.int64)  # int(): toward zero, fa, fb >= 0
-    s = chart.charted_node + ia * cols + ib + da * cols + db
-    for node in (s, s + 1, s + cols, s + cols + 1):
-        layer, a, b = node // (rows * cols), (node % (rows * cols)) // cols, node % cols
-        same_layer = layer == chart.charted_node // (rows * cols)
-        inside = (node >= 0) & same_layer & (a >= r0) & (a < r1) & (b >= c0) & (b < c1)
-        if not inside.all():
-            problems.append(f"read_shifted reads node {int(node[~inside][0])} outside")
-    if np.any((da > 1) | (db > 1)):
-        problems.append("read_shifted moved more than one cell")
+    # read_grid: the vertex's cell, a row and a column back where the contact's fraction
+    # passes its own, and the cell's three other nodes
+    for da in (0, 1):
+        for db in (0, 1):
+            s = chart.charted_node - da * cols - db
+            for node in (s, s + 1, s + cols, s + cols + 1):
+                layer, a, b = node // (rows * cols), (node % (rows * cols)) // cols, node % cols
+                same_layer = layer == chart.charted_node // (rows * cols)
+                inside = (node >= 0) & same_layer & (a >= g0) & (a < g1) & (b >= h0) & (b < h1)
+                if not inside.all():
+                    problems.append(f"read_grid reads node {int(node[~inside][0])} outside")
     return problems
 
 
-def extreme_shifts(chart: SurfaceChart) -> list[float]:
-    """Shifts (nodes) at and near the clamp's limits and around zero (from below too)."""
-    limit = float(chart.halo - 2)
-    values = [-limit, np.nextafter(-limit, 0.0), -limit + 0.5, -0.5, -1e-17, 0.0, 0.5]
-    return values + [np.nextafter(limit, 0.0), limit - 0.5, limit]
+def extreme_offsets(chart: SurfaceChart) -> list[int]:
+    """Offsets (nodes) at and near the clamp's limits and around zero."""
+    limit = chart.halo - 1
+    return [-limit, -limit + 1, -1, 0, 1, limit - 1, limit]
 
 
 def plate_chart():
@@ -177,27 +172,27 @@ def far_tilted_chart():
 # -- defences that hold ------------------------------------------------------------------
 @pytest.mark.parametrize("build", [plate_chart, long_edge_chart, far_tilted_chart])
 def test_the_clamped_shift_keeps_every_index_inside_the_grid(build):
-    """Defence. For every shift the clamp lets through (up to halo - 2 nodes either way,
-    fractions at their edges, a shift a hair below zero), every slice contract_rectangle
-    takes lies in the grid and every node read_shifted reads lies in the rectangle just
-    contracted, in the vertex's own layer: the kernel's reads stay in bounds."""
+    """Defence. For every offset the clamp lets through (up to halo - 1 nodes either way),
+    every slice contract_rectangle takes lies in the grid, and every node read_grid reads
+    (whatever the contact's fraction) lies in the summed grid's rectangle, in the vertex's
+    own layer: the kernel's reads stay in bounds."""
     chart = build()
     assert chart is not None and len(chart.charted) > 0
-    for sa in extreme_shifts(chart):
-        for sb in extreme_shifts(chart):
-            assert index_violations(chart, sa, sb) == [], (sa, sb)
+    for oa in extreme_offsets(chart):
+        for ob in extreme_offsets(chart):
+            assert index_violations(chart, oa, ob) == [], (oa, ob)
 
 
 def test_the_mirror_sees_a_rectangle_beyond_the_halo():
     """The mirror can fail: the plate's chart with the charted cells' rows and columns widened
-    to the whole grid (no halo left) is reported at the largest shifts, not at zero."""
+    to the whole grid (no halo left) is reported at the largest offsets, not at zero."""
     chart = plate_chart()
     _, rows, cols = (int(v) for v in chart.shape)
-    wide = dataclasses.replace(chart, read_rows=np.array([0, rows - 1]),
-                               read_columns=np.array([0, cols - 1]))  # fmt: skip
-    limit = float(chart.halo - 2)
-    assert index_violations(wide, 0.0, 0.0) == []
-    assert index_violations(wide, limit, 0.0) and index_violations(wide, 0.0, -limit)
+    wide = dataclasses.replace(chart, read_rows=np.array([1, rows]),
+                               read_columns=np.array([1, cols]))  # fmt: skip
+    limit = chart.halo - 1
+    assert index_violations(wide, 0, 0) == []
+    assert index_violations(wide, limit, 0) and index_violations(wide, 0, -limit)
 
 
 @pytest.fixture(scope="module")
@@ -218,11 +213,11 @@ def render_on_poisoned_scratch(model, sim) -> np.ndarray:
     chart = model.chart
     coefficients = np.zeros((3, model.num_modes))
     surface_kernels.curves_coefficients(sim._buf, model.coefficients, coefficients)
-    fields = np.full((3, 3, int(np.prod(chart.shape))), np.nan, dtype=np.float32)
+    fields = np.full((2, 3, int(np.prod(chart.shape))), np.nan, dtype=np.float32)
     out = np.full_like(model.vertices, np.nan)
     surface_kernels.transported_surface(
-        sim._buf, coefficients, chart.node_basis, chart.sample_plan, model.sample_normals,
-        chart.shape, chart.read_rows, chart.read_columns, chart.spacing, chart.halo,
+        sim._buf, coefficients, chart.node_basis, chart.sample_grid, model.sample_normals,
+        chart.shape, chart.read_rows, chart.read_columns, chart.halo,
         chart.charted, chart.charted_node, chart.charted_frac, chart.uncharted,
         model.surface_basis_t, fields, np.zeros((3, 5), dtype=np.int64), np.zeros((3, 12)), out,
     )  # fmt: skip
@@ -249,9 +244,8 @@ CONTACTS = [
 def test_every_reachable_contact_shifts_within_the_halo(plate_model, point):
     """Defence. Whatever finite point set_contact gets (inside, on and beyond the border,
     far off the surface, the largest floats), locate's weights are finite, in [0, 1] up to
-    round-off and sum to 1, so no shift is NaN (int(floor(NaN)) would be any index) and the
-    halo holds every shift without the clamp; the indices are in bounds and the rendered
-    surface is finite."""
+    round-off and sum to 1, so no offset is NaN and the halo holds every offset without the
+    clamp; the indices are in bounds and the rendered surface is finite."""
     model = plate_model
     sim = model.simulator()
     sim.set_contact(np.array(point, dtype=np.float64))
@@ -259,9 +253,9 @@ def test_every_reachable_contact_shifts_within_the_halo(plate_model, point):
     assert np.all(np.isfinite(weights)) and abs(weights.sum() - 1.0) < 1e-9
     assert np.all(weights >= -1e-9) and np.all(weights <= 1.0 + 1e-9)
     chart = model.chart
-    for sa, sb in kernel_shifts(chart, samples, weights):
-        assert max(abs(sa), abs(sb)) <= chart.halo - 2 + 1e-6  # the clamp never engages
-        assert index_violations(chart, clamped(chart, sa), clamped(chart, sb)) == []
+    for oa, ob in kernel_offsets(chart, samples, weights):
+        assert max(abs(oa), abs(ob)) <= chart.halo - 1  # the clamp never engages
+        assert index_violations(chart, clamped(chart, oa), clamped(chart, ob)) == []
     sim.step_displacement(-0.5 * np.array(sim.contact_normal))
     out = sim.surface_displacement(np.empty_like(model.vertices))
     assert np.all(np.isfinite(out))
@@ -512,8 +506,8 @@ def test_a_chart_with_no_charted_vertex_contracts_inside_the_grid():
     if chart is None:
         return
     assert len(chart.charted) == 0
-    problems = {p for sa in extreme_shifts(chart) for sb in extreme_shifts(chart)
-                for p in index_violations(chart, sa, sb)}  # fmt: skip
+    problems = {p for oa in extreme_offsets(chart) for ob in extreme_offsets(chart)
+                for p in index_violations(chart, oa, ob)}  # fmt: skip
     assert not problems, "\n".join(sorted(problems, key=lambda p: "-1:" not in p)[:3])
 
 
