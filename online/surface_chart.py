@@ -155,8 +155,9 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
     start = lo - halo * h
     rows, columns = (int(math.ceil((hi[k] - lo[k]) / h)) + 2 * halo + 2 for k in range(2))
     shape = (2, rows, columns)
-    if P * _raster_visits(plan, triangles[tri_layer >= 0], h) > MAX_RASTER:
-        return None  # overlapping or huge triangles (each sample's lattice): PODI's blend
+    if _raster_visits(plan, triangles[tri_layer >= 0], h) > MAX_RASTER:
+        return None  # overlapping or huge triangles: PODI's blend instead (a lattice a
+        # sample rasterises P times, but the fit's rounds over the vertices cost more)
     _, _, node_height, covered = _rasterise(
         plan, height, triangles, tri_layer.astype(np.int64), start, h, shape
     )

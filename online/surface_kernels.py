@@ -272,9 +272,9 @@ def transported_surface(buf, coefficients, node_basis, sample_grid, sample_norma
         w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
         xa += w * sample_grid[i, 0]
         xb += w * sample_grid[i, 1]
-    ia, ib = np.floor(xa), np.floor(xb)  # floats: a NaN state stays a NaN, not an index
+    ia, ib = np.floor(xa), np.floor(xb)
     pa, pb = xa - ia, xb - ib
-    limit = float(halo - 1)  # a corrupt state cannot read past the halo
+    limit = halo - 1  # a corrupt state cannot read past the halo
     normal = buf[NORMAL : NORMAL + 3]
     n_cols = shape[2]
     grid_rows = (rows[0] - 1, rows[1])  # a vertex's read moves a cell back at most
@@ -284,11 +284,10 @@ def transported_surface(buf, coefficients, node_basis, sample_grid, sample_norma
         w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
         if w == 0.0:
             continue
-        sa = np.floor(sample_grid[i, 0]) - ia
-        sb = np.floor(sample_grid[i, 1]) - ib
-        sa = min(sa, limit) if sa >= -limit else -limit  # NaN: -limit
-        sb = min(sb, limit) if sb >= -limit else -limit
-        oa, ob = int(sa), int(sb)
+        # Clamped as integers: with fastmath a NaN compares as anything, but int(NaN) is the
+        # least int64 here, which the clamp takes to -limit (a corrupt state).
+        oa = min(max(int(np.floor(sample_grid[i, 0]) - ia), -limit), limit)
+        ob = min(max(int(np.floor(sample_grid[i, 1]) - ib), -limit), limit)
         r = rectangles[count]
         r[0], r[1] = grid_rows[0] + oa, grid_rows[1] + oa
         r[2], r[3] = grid_columns[0] + ob, grid_columns[1] + ob

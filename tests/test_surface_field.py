@@ -149,24 +149,23 @@ def relative(a, b) -> float:
 def test_the_dent_is_carried_to_the_contact(slab, fine_slab, point):
     """At untrained contacts the transported field is the dent under the tool, to the
     grid's bilinear interpolation (and the fit's 1e-3): within 3 % with a grid spacing of a
-    third of the dent's radius, 1 % with half that, and second order in the spacing. PODI's
-    blend of three trained dents is not the dent at all.
+    third of the dent's radius, 1 % with half that. PODI's blend of three trained dents is
+    not the dent at all.
 
     Why 3 % and 4 % under the tool (they were 2 % and 3 %): each neighbour's field lies on
     its own lattice and the three are read at the same place of their cells, so their
     interpolation errors add instead of partly cancelling. Over 200 random contacts of this
-    plate the largest errors barely moved (field 2.47 -> 2.62 %, under the tool 3.29 ->
+    plate the largest errors rose a little (field 2.47 -> 2.62 %, under the tool 3.29 ->
     3.77 %: the old bounds held at these three points, not everywhere), the medians
-    doubled (0.97 -> 2.0 %, 0.87 -> 3.2 %). On the cornea demo's held-out solves the field
-    error is unchanged (2.31 -> 2.30 %), the dent under the tool 0.25 -> 0.53 %."""
+    doubled and more (0.97 -> 2.0 %, 0.87 -> 3.2 %). On the cornea demo's held-out solves
+    the field error is unchanged (2.31 -> 2.30 %), the dent under the tool 0.25 -> 0.53 %."""
     exact = dent(slab.vertices, np.array(point))
     transported, blended = slab.transported(point), slab.blended(point)
     error = relative(transported, exact)
     assert error < 0.03  # h = 0.2 mm against a dent of radius 0.6 mm
     assert relative(blended, exact) > 0.5  # what the transport fixes: the test can fail
     fine = relative(fine_slab.transported(point), dent(fine_slab.vertices, np.array(point)))
-    assert fine < 0.01
-    assert error < 0.01 or fine < error / 4  # second order: the interpolation's error
+    assert fine < 0.01  # (this plate's samples sit on its nodes: every lattice is the grid)
     tool = int(np.argmin(np.linalg.norm(slab.vertices - point, axis=1)))
     assert abs(transported[tool, 2] - exact[tool, 2]) < 0.04  # under the tool: 4 % of the dent
     deepest = int(np.argmin(transported[:, 2]))
