@@ -63,8 +63,8 @@ class SurfaceChart:
     spacing: float  # mm
     shape: np.ndarray  # (3,) int64: layers, rows, columns
     halo: int  # nodes of margin around the charted vertices' cells
-    sample_plan: np.ndarray  # (P, 2) mm, the samples' plan coordinates
-    sample_grid: np.ndarray  # (P, 2): the same in nodes from the grid's first node
+    sample_grid: np.ndarray  # (P, 2): the samples' places in plan view, in nodes from the
+    # grid's first node
     node_basis: np.ndarray  # (P, n, 3, N) float32, each on its sample's own lattice
     vertex_node: np.ndarray  # (V,) int64, -1 where not charted
     vertex_frac: np.ndarray  # (V, 2)
@@ -179,7 +179,6 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
         spacing=h,
         shape=np.array(shape, dtype=np.int64),
         halo=halo,
-        sample_plan=sample_plan,
         sample_grid=sample_grid,
         node_basis=_node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid),
         vertex_node=vertex_node,
