@@ -269,7 +269,8 @@ SURFACE_ARRAYS = (
     "coefficients",  # curves: (P, K, n) float64; POD-ANM: section offsets (P + 1,) int64
     "series",  # POD-ANM: the series' coefficients (Z, N1, n) float64; curves: unused
     "surface_basis_t",  # (P, n, 3V) float32
-    "node_basis",  # transport: the chart's (P, n, 3, N) float32 (the others too)
+    "node_basis",  # transport: the chart's (P, n, 3, N) int16 (the others too)
+    "mode_scale",  # (P, n) float64: the modes' scales
     "sample_grid",  # (P, 2): the samples' places on the chart's grid, in nodes
     "sample_normals",  # (P, 3)
     "chart_shape",  # (3,) int64
@@ -295,7 +296,8 @@ SURFACE_ARRAYS = (
     "grid_ids",  # (entries,) int64
 )
 DIMS = 4
-(A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_SAMPLE_GRID,
+(A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_MODE_SCALE,
+ A_SAMPLE_GRID,
  A_SAMPLE_NORMALS, A_SHAPE, A_ROWS, A_COLUMNS, A_HALO, A_CHARTED, A_CHARTED_NODE,
  A_CHARTED_FRAC, A_UNCHARTED, A_FIELDS, A_RECTANGLES, A_SHIFTS, A_SAMPLE_POINTS,
  A_SURFACE_VERTICES, A_FIELD_TRIANGLES, A_CONTACT_FIELDS, A_TRIANGLE_ROWS, A_SAMPLE_ROWS,
@@ -343,7 +345,8 @@ def _curves_coefficients(arrays, dims, buf):
 def _transported(arrays, dims, buf, c, out):
     """``surface_kernels.transported_surface`` on the packed arrays."""
     sk.transported_surface(
-        buf, c, _view4(arrays, dims, A_NODE_BASIS, np.float32),
+        buf, c, _view4(arrays, dims, A_NODE_BASIS, np.int16),
+        _view2(arrays, dims, A_MODE_SCALE, np.float64),
         _view2(arrays, dims, A_SAMPLE_GRID, np.float64),
         _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
         _view1(arrays, dims, A_SHAPE, np.int64), _view1(arrays, dims, A_ROWS, np.int64),
@@ -511,7 +514,8 @@ def _surface_arrays(sim: Simulator) -> dict[str, np.ndarray]:
         ch = m.chart
         nodes = int(np.prod(ch.shape))
         arrays |= {
-            "node_basis": ch.node_basis, "sample_grid": ch.sample_grid,
+            "node_basis": ch.node_basis, "mode_scale": ch.mode_scale,
+            "sample_grid": ch.sample_grid,
             "sample_normals": m.sample_normals, "chart_shape": ch.shape,
             "read_rows": ch.read_rows, "read_columns": ch.read_columns,
             "halo": np.array([ch.halo], dtype=np.int64), "charted": ch.charted,

@@ -57,9 +57,10 @@ def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork,
     if interpolation == "transport":
         ch = m.chart
         surface_kernels.transported_surface(
-            buf, c, ch.node_basis, ch.sample_grid, m.sample_normals, ch.shape, ch.read_rows,
-            ch.read_columns, ch.halo, ch.charted, ch.charted_node, ch.charted_frac, ch.uncharted,
-            m.surface_basis_t, work.chart_fields, work.chart_rectangles, work.chart_shifts, out,
+            buf, c, ch.node_basis, ch.mode_scale, ch.sample_grid, m.sample_normals, ch.shape,
+            ch.read_rows, ch.read_columns, ch.halo, ch.charted, ch.charted_node, ch.charted_frac,
+            ch.uncharted, m.surface_basis_t, work.chart_fields, work.chart_rectangles,
+            work.chart_shifts, out,
         )  # fmt: skip
     elif interpolation == "grassmann":
         g = m.grassmann

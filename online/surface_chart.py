@@ -24,12 +24,13 @@ place. The grid has a halo as wide as the largest shift (the longest sample-tria
 so a shifted read never leaves it.
 
 Layouts (N = layers x rows x columns nodes, row-major; flat node index
-``(layer * rows + a) * columns + b``): ``node_basis`` (P, n, 3, N) float32, each sample's
-surface modes at the nodes of its own lattice (the grid moved by less than a cell, so that
-the sample sits on a node: see :func:`_node_basis`), component planes apart so the rows
-are contiguous; ``sample_grid`` (P, 2) the samples' places in nodes of the grid;
-``vertex_node`` (V,) the flat index of the lower-left node of each charted vertex's cell
-(-1: not charted) and ``vertex_frac`` (V, 2) its place in that cell.
+``(layer * rows + a) * columns + b``): ``node_basis`` (P, n, 3, N) int16 (in units of
+``mode_scale`` (P, n) mm), each sample's surface modes at the nodes of its own lattice
+(the grid moved by less than a cell, so that the sample sits on a node: see
+:func:`_node_basis`), component planes apart so the rows are contiguous; ``sample_grid``
+(P, 2) the samples' places in nodes of the grid; ``vertex_node`` (V,) the flat index of
+the lower-left node of each charted vertex's cell (-1: not charted) and ``vertex_frac``
+(V, 2) its place in that cell.
 """
 
 from __future__ import annotations
@@ -46,12 +47,13 @@ from hapticrom.shared.geometry import plan_view
 FACING = math.cos(math.radians(75.0))  # a triangle whose normal is steeper belongs to no sheet
 SPACING_PER_EDGE = 0.8  # grid spacing / the median edge of the charted triangles
 MIN_MEAN_NORMAL = 0.5  # samples' mean unit normal shorter than this: no plan view
-MAX_VALUES = 30_000_000  # P n 3 N, the modes on the grid (120 MB float32): coarser beyond
+MAX_VALUES = 30_000_000  # P n 3 N, the modes on the grid (60 MB int16): coarser beyond
 MAX_NODES = 1_000_000  # N: the build's own arrays and each simulator's (36 bytes a node)
 MAX_RASTER = 50_000_000  # node visits of the rasterisation (the triangles' bounding boxes)
 HEIGHT_TOLERANCE = 0.5  # in grid spacings: a vertex this far off its sheet is hidden
 BACK_PROJECTIONS = 64  # at most, rounds of fitting the nodes to the vertices read from them
 READ_BACK_TOLERANCE = 1e-3  # ... until the read-back's RMS error is this fraction of the RMS
+QUANTUM = 32767  # a mode's largest value in 16 bits (node_basis)
 
 
 @dataclass(frozen=True)
@@ -65,7 +67,9 @@ class SurfaceChart:
     halo: int  # nodes of margin around the charted vertices' cells
     sample_grid: np.ndarray  # (P, 2): the samples' places in plan view, in nodes from the
     # grid's first node
-    node_basis: np.ndarray  # (P, n, 3, N) float32, each on its sample's own lattice
+    node_basis: np.ndarray  # (P, n, 3, N) int16, each on its sample's own lattice, in
+    # units of mode_scale
+    mode_scale: np.ndarray  # (P, n) mm: a mode's value at the nodes is node_basis times this
     vertex_node: np.ndarray  # (V,) int64, -1 where not charted
     vertex_frac: np.ndarray  # (V, 2)
     uncharted: np.ndarray  # (U,) int64: the vertices that keep the blended field
@@ -173,6 +177,8 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
     b = used % columns
     sample_grid = (sample_plan - start) / h
     sheet = (plan, height, triangles, tri_layer.astype(np.int64))
+    node_basis, mode_scale = _node_basis(surface_basis, sheet, start, h, shape, vertex_node,
+                                         sample_grid)  # fmt: skip
     return SurfaceChart(
         origin=origin,
         axes=axes,
@@ -180,7 +186,8 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
         shape=np.array(shape, dtype=np.int64),
         halo=halo,
         sample_grid=sample_grid,
-        node_basis=_node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid),
+        node_basis=node_basis,
+        mode_scale=mode_scale,
         vertex_node=vertex_node,
         vertex_frac=vertex_frac,
         uncharted=np.flatnonzero(vertex_node < 0).astype(np.int64),
@@ -298,15 +305,20 @@ def _vertex_cells(plan, height, vertex_layer, start, h, shape, covered, node_hei
     return np.where(ok, node, -1).astype(np.int64), np.ascontiguousarray(frac)
 
 
-def _node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid) -> np.ndarray:
-    """(P, n, 3, N) float32: each sample's modes at the nodes of its own lattice (the grid
-    moved by the fraction of a cell that puts the sample on a node), fitted so that the
-    charted vertices read back their own values.
+def _node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid):
+    """(node_basis (P, n, 3, N) int16, mode_scale (P, n)): each sample's modes at the nodes
+    of its own lattice (the grid moved by the fraction of a cell that puts the sample on a
+    node), fitted so that the charted vertices read back their own values, then stored in
+    16 bits, each mode in units of its largest value / 32767.
 
     Why a lattice a sample: the neighbours' shifts x_j - x then differ by whole nodes, so
     their shifted fields add on one grid without interpolating them (a second bilinear
     step smooths the dent: measured on the cornea demo, the node under the tool 3.8 % shallow
     against 0.25 %), and a vertex reads the sum once (surface_kernels.transported_surface).
+
+    Why 16 bits: a surface streams three samples' modes (1.3 MB on the cornea demo in single
+    precision), and half the bytes is a quarter less time (surface_kernels.add_neighbour);
+    the rounding is 1.5e-5 of a mode's largest value, far below the fit's tolerance.
 
     The nodes first take the surface's values (barycentric in the covering triangle of each
     node's source); a bilinear read at a vertex then smooths a sharp dent (measured on the
@@ -320,7 +332,9 @@ def _node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid)
     P, rows3, n = surface_basis.shape
     modes = surface_basis.reshape(P, rows3 // 3, 3 * n)
     layer = np.where(vertex_node >= 0, vertex_node // (shape[1] * shape[2]), -1)
-    out = np.empty((P, n, 3, int(np.prod(shape))), dtype=np.float32)
+    out = np.empty((P, n, 3, int(np.prod(shape))), dtype=np.int16)
+    scale = np.zeros((P, n))
+    fitted = np.empty((1, *out.shape[1:]), dtype=np.float32)
     for i in range(P):
         origin = start + (sample_grid[i] - np.floor(sample_grid[i])) * h
         node_tri, node_bary, _, covered = _rasterise(plan, height, triangles, tri_layer, origin,
@@ -329,12 +343,15 @@ def _node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid)
         corners = np.ascontiguousarray(triangles[np.maximum(node_tri[source], 0)])
         cells, frac = _lattice_cells(plan, layer, origin, h, shape, covered)
         _fit_nodes(modes[i : i + 1], corners, node_bary[source], cells, frac, shape[2],
-                   BACK_PROJECTIONS, READ_BACK_TOLERANCE, out[i : i + 1])  # fmt: skip
-    if not np.all(np.isfinite(out)):  # float32 overflow of a finite basis near its maximum
-        raise ArtifactError(
-            "samples/surface_basis: its modes overflow single precision on the surface chart"
-        )
-    return out
+                   BACK_PROJECTIONS, READ_BACK_TOLERANCE, fitted)  # fmt: skip
+        if not np.all(np.isfinite(fitted)):  # float32 overflow of a finite basis near its max
+            raise ArtifactError(
+                "samples/surface_basis: its modes overflow single precision on the surface chart"
+            )
+        scale[i] = np.abs(fitted[0]).max(axis=(1, 2)) / QUANTUM
+        safe = np.where(scale[i] > 0.0, scale[i], 1.0)[:, None, None]
+        out[i] = np.rint(fitted[0] / safe)
+    return out, scale
 
 
 def _lattice_cells(plan, layer, origin, h, shape, covered):

@@ -216,8 +216,8 @@ def render_on_poisoned_scratch(model, sim) -> np.ndarray:
     fields = np.full((2, 3, int(np.prod(chart.shape))), np.nan, dtype=np.float32)
     out = np.full_like(model.vertices, np.nan)
     surface_kernels.transported_surface(
-        sim._buf, coefficients, chart.node_basis, chart.sample_grid, model.sample_normals,
-        chart.shape, chart.read_rows, chart.read_columns, chart.halo,
+        sim._buf, coefficients, chart.node_basis, chart.mode_scale, chart.sample_grid,
+        model.sample_normals, chart.shape, chart.read_rows, chart.read_columns, chart.halo,
         chart.charted, chart.charted_node, chart.charted_frac, chart.uncharted,
         model.surface_basis_t, fields, np.zeros((3, 5), dtype=np.int64), np.zeros((3, 12)), out,
     )  # fmt: skip
