@@ -317,7 +317,8 @@ def _node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid)
     against 0.25 %), and a vertex reads the sum once (surface_kernels.transported_surface).
 
     Why 16 bits: a surface streams three samples' modes (1.3 MB on the cornea demo in single
-    precision), and half the bytes is a quarter less time (surface_kernels.add_neighbour);
+    precision), and half the bytes is a fifth less time (surface_kernels.add_neighbour: 19
+    against 15 us);
     the rounding is 1.5e-5 of a mode's largest value, far below the fit's tolerance.
 
     The nodes first take the surface's values (barycentric in the covering triangle of each
@@ -348,9 +349,12 @@ def _node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid)
             raise ArtifactError(
                 "samples/surface_basis: its modes overflow single precision on the surface chart"
             )
-        scale[i] = np.abs(fitted[0]).max(axis=(1, 2)) / QUANTUM
+        # in double precision: a float32 scale of a tiny mode (1e-40) is subnormal, and the
+        # ratio then passes 32767 and wraps in int16 (found by review: signs flipped)
+        largest = np.abs(fitted[0]).astype(np.float64).max(axis=(1, 2))
+        scale[i] = largest / QUANTUM
         safe = np.where(scale[i] > 0.0, scale[i], 1.0)[:, None, None]
-        out[i] = np.rint(fitted[0] / safe)
+        out[i] = np.clip(np.rint(fitted[0] / safe), -QUANTUM, QUANTUM)
     return out, scale
 
 

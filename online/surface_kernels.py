@@ -296,7 +296,7 @@ def transported_surface(buf, coefficients, node_basis, mode_scale, sample_grid, 
     In nodes (``sample_grid``, the chart's), x = I + p with I whole and p the contact's
     fraction of a cell; neighbour j's field lies on its own lattice, the grid moved by the
     fraction of x_j, so it is read at X - p + (floor(x_j) - I): a whole-node shift of its
-    lattice. The neighbours add on one grid (:func:`add_rotated`) read once at X - p
+    lattice. The neighbours add on one grid (:func:`add_neighbour`) read once at X - p
     (:func:`read_grid`), the same bilinear reads as three reads a vertex.
 
     ``node_basis`` (P, n, 3, N) int16 and ``mode_scale`` (P, n): the samples' modes on

@@ -116,11 +116,11 @@ def index_violations(chart: SurfaceChart, oa: int, ob: int) -> list[str]:
     g0, g1 = int(chart.read_rows[0]) - 1, int(chart.read_rows[1])  # the summed grid's rows
     h0, h1 = int(chart.read_columns[0]) - 1, int(chart.read_columns[1])
     problems = []
-    # contract_rectangle and add_rotated: the summed grid's rectangle moved by the offset
+    # add_neighbour: the summed grid's rectangle moved by the offset
     r0, r1, c0, c1 = g0 + oa, g1 + oa, h0 + ob, h1 + ob
     if g0 < 0 or r0 < 0 or r1 > rows or c0 < 0 or c1 > cols:
         problems.append(
-            f"contract_rectangle rows [{r0}, {r1}) columns [{c0}, {c1}) leave the {rows} x "
+            f"add_neighbour reads rows [{r0}, {r1}) columns [{c0}, {c1}) leave the {rows} x "
             f"{cols} grid (the summed grid's rows [{g0}, {g1}))"
         )
     # read_grid: the vertex's cell, a row and a column back where the contact's fraction
@@ -173,7 +173,7 @@ def far_tilted_chart():
 @pytest.mark.parametrize("build", [plate_chart, long_edge_chart, far_tilted_chart])
 def test_the_clamped_shift_keeps_every_index_inside_the_grid(build):
     """Defence. For every offset the clamp lets through (up to halo - 1 nodes either way),
-    every slice contract_rectangle takes lies in the grid, and every node read_grid reads
+    every slice add_neighbour takes lies in the grid, and every node read_grid reads
     (whatever the contact's fraction) lies in the summed grid's rectangle, in the vertex's
     own layer: the kernel's reads stay in bounds."""
     chart = build()
@@ -208,8 +208,9 @@ def plate_model(tmp_path_factory):
 
 def render_on_poisoned_scratch(model, sim) -> np.ndarray:
     """The kernel itself, on the simulator's state, with its per-neighbour scratch fields
-    filled with NaN first: contract_rectangle overwrites the rectangle each neighbour needs,
-    so a NaN in the result is a read outside it (an independent check of the mirror)."""
+    filled with NaN first: add_neighbour writes the rectangle the reads need (the first
+    neighbour's pass, or the first of several), so a NaN in the result is a read outside it
+    (an independent check of the mirror)."""
     chart = model.chart
     coefficients = np.zeros((3, model.num_modes))
     surface_kernels.curves_coefficients(sim._buf, model.coefficients, coefficients)
@@ -529,9 +530,28 @@ def test_a_finite_surface_basis_gives_finite_values_on_the_grid():
     except ArtifactError as exc:
         assert "surface_basis" in str(exc)
         return
-    if chart is not None:
-        bad = int(np.count_nonzero(~np.isfinite(chart.node_basis)))
-        assert bad == 0, f"{bad} of {chart.node_basis.size} node values are not finite"
+    if chart is not None:  # the nodes are int16 (finite by type): their scales must be
+        bad = int(np.count_nonzero(~np.isfinite(chart.mode_scale)))
+        assert bad == 0, f"{bad} of {chart.mode_scale.size} mode scales are not finite"
+
+
+def test_a_tiny_surface_basis_keeps_its_signs_in_16_bits():
+    """Finding (review of the 16-bit chart). A mode whose largest value is subnormal in
+    float32 (1e-40) had a subnormal float32 scale, the ratio value / scale passed 32767 and
+    wrapped in int16: 500 nodes of the plate with the wrong sign. The scale is now taken in
+    double precision and the ratio clipped: the tiny chart is the ordinary one times 1e-40,
+    to float32's subnormal precision."""
+    vertices, triangles = plate(0.5)
+    points, normals, sample_triangles = samples_on(3.0)
+    basis = np.stack([dent(vertices, p).reshape(-1, 1) for p in points])
+    charts = [surface_chart(vertices, triangles, points, normals, sample_triangles,
+                            (basis * f).astype(np.float32)) for f in (1.0, 1e-40)]  # fmt: skip
+    plain, tiny = (c.node_basis * c.mode_scale[:, :, None, None] for c in charts)
+    assert np.all(np.isfinite(charts[1].mode_scale)) and np.all(charts[1].mode_scale > 0)
+    largest = np.max(np.abs(plain))
+    visible = np.abs(plain) > 1e-3 * largest  # below, a step of 16 bits is zero or not
+    assert np.all(np.sign(tiny[visible]) == np.sign(plain[visible]))
+    assert np.max(np.abs(tiny * 1e40 - plain)) < 1e-3 * largest  # measured 3e-5
 
 
 def test_the_crafted_artifacts_pass_the_reader(tmp_path):
