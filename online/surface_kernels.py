@@ -127,10 +127,81 @@ MODES_A_PASS = 4  # modes summed in one pass over the nodes (the last pass padde
 
 
 @njit(inline="always")
-def four_modes(a0, a1, a2, a3, c0, c1, c2, c3, b):
-    """sum_k c_k a_k[b] in single precision (16-bit modes)."""
-    return (c0 * np.float32(a0[b]) + c1 * np.float32(a1[b])
-            + c2 * np.float32(a2[b]) + c3 * np.float32(a3[b]))  # fmt: skip
+def four_modes(a, c, b):
+    """sum_k c_k a_k[b] in single precision (16-bit modes); ``a`` four planes, ``c`` four
+    coefficients."""
+    return (c[0] * np.float32(a[0][b]) + c[1] * np.float32(a[1][b])
+            + c[2] * np.float32(a[2][b]) + c[3] * np.float32(a[3][b]))  # fmt: skip
+
+
+@njit(inline="always")
+def pass_modes(node_basis, mode_scale, i, c, k, s, e):
+    """The pass from mode k on: its four modes' x, y, z planes over the nodes [s, e) of
+    sample i, and their coefficients times their scales (float32). Past the last mode, the
+    last again with a zero coefficient."""
+    n = c.shape[0]
+    k1, k2, k3 = min(k + 1, n - 1), min(k + 2, n - 1), min(k + 3, n - 1)
+    zero = np.float32(0.0)
+    cs = (np.float32(c[k] * mode_scale[i, k]),
+          np.float32(c[k1] * mode_scale[i, k1]) if k + 1 < n else zero,
+          np.float32(c[k2] * mode_scale[i, k2]) if k + 2 < n else zero,
+          np.float32(c[k3] * mode_scale[i, k3]) if k + 3 < n else zero)  # fmt: skip
+    x = (node_basis[i, k, 0, s:e], node_basis[i, k1, 0, s:e],
+         node_basis[i, k2, 0, s:e], node_basis[i, k3, 0, s:e])  # fmt: skip
+    y = (node_basis[i, k, 1, s:e], node_basis[i, k1, 1, s:e],
+         node_basis[i, k2, 1, s:e], node_basis[i, k3, 1, s:e])  # fmt: skip
+    z = (node_basis[i, k, 2, s:e], node_basis[i, k1, 2, s:e],
+         node_basis[i, k2, 2, s:e], node_basis[i, k3, 2, s:e])  # fmt: skip
+    return x, y, z, cs
+
+
+@njit(inline="always")
+def keep_partial_sums(x, y, z, cs, qx, qy, qz, opens):
+    """q (=, or += after the first pass) the pass's sums at each node: a pass before the
+    last (more than four modes)."""
+    if opens:
+        for b in range(qx.shape[0]):
+            qx[b] = four_modes(x, cs, b)
+            qy[b] = four_modes(y, cs, b)
+            qz[b] = four_modes(z, cs, b)
+    else:
+        for b in range(qx.shape[0]):
+            qx[b] += four_modes(x, cs, b)
+            qy[b] += four_modes(y, cs, b)
+            qz[b] += four_modes(z, cs, b)
+
+
+@njit(inline="always")
+def add_rotated_sums(x, y, z, cs, qx, qy, qz, opens, M, gx, gy, gz, first):
+    """g (=, or += after the first neighbour) M (the pass's sums, plus the partial sums q
+    unless it ``opens``): the last pass. Four loops, so that no branch is inside one."""
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = M
+    if opens and first:
+        for b in range(gx.shape[0]):
+            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
+            gx[b] = m00 * px + m01 * py + m02 * pz
+            gy[b] = m10 * px + m11 * py + m12 * pz
+            gz[b] = m20 * px + m21 * py + m22 * pz
+    elif opens:
+        for b in range(gx.shape[0]):
+            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
+            gx[b] += m00 * px + m01 * py + m02 * pz
+            gy[b] += m10 * px + m11 * py + m12 * pz
+            gz[b] += m20 * px + m21 * py + m22 * pz
+    elif first:
+        for b in range(gx.shape[0]):
+            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
+            px, py, pz = px + qx[b], py + qy[b], pz + qz[b]
+            gx[b] = m00 * px + m01 * py + m02 * pz
+            gy[b] = m10 * px + m11 * py + m12 * pz
+            gz[b] = m20 * px + m21 * py + m22 * pz
+    else:
+        for b in range(gx.shape[0]):
+            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
+            px, py, pz = px + qx[b], py + qy[b], pz + qz[b]
+            gx[b] += m00 * px + m01 * py + m02 * pz
+            gy[b] += m10 * px + m11 * py + m12 * pz
+            gz[b] += m20 * px + m21 * py + m22 * pz
 
 
 @njit(inline="always")
@@ -151,72 +222,21 @@ def add_neighbour(node_basis, mode_scale, i, c, M, shape, rows, columns, offset,
     in one pass, 15 us with 16-bit modes (README, "The rendered surface"). The branches stay
     outside the node loops: inside, the loops did not vectorise (164 against 55 us a
     surface)."""
+    R = (np.float32(M[0]), np.float32(M[1]), np.float32(M[2]), np.float32(M[3]),
+         np.float32(M[4]), np.float32(M[5]), np.float32(M[6]), np.float32(M[7]),
+         np.float32(M[8]))  # fmt: skip
     n = c.shape[0]
-    m00, m01, m02 = np.float32(M[0]), np.float32(M[1]), np.float32(M[2])
-    m10, m11, m12 = np.float32(M[3]), np.float32(M[4]), np.float32(M[5])
-    m20, m21, m22 = np.float32(M[6]), np.float32(M[7]), np.float32(M[8])
-    zero = np.float32(0.0)
     for k in range(0, n, MODES_A_PASS):
         opens, closes = k == 0, k + MODES_A_PASS >= n
-        # the pass's four modes: past the last, the last again with a zero coefficient
-        k1, k2, k3 = min(k + 1, n - 1), min(k + 2, n - 1), min(k + 3, n - 1)
-        c0 = np.float32(c[k] * mode_scale[i, k])
-        c1 = np.float32(c[k1] * mode_scale[i, k1]) if k + 1 < n else zero
-        c2 = np.float32(c[k2] * mode_scale[i, k2]) if k + 2 < n else zero
-        c3 = np.float32(c[k3] * mode_scale[i, k3]) if k + 3 < n else zero
         for layer in range(shape[0]):
             g0, g1 = layer_run(shape, layer, rows, columns)
-            s, e = g0 + offset, g1 + offset
-            a0, a1 = node_basis[i, k, 0, s:e], node_basis[i, k1, 0, s:e]
-            a2, a3 = node_basis[i, k2, 0, s:e], node_basis[i, k3, 0, s:e]
-            b0, b1 = node_basis[i, k, 1, s:e], node_basis[i, k1, 1, s:e]
-            b2, b3 = node_basis[i, k2, 1, s:e], node_basis[i, k3, 1, s:e]
-            d0, d1 = node_basis[i, k, 2, s:e], node_basis[i, k1, 2, s:e]
-            d2, d3 = node_basis[i, k2, 2, s:e], node_basis[i, k3, 2, s:e]
+            x, y, z, cs = pass_modes(node_basis, mode_scale, i, c, k, g0 + offset, g1 + offset)
             qx, qy, qz = partial[0, g0:g1], partial[1, g0:g1], partial[2, g0:g1]
-            gx, gy, gz = grid[0, g0:g1], grid[1, g0:g1], grid[2, g0:g1]
-            if not closes and opens:  # the first of several passes
-                for b in range(g1 - g0):
-                    qx[b] = four_modes(a0, a1, a2, a3, c0, c1, c2, c3, b)
-                    qy[b] = four_modes(b0, b1, b2, b3, c0, c1, c2, c3, b)
-                    qz[b] = four_modes(d0, d1, d2, d3, c0, c1, c2, c3, b)
-            elif not closes:  # a middle pass
-                for b in range(g1 - g0):
-                    qx[b] += four_modes(a0, a1, a2, a3, c0, c1, c2, c3, b)
-                    qy[b] += four_modes(b0, b1, b2, b3, c0, c1, c2, c3, b)
-                    qz[b] += four_modes(d0, d1, d2, d3, c0, c1, c2, c3, b)
-            elif opens and first:  # the only pass (four modes or fewer), the first neighbour
-                for b in range(g1 - g0):
-                    px = four_modes(a0, a1, a2, a3, c0, c1, c2, c3, b)
-                    py = four_modes(b0, b1, b2, b3, c0, c1, c2, c3, b)
-                    pz = four_modes(d0, d1, d2, d3, c0, c1, c2, c3, b)
-                    gx[b] = m00 * px + m01 * py + m02 * pz
-                    gy[b] = m10 * px + m11 * py + m12 * pz
-                    gz[b] = m20 * px + m21 * py + m22 * pz
-            elif opens:  # the only pass, a later neighbour
-                for b in range(g1 - g0):
-                    px = four_modes(a0, a1, a2, a3, c0, c1, c2, c3, b)
-                    py = four_modes(b0, b1, b2, b3, c0, c1, c2, c3, b)
-                    pz = four_modes(d0, d1, d2, d3, c0, c1, c2, c3, b)
-                    gx[b] += m00 * px + m01 * py + m02 * pz
-                    gy[b] += m10 * px + m11 * py + m12 * pz
-                    gz[b] += m20 * px + m21 * py + m22 * pz
-            elif first:  # the last of several passes, the first neighbour
-                for b in range(g1 - g0):
-                    px = qx[b] + four_modes(a0, a1, a2, a3, c0, c1, c2, c3, b)
-                    py = qy[b] + four_modes(b0, b1, b2, b3, c0, c1, c2, c3, b)
-                    pz = qz[b] + four_modes(d0, d1, d2, d3, c0, c1, c2, c3, b)
-                    gx[b] = m00 * px + m01 * py + m02 * pz
-                    gy[b] = m10 * px + m11 * py + m12 * pz
-                    gz[b] = m20 * px + m21 * py + m22 * pz
-            else:  # the last of several passes, a later neighbour
-                for b in range(g1 - g0):
-                    px = qx[b] + four_modes(a0, a1, a2, a3, c0, c1, c2, c3, b)
-                    py = qy[b] + four_modes(b0, b1, b2, b3, c0, c1, c2, c3, b)
-                    pz = qz[b] + four_modes(d0, d1, d2, d3, c0, c1, c2, c3, b)
-                    gx[b] += m00 * px + m01 * py + m02 * pz
-                    gy[b] += m10 * px + m11 * py + m12 * pz
-                    gz[b] += m20 * px + m21 * py + m22 * pz
+            if not closes:
+                keep_partial_sums(x, y, z, cs, qx, qy, qz, opens)
+            else:
+                add_rotated_sums(x, y, z, cs, qx, qy, qz, opens, R, grid[0, g0:g1],
+                                 grid[1, g0:g1], grid[2, g0:g1], first)  # fmt: skip
 
 
 @njit(inline="always")
