@@ -2,7 +2,8 @@
 comes before any hyper-reduction (issue 18).
 
     python bench/basis_span.py CAMPAIGN.toml CAMPAIGN_DIR [--held-out 6] [--modes 20,40,80,160]
-        [--pressure-modes 10] [--out FILE.json]
+        [--pressure-modes 10] [--global-bases campaign,bumps,both] [--local 1,1.5]
+        [--local-directions nearest|xyz] [--out FILE.json]
 
 At the held-out positions of a force-controlled campaign (every ``len/held-out``-th, as
 ``bench/ecsw_tradeoff.py``), the exact linear response to the stored tool load, u = K^-1 f
@@ -19,6 +20,11 @@ training positions only:
   direction: a dense, cheap family (one factorisation, a solve a node) that covers the
   trained part of the surface, gaps between positions included;
 - ``both``: the two together.
+
+- ``local R`` (``--local``, radii in mm): a basis a held-out position, the POD of the
+  responses to bumps centred at the surface nodes within R of it, along the nearest
+  training position's load direction or along x, y and z each (``--local-directions
+  xyz``: any load direction; the held-out load itself is never read).
 
 Reduced models: ``condensed`` (Phi^T K Phi: displacement only, the pressure condensed per
 element before reduction), ``mixed`` (the pressure on ``--pressure-modes`` POD modes of the
@@ -62,13 +68,15 @@ def pod(columns: np.ndarray) -> np.ndarray:
     return np.linalg.svd(columns[:, norms > 0] / norms[norms > 0], full_matrices=False)[0]
 
 
-def bump_loads(surface, points, directions, radius: float, N: int) -> np.ndarray:
+def bump_loads(
+    surface, points, directions, radius: float, N: int, reach: float = 1.5
+) -> np.ndarray:
     """(N, centres): unit smooth loads (1 - r^2/R^2)^2 lumped at the ``surface`` nodes
-    (indices, coordinates), centred at each surface node within 1.5 R of a trained
+    (indices, coordinates), centred at each surface node within ``reach`` R of a trained
     position ``points`` (mm), along the nearest position's load ``directions``."""
     nodes, xyz = surface
     near = np.linalg.norm(xyz[:, None] - points[None], axis=2)  # (surface node, position)
-    centres = np.flatnonzero(near.min(axis=1) <= 1.5 * radius)
+    centres = np.flatnonzero(near.min(axis=1) <= reach * radius)
     direction = directions[near[centres].argmin(axis=1)]
     distance = np.linalg.norm(xyz[centres][:, None] - xyz[None], axis=2)  # (centre, node)
     weight = np.clip(1.0 - distance**2 / radius**2, 0.0, None) ** 2
@@ -112,6 +120,42 @@ def reduced_compliances(Phi, Psi, operators, K, cases, free) -> dict:
     return out
 
 
+def local_bases(
+    config, store, training, held_out, cases, reach, args, solve, operators, K, free
+) -> list[dict]:
+    """Per held-out position, the POD of the responses to bumps centred within ``reach``
+    mm of it (along the nearest training position's load direction: the held-out load is
+    not read): the compliance and field error of the condensed model at each size."""
+    surface = group_nodes(config.problem.mesh.file, config.load.surface)
+    attrs = [store.read_position(i)[1] for i in training]
+    points = np.array([a["point"] for a in attrs])
+    directions = np.array([a["direction"] for a in attrs])
+    radius = config.load.contact_radius
+    ratios, errors, sizes = {}, {}, []
+    for i, case in zip(held_out, cases, strict=True):
+        point = np.asarray(store.read_position(i)[1]["point"], dtype=float)
+        nearest = directions[np.linalg.norm(points - point, axis=1).argmin()]
+        along = np.eye(3) if args.local_directions == "xyz" else nearest[None]
+        loads = np.hstack([bump_loads(surface, point[None], d[None], radius, K.shape[0],
+                                      reach=reach / radius) for d in along])  # fmt: skip
+        basis = pod(solve(loads))
+        sizes.append(basis.shape[1])
+        for n in (int(m) for m in args.modes.split(",")):
+            if n <= basis.shape[1]:
+                measured = reduced_compliances(basis[:, :n], None, operators, K, [case], free)
+                ratios.setdefault(n, []).extend(measured["condensed"][0])
+                errors.setdefault(n, []).extend(measured["condensed"][1])
+    out = []
+    for n in ratios:
+        name = f"local {reach:g}"
+        out.append({"basis": name, "n": n, "model": "condensed", "compliance": ratios[n],
+                    "field_error": errors[n], "bumps": sizes})  # fmt: skip
+        print(f"{name:>9s} {n:4d} {'condensed':>10s} {min(ratios[n]):6.3f}..{max(ratios[n]):5.3f} "
+              f"{max(errors[n]):12.3f}  ({len(ratios[n])} positions, {min(sizes)}-{max(sizes)} "
+              "bumps)", flush=True)  # fmt: skip
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("config")
@@ -119,6 +163,14 @@ def main() -> None:
     parser.add_argument("--held-out", type=int, default=6)
     parser.add_argument("--modes", default="20,40,80,160")
     parser.add_argument("--pressure-modes", type=int, default=10)
+    parser.add_argument("--local", default="",
+                        help="radii (mm): a basis a held-out position, of the responses to "
+                        "bumps centred within that radius of it")  # fmt: skip
+    parser.add_argument("--local-directions", choices=("nearest", "xyz"), default="nearest",
+                        help="the local bumps along the nearest training position's load, "
+                        "or along x, y and z each (any direction)")  # fmt: skip
+    parser.add_argument("--global-bases", default="campaign,bumps,both",
+                        help="the global bases measured ('' for none)")  # fmt: skip
     parser.add_argument("--out")
     args = parser.parse_args()
     t0 = time.perf_counter()
@@ -156,6 +208,8 @@ def main() -> None:
     print(f"{'basis':>9s} {'n':>4s} {'model':>10s} {'compliance':>13s} {'field error':>12s}")
     results = []
     for name, basis in bases.items():
+        if name not in args.global_bases.split(","):
+            continue
         for n in (int(m) for m in args.modes.split(",")):
             if n > basis.shape[1]:
                 continue
@@ -166,6 +220,9 @@ def main() -> None:
                                 "field_error": errors})  # fmt: skip
                 print(f"{name:>9s} {n:4d} {model:>10s} {min(ratios):6.3f}..{max(ratios):5.3f} "
                       f"{max(errors):12.3f}", flush=True)  # fmt: skip
+    for reach in (float(r) for r in args.local.split(",") if r):
+        results += local_bases(config, store, training, held_out, cases, reach, args, solve,
+                               operators, K, free)  # fmt: skip
     if args.out:
         record = {"arguments": vars(args), "held_out": held_out, "results": results}
         Path(args.out).write_text(json.dumps(record, indent=1))

@@ -4,7 +4,7 @@ positions, beside the Galerkin model on every element (issue 18).
     python bench/ecsw_tradeoff.py CAMPAIGN.toml CAMPAIGN_DIR [--modes 20] [--pressure-modes 10]
         [--basis campaign|bumps|both|derivatives] [--linear-modes 20] [--derivatives-of 20]
         [--campaign-modes 0] [--supremizers] [--split linear|none] [--held-out 6] [--steps 2,5,10]
-        [--tolerances 0.1,0.03,0.01,0.003] [--out FILE.json]
+        [--tolerances 0.1,0.03,0.01,0.003] [--local MM [--local-neighbours 3]] [--out FILE.json]
 
 1. Bases from the training positions (all but every ``len/held-out``-th): the leading
    ``--modes`` left singular vectors of their stored states (``--basis campaign``), of the
@@ -30,6 +30,13 @@ positions, beside the Galerkin model on every element (issue 18).
    tangent (the online kernel, p50 and p99 of 300 calls). The first row is the Galerkin
    model on every element: the basis' own error, which no sampling can remove.
 
+``--local MM`` measures local bases instead (the Galerkin model only, no ECSW yet): for
+each held-out position, ``--linear-modes`` of the responses to bumps centred within MM of
+it along x, y and z, the derivatives of the leading ``--derivatives-of``,
+``--campaign-modes`` of the states of the ``--local-neighbours`` nearest training
+positions, supremizers if asked; one row a position with the distance of the full
+order's last state from the basis' span (``span``: the best any model on it could do).
+
 Prints a table; ``--out`` writes it as JSON. Serial. Units: mm, N, MPa.
 """
 
@@ -43,13 +50,14 @@ from pathlib import Path
 import h5py  # noqa: F401  (before dolfinx: see the README)
 import numpy as np
 import scipy.sparse.linalg
-from basis_span import held_out_split, pod, training_bumps  # bench/, beside this script
+from basis_span import bump_loads, held_out_split, pod, training_bumps  # bench/, beside this script
 
 from hapticrom.offline.campaign.config import CampaignConfig
 from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
+    group_nodes,
     mesh_elements,
     modal_derivatives,
     rest_operators,
@@ -71,15 +79,8 @@ def bases(store, training, args, mesh, rest, config):
     free = np.flatnonzero(np.abs(U).max(axis=1) > 0)  # the supports' rows stay zero
     operators = rest_operators(mesh, rest)
     if args.basis != "campaign":
-        K = operators.condensed()
-        factor = scipy.sparse.linalg.splu(K[free][:, free].tocsc())
-
-        def solve(F):
-            out = np.zeros(F.shape)
-            out[free] = factor.solve(F[free])
-            return out
-
-        responses = solve(training_bumps(config, store, training, K.shape[0]))
+        solve = rest_solver(operators, free)
+        responses = solve(training_bumps(config, store, training, operators.A.shape[0]))
         if args.basis == "derivatives":
             return derivative_bases(args, mesh, operators, solve, responses, U, P, free)
         pressures = (operators.Bt.T @ responses) / operators.compliance[:, None]
@@ -92,6 +93,20 @@ def bases(store, training, args, mesh, rest, config):
     if args.supremizers:
         Phi = np.linalg.qr(np.hstack([Phi, supremizers(operators, Psi, free)]))[0]
     return Phi, Psi
+
+
+def rest_solver(operators, free):
+    """F -> K^-1 F on the ``free`` rows (zero elsewhere), K the condensed stiffness at rest:
+    one factorisation."""
+    K = operators.condensed()
+    factor = scipy.sparse.linalg.splu(K[free][:, free].tocsc())
+
+    def solve(F):
+        out = np.zeros(F.shape)
+        out[free] = factor.solve(F[free])
+        return out
+
+    return solve
 
 
 def derivative_bases(args, mesh, operators, solve, responses, U, P, free):
@@ -109,6 +124,46 @@ def derivative_bases(args, mesh, operators, solve, responses, U, P, free):
     if args.supremizers:
         Phi = np.hstack([Phi, supremizers(operators, Psi, free)])
     return np.linalg.qr(Phi)[0], Psi
+
+
+def local_galerkin(store, training, held_out, args, mesh, rest, config) -> list[dict]:
+    """Per held-out position, a basis of its own (``--local`` mm): the responses to bumps
+    centred within that distance of it, along x, y and z (its load is not read), their
+    modal derivatives, the states of the nearest training positions and supremizers as
+    ``derivative_bases``; the Galerkin model on every element along its load path."""
+    U = np.vstack([store.read_position(i)[0]["displacement"] for i in training]).T
+    P = np.vstack([store.read_position(i)[0]["pressure"] for i in training]).T
+    free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
+    operators = rest_operators(mesh, rest)
+    solve = rest_solver(operators, free)
+    surface = group_nodes(config.problem.mesh.file, config.load.surface)
+    radius, results = config.load.contact_radius, []
+    points = np.array([store.read_position(i)[1]["point"] for i in training], dtype=float)
+    steps = U.shape[1] // len(training)
+    for i, path in zip(held_out, held_out_paths(store, held_out), strict=True):
+        point = np.asarray(store.read_position(i)[1]["point"], dtype=float)
+        loads = np.hstack([bump_loads(surface, point[None], d[None], radius, U.shape[0],
+                                      reach=args.local / radius) for d in np.eye(3)])  # fmt: skip
+        near = np.argsort(np.linalg.norm(points - point, axis=1))[: args.local_neighbours]
+        U_near = np.hstack([U[:, k * steps : (k + 1) * steps] for k in near])
+        P_near = np.hstack([P[:, k * steps : (k + 1) * steps] for k in near])
+        t = time.perf_counter()
+        Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), U_near, P_near,
+                                    free)  # fmt: skip
+        model = HyperReducedModel(mesh, Phi, Psi, split=args.split == "linear", rest=rest)
+        built = time.perf_counter() - t
+        solved = solve_paths(model, Phi, [path])
+        ratios = solved["depth_ratios"][0]
+        last = path[0][-1]  # the full order's last state: how far from the basis' span
+        span = float(np.linalg.norm(last - Phi @ (Phi.T @ last)) / np.linalg.norm(last))
+        results.append({"position": i, "bumps": loads.shape[1], "modes": Phi.shape[1],
+                        "build_s": built, "span_error": span, **solved})  # fmt: skip
+        ends = f"{ratios[0]:.3f}/{ratios[-1]:.3f}" if ratios else "-"
+        print(f"position {i:3d}: {loads.shape[1]} bumps, {Phi.shape[1]} + {Psi.shape[1]} modes "
+              f"({built:.0f} s), depth error {solved['depth_error']:.2e} (ratio first/last "
+              f"{ends}), field {solved['field_error']:.2e} (span {span:.2e}), solved "
+              f"{solved['converged']:.0%}", flush=True)  # fmt: skip
+    return results
 
 
 def held_out_paths(store, held_out):
@@ -197,6 +252,12 @@ def main() -> None:
     parser.add_argument("--held-out", type=int, default=6)
     parser.add_argument("--tolerances", default="0.1,0.03,0.01,0.003")
     parser.add_argument("--steps", default="2,5,10")
+    parser.add_argument("--local", type=float, default=0.0,
+                        help="mm: a derivatives basis a held-out position from bumps this "
+                        "close to it (the Galerkin model only)")  # fmt: skip
+    parser.add_argument("--local-neighbours", type=int, default=3,
+                        help="--local: the campaign modes from the states of this many "
+                        "nearest training positions")  # fmt: skip
     parser.add_argument("--out")
     args = parser.parse_args()
     derived = args.modes - args.linear_modes - args.campaign_modes
@@ -210,6 +271,12 @@ def main() -> None:
     rest = rest_tangents(mesh)
     positions = store.completed()
     training, held_out = held_out_split(positions, args.held_out)
+    if args.local:
+        results = local_galerkin(store, training, held_out, args, mesh, rest, config)
+        if args.out:
+            record = {"arguments": vars(args), "held_out": held_out, "results": results}
+            Path(args.out).write_text(json.dumps(record, indent=1))
+        return
     Phi, Psi = bases(store, training, args, mesh, rest, config)
     n, split = Phi.shape[1], args.split == "linear"
     steps = [int(s) - 1 for s in args.steps.split(",")]
