@@ -131,7 +131,7 @@ def local_bases(
     points = np.array([a["point"] for a in attrs])
     directions = np.array([a["direction"] for a in attrs])
     radius = config.load.contact_radius
-    ratios, errors, sizes = {}, {}, []
+    ratios, errors, sizes, measured_at = {}, {}, [], {}
     for i, case in zip(held_out, cases, strict=True):
         point = np.asarray(store.read_position(i)[1]["point"], dtype=float)
         nearest = directions[np.linalg.norm(points - point, axis=1).argmin()]
@@ -143,13 +143,15 @@ def local_bases(
         for n in (int(m) for m in args.modes.split(",")):
             if n <= basis.shape[1]:
                 measured = reduced_compliances(basis[:, :n], None, operators, K, [case], free)
+                measured_at.setdefault(n, []).append(i)  # fewer bumps than n: left out
                 ratios.setdefault(n, []).extend(measured["condensed"][0])
                 errors.setdefault(n, []).extend(measured["condensed"][1])
     out = []
     for n in ratios:
         name = f"local {reach:g}"
         out.append({"basis": name, "n": n, "model": "condensed", "compliance": ratios[n],
-                    "field_error": errors[n], "bumps": sizes})  # fmt: skip
+                    "field_error": errors[n], "positions": measured_at[n],
+                    "bumps": sizes})  # fmt: skip
         print(f"{name:>9s} {n:4d} {'condensed':>10s} {min(ratios[n]):6.3f}..{max(ratios[n]):5.3f} "
               f"{max(errors[n]):12.3f}  ({len(ratios[n])} positions, {min(sizes)}-{max(sizes)} "
               "bumps)", flush=True)  # fmt: skip

@@ -139,14 +139,19 @@ def local_galerkin(store, training, held_out, args, mesh, rest, config) -> list[
     surface = group_nodes(config.problem.mesh.file, config.load.surface)
     radius, results = config.load.contact_radius, []
     points = np.array([store.read_position(i)[1]["point"] for i in training], dtype=float)
-    steps = U.shape[1] // len(training)
+    # each position's columns of U and P: its stored states (a cut step stores more)
+    counts = [len(store.read_position(i)[0]["load_factor"]) for i in training]
+    start = np.cumsum([0] + counts)
     for i, path in zip(held_out, held_out_paths(store, held_out), strict=True):
         point = np.asarray(store.read_position(i)[1]["point"], dtype=float)
         loads = np.hstack([bump_loads(surface, point[None], d[None], radius, U.shape[0],
                                       reach=args.local / radius) for d in np.eye(3)])  # fmt: skip
         near = np.argsort(np.linalg.norm(points - point, axis=1))[: args.local_neighbours]
-        U_near = np.hstack([U[:, k * steps : (k + 1) * steps] for k in near])
-        P_near = np.hstack([P[:, k * steps : (k + 1) * steps] for k in near])
+        U_near = np.hstack([U[:, start[k] : start[k + 1]] for k in near])
+        P_near = np.hstack([P[:, start[k] : start[k + 1]] for k in near])
+        if U_near.shape[1] < args.campaign_modes:
+            raise SystemExit(f"--campaign-modes {args.campaign_modes}: the {len(near)} nearest "
+                             f"positions store only {U_near.shape[1]} states")  # fmt: skip
         t = time.perf_counter()
         Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), U_near, P_near,
                                     free)  # fmt: skip
