@@ -135,10 +135,9 @@ def four_modes(a, c, b):
 
 
 @njit(inline="always")
-def pass_modes(node_basis, mode_scale, i, c, k, s, e):
-    """The pass from mode k on: its four modes' x, y, z planes over the nodes [s, e) of
-    sample i, and their coefficients times their scales (float32). Past the last mode, the
-    last again with a zero coefficient."""
+def pass_coefficients(mode_scale, i, c, k):
+    """The pass from mode k on: its four modes (past the last, the last again) and their
+    coefficients times their scales (float32; zero for a repeated mode). Once a pass."""
     n = c.shape[0]
     k1, k2, k3 = min(k + 1, n - 1), min(k + 2, n - 1), min(k + 3, n - 1)
     zero = np.float32(0.0)
@@ -146,13 +145,20 @@ def pass_modes(node_basis, mode_scale, i, c, k, s, e):
           np.float32(c[k1] * mode_scale[i, k1]) if k + 1 < n else zero,
           np.float32(c[k2] * mode_scale[i, k2]) if k + 2 < n else zero,
           np.float32(c[k3] * mode_scale[i, k3]) if k + 3 < n else zero)  # fmt: skip
-    x = (node_basis[i, k, 0, s:e], node_basis[i, k1, 0, s:e],
+    return (k, k1, k2, k3), cs
+
+
+@njit(inline="always")
+def pass_planes(node_basis, i, modes, s, e):
+    """The four ``modes``' x, y, z planes over the nodes [s, e) of sample i."""
+    k0, k1, k2, k3 = modes
+    x = (node_basis[i, k0, 0, s:e], node_basis[i, k1, 0, s:e],
          node_basis[i, k2, 0, s:e], node_basis[i, k3, 0, s:e])  # fmt: skip
-    y = (node_basis[i, k, 1, s:e], node_basis[i, k1, 1, s:e],
+    y = (node_basis[i, k0, 1, s:e], node_basis[i, k1, 1, s:e],
          node_basis[i, k2, 1, s:e], node_basis[i, k3, 1, s:e])  # fmt: skip
-    z = (node_basis[i, k, 2, s:e], node_basis[i, k1, 2, s:e],
+    z = (node_basis[i, k0, 2, s:e], node_basis[i, k1, 2, s:e],
          node_basis[i, k2, 2, s:e], node_basis[i, k3, 2, s:e])  # fmt: skip
-    return x, y, z, cs
+    return x, y, z
 
 
 @njit(inline="always")
@@ -228,9 +234,10 @@ def add_neighbour(node_basis, mode_scale, i, c, M, shape, rows, columns, offset,
     n = c.shape[0]
     for k in range(0, n, MODES_A_PASS):
         opens, closes = k == 0, k + MODES_A_PASS >= n
+        modes, cs = pass_coefficients(mode_scale, i, c, k)
         for layer in range(shape[0]):
             g0, g1 = layer_run(shape, layer, rows, columns)
-            x, y, z, cs = pass_modes(node_basis, mode_scale, i, c, k, g0 + offset, g1 + offset)
+            x, y, z = pass_planes(node_basis, i, modes, g0 + offset, g1 + offset)
             qx, qy, qz = partial[0, g0:g1], partial[1, g0:g1], partial[2, g0:g1]
             if not closes:
                 keep_partial_sums(x, y, z, cs, qx, qy, qz, opens)
