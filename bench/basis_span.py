@@ -87,12 +87,17 @@ def bump_loads(
     return F
 
 
+def contact_points(store, positions) -> tuple[np.ndarray, np.ndarray]:
+    """(points (mm), load directions) of the campaign's ``positions``, (count, 3) each."""
+    attrs = [store.read_position(i)[1] for i in positions]
+    points = np.array([a["point"] for a in attrs], dtype=float)
+    return points, np.array([a["direction"] for a in attrs], dtype=float)
+
+
 def training_bumps(config, store, training, N) -> np.ndarray:
     """The bump loads around the ``training`` positions on the campaign's loadable group."""
     surface = group_nodes(config.problem.mesh.file, config.load.surface)
-    attrs = [store.read_position(i)[1] for i in training]
-    points = np.array([a["point"] for a in attrs])
-    directions = np.array([a["direction"] for a in attrs])
+    points, directions = contact_points(store, training)
     return bump_loads(surface, points, directions, config.load.contact_radius, N)
 
 
@@ -124,16 +129,15 @@ def local_bases(
     config, store, training, held_out, cases, reach, args, solve, operators, K, free
 ) -> list[dict]:
     """Per held-out position, the POD of the responses to bumps centred within ``reach``
-    mm of it (along the nearest training position's load direction: the held-out load is
-    not read): the compliance and field error of the condensed model at each size."""
+    mm of it (along the nearest training position's load direction, or along x, y and z:
+    the held-out load is not read): the compliance and field error of the condensed model
+    at each size."""
     surface = group_nodes(config.problem.mesh.file, config.load.surface)
-    attrs = [store.read_position(i)[1] for i in training]
-    points = np.array([a["point"] for a in attrs])
-    directions = np.array([a["direction"] for a in attrs])
+    points, directions = contact_points(store, training)
+    held_out_points = contact_points(store, held_out)[0]
     radius = config.load.contact_radius
     ratios, errors, sizes, measured_at = {}, {}, [], {}
-    for i, case in zip(held_out, cases, strict=True):
-        point = np.asarray(store.read_position(i)[1]["point"], dtype=float)
+    for i, point, case in zip(held_out, held_out_points, cases, strict=True):
         nearest = directions[np.linalg.norm(points - point, axis=1).argmin()]
         along = np.eye(3) if args.local_directions == "xyz" else nearest[None]
         loads = np.hstack([bump_loads(surface, point[None], d[None], radius, K.shape[0],

@@ -50,7 +50,13 @@ from pathlib import Path
 import h5py  # noqa: F401  (before dolfinx: see the README)
 import numpy as np
 import scipy.sparse.linalg
-from basis_span import bump_loads, held_out_split, pod, training_bumps  # bench/, beside this script
+from basis_span import (
+    bump_loads,
+    contact_points,
+    held_out_split,
+    pod,
+    training_bumps,
+)  # bench/, beside this script
 
 from hapticrom.offline.campaign.config import CampaignConfig
 from hapticrom.offline.campaign.store import SnapshotStore
@@ -131,19 +137,20 @@ def local_galerkin(store, training, held_out, args, mesh, rest, config) -> list[
     centred within that distance of it, along x, y and z (its load is not read), their
     modal derivatives, the states of the nearest training positions and supremizers as
     ``derivative_bases``; the Galerkin model on every element along its load path."""
-    U = np.vstack([store.read_position(i)[0]["displacement"] for i in training]).T
-    P = np.vstack([store.read_position(i)[0]["pressure"] for i in training]).T
+    data = [store.read_position(i)[0] for i in training]
+    U = np.vstack([d["displacement"] for d in data]).T
+    P = np.vstack([d["pressure"] for d in data]).T
+    # each position's columns of U and P: its stored states (a cut step stores more)
+    start = np.cumsum([0] + [len(d["load_factor"]) for d in data])
     free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
     operators = rest_operators(mesh, rest)
     solve = rest_solver(operators, free)
     surface = group_nodes(config.problem.mesh.file, config.load.surface)
     radius, results = config.load.contact_radius, []
-    points = np.array([store.read_position(i)[1]["point"] for i in training], dtype=float)
-    # each position's columns of U and P: its stored states (a cut step stores more)
-    counts = [len(store.read_position(i)[0]["load_factor"]) for i in training]
-    start = np.cumsum([0] + counts)
-    for i, path in zip(held_out, held_out_paths(store, held_out), strict=True):
-        point = np.asarray(store.read_position(i)[1]["point"], dtype=float)
+    points = contact_points(store, training)[0]
+    held_out_points = contact_points(store, held_out)[0]
+    paths = held_out_paths(store, held_out)
+    for i, point, path in zip(held_out, held_out_points, paths, strict=True):
         loads = np.hstack([bump_loads(surface, point[None], d[None], radius, U.shape[0],
                                       reach=args.local / radius) for d in np.eye(3)])  # fmt: skip
         near = np.argsort(np.linalg.norm(points - point, axis=1))[: args.local_neighbours]
