@@ -4,7 +4,8 @@ positions, beside the Galerkin model on every element (issue 18).
     python bench/ecsw_tradeoff.py CAMPAIGN.toml CAMPAIGN_DIR [--modes 20] [--pressure-modes 10]
         [--basis campaign|bumps|both|derivatives] [--linear-modes 20] [--derivatives-of 20]
         [--campaign-modes 0] [--supremizers] [--split linear|none] [--held-out 6] [--steps 2,5,10]
-        [--tolerances 0.1,0.03,0.01,0.003] [--local MM [--local-neighbours 3]] [--out FILE.json]
+        [--tolerances 0.1,0.03,0.01,0.003] [--local MM [--local-neighbours 3]
+        [--local-solves MM,MM --solves-per-distance 3 --state-modes 30]] [--out FILE.json]
 
 1. Bases from the training positions (all but every ``len/held-out``-th): the leading
    ``--modes`` left singular vectors of their stored states (``--basis campaign``), of the
@@ -30,12 +31,17 @@ positions, beside the Galerkin model on every element (issue 18).
    tangent (the online kernel, p50 and p99 of 300 calls). The first row is the Galerkin
    model on every element: the basis' own error, which no sampling can remove.
 
-``--local MM`` measures local bases instead (the Galerkin model only, no ECSW yet): for
+``--local MM`` measures local bases instead: for
 each held-out position, ``--linear-modes`` of the responses to bumps centred within MM of
 it along x, y and z, the derivatives of the leading ``--derivatives-of``,
 ``--campaign-modes`` of the states of the ``--local-neighbours`` nearest training
-positions, supremizers if asked; one row a position with the distance of the full
-order's last state from the basis' span (``span``: the best any model on it could do).
+positions, ``--state-modes`` of the states of full-order solves at
+``--solves-per-distance`` surface nodes about each ``--local-solves`` distance from it (the
+campaign's load path there: nonlinear snapshots of the region itself), supremizers if
+asked; per position the distance of the full order's last state from the basis' span
+(``span``: the best any model on it could do) and one row for the Galerkin model, then,
+with ``--local-solves``, one for ECSW at each ``--tolerances`` trained on those solves'
+states.
 
 Prints a table; ``--out`` writes it as JSON. Serial. Units: mm, N, MPa.
 """
@@ -57,9 +63,14 @@ from basis_span import (
     pod,
     training_bumps,
 )  # bench/, beside this script
+from mpi4py import MPI
 
+from hapticrom.meshes.msh import read_surface
 from hapticrom.offline.campaign.config import CampaignConfig
+from hapticrom.offline.campaign.positions import ToolPosition
+from hapticrom.offline.campaign.run import solve_position
 from hapticrom.offline.campaign.store import SnapshotStore
+from hapticrom.offline.fe.organ import load_organ
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
@@ -88,8 +99,9 @@ def bases(store, training, args, mesh, rest, config):
         solve = rest_solver(operators, free)
         responses = solve(training_bumps(config, store, training, operators.A.shape[0]))
         if args.basis == "derivatives":
-            return derivative_bases(args, mesh, operators, solve, responses, U, P, free)
-        pressures = (operators.Bt.T @ responses) / operators.compliance[:, None]
+            blocks = [(U, P, args.campaign_modes)]
+            return derivative_bases(args, mesh, operators, solve, responses, blocks, free)
+        pressures = condensed_pressures(operators, responses)
         if args.basis == "bumps":
             U, P = responses, pressures
         else:
@@ -115,33 +127,42 @@ def rest_solver(operators, free):
     return solve
 
 
-def derivative_bases(args, mesh, operators, solve, responses, U, P, free):
+def derivative_bases(args, mesh, operators, solve, responses, blocks, free):
     """``--linear-modes`` of the responses, the POD of the modal derivatives of the
-    leading ``--derivatives-of`` of them and ``--campaign-modes`` of the campaign's states,
+    leading ``--derivatives-of`` of them (none if 0) and, for each of ``blocks`` (states
+    (N, k), their pressures (cells, k), modes), that many POD modes of the states,
     ``--modes`` in all (then supremizers if asked); the pressure modes of the condensed
-    pressures of the first two and the campaign's."""
+    pressures of the responses and derivatives and the pressures of the blocks used."""
     linear = pod(responses)[:, : args.linear_modes]
-    derivatives = modal_derivatives(mesh, linear[:, : args.derivatives_of], solve)
-    count = args.modes - args.linear_modes - args.campaign_modes
-    Phi = np.hstack([linear, pod(derivatives)[:, :count], pod(U)[:, : args.campaign_modes]])
-    condensed = operators.Bt.T @ np.hstack([responses, derivatives]) / operators.compliance[:, None]
-    pressures = np.hstack([condensed, P]) if args.campaign_modes else condensed
-    Psi = pod(pressures)[:, : args.pressure_modes]
+    parts, pressures = [linear], [condensed_pressures(operators, responses)]
+    count = args.modes - args.linear_modes - sum(modes for _, _, modes in blocks)
+    if args.derivatives_of and count:
+        derivatives = modal_derivatives(mesh, linear[:, : args.derivatives_of], solve)
+        parts.append(pod(derivatives)[:, :count])
+        pressures.append(condensed_pressures(operators, derivatives))
+    for U, P, modes in blocks:
+        if modes:
+            parts.append(pod(U)[:, :modes])
+            pressures.append(P)
+    Psi = pod(np.hstack(pressures))[:, : args.pressure_modes]
     if args.supremizers:
-        Phi = np.hstack([Phi, supremizers(operators, Psi, free)])
-    return np.linalg.qr(Phi)[0], Psi
+        parts.append(supremizers(operators, Psi, free))
+    return np.linalg.qr(np.hstack(parts))[0], Psi
+
+
+def condensed_pressures(operators, U) -> np.ndarray:
+    """Each column's element pressures condensed linearly: p_e = (B^T u)_e / (V_e / kappa)."""
+    return operators.Bt.T @ U / operators.compliance[:, None]
 
 
 def local_galerkin(store, training, held_out, args, mesh, rest, config) -> list[dict]:
     """Per held-out position, a basis of its own (``--local`` mm): the responses to bumps
     centred within that distance of it, along x, y and z (its load is not read), their
-    modal derivatives, the states of the nearest training positions and supremizers as
-    ``derivative_bases``; the Galerkin model on every element along its load path."""
+    modal derivatives, the states of the nearest training positions, those of full-order
+    solves around it (``--local-solves``) and supremizers as ``derivative_bases``; the
+    Galerkin model on every element along its load path."""
     data = [store.read_position(i)[0] for i in training]
     U = np.vstack([d["displacement"] for d in data]).T
-    P = np.vstack([d["pressure"] for d in data]).T
-    # each position's columns of U and P: its stored states (a cut step stores more)
-    start = np.cumsum([0] + [len(d["load_factor"]) for d in data])
     free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
     operators = rest_operators(mesh, rest)
     solve = rest_solver(operators, free)
@@ -154,28 +175,94 @@ def local_galerkin(store, training, held_out, args, mesh, rest, config) -> list[
         loads = np.hstack([bump_loads(surface, point[None], d[None], radius, U.shape[0],
                                       reach=args.local / radius) for d in np.eye(3)])  # fmt: skip
         near = np.argsort(np.linalg.norm(points - point, axis=1))[: args.local_neighbours]
-        U_near = np.hstack([U[:, start[k] : start[k + 1]] for k in near])
-        P_near = np.hstack([P[:, start[k] : start[k + 1]] for k in near])
-        if U_near.shape[1] < args.campaign_modes:
-            raise SystemExit(f"--campaign-modes {args.campaign_modes}: the {len(near)} nearest "
-                             f"positions store only {U_near.shape[1]} states")  # fmt: skip
+        blocks = [(*neighbour_states(data, near, args.campaign_modes), args.campaign_modes)]
         t = time.perf_counter()
-        Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), U_near, P_near,
-                                    free)  # fmt: skip
-        model = HyperReducedModel(mesh, Phi, Psi, split=args.split == "linear", rest=rest)
-        built = time.perf_counter() - t
-        solved = solve_paths(model, Phi, [path])
-        ratios = solved["depth_ratios"][0]
+        if args.local_solves:
+            blocks.append((*nearby_solves(config, point, args), args.state_modes))
+        solved_s = time.perf_counter() - t
+        Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), blocks, free)
+        built = time.perf_counter() - t - solved_s
         last = path[0][-1]  # the full order's last state: how far from the basis' span
         span = float(np.linalg.norm(last - Phi @ (Phi.T @ last)) / np.linalg.norm(last))
-        results.append({"position": i, "bumps": loads.shape[1], "modes": Phi.shape[1],
-                        "build_s": built, "span_error": span, **solved})  # fmt: skip
-        ends = f"{ratios[0]:.3f}/{ratios[-1]:.3f}" if ratios else "-"
+        head = {"position": i, "bumps": loads.shape[1], "modes": Phi.shape[1],
+                "pressure_modes": Psi.shape[1], "solves_s": solved_s, "build_s": built,
+                "span_error": span}  # fmt: skip
         print(f"position {i:3d}: {loads.shape[1]} bumps, {Phi.shape[1]} + {Psi.shape[1]} modes "
-              f"({built:.0f} s), depth error {solved['depth_error']:.2e} (ratio first/last "
-              f"{ends}), field {solved['field_error']:.2e} (span {span:.2e}), solved "
-              f"{solved['converged']:.0%}", flush=True)  # fmt: skip
+              f"(solves {solved_s:.0f} s, basis {built:.0f} s), span of the last state "
+              f"{span:.2e}", flush=True)  # fmt: skip
+        training_states = []  # ECSW's: the nearby solves' states, reduced
+        if args.local_solves and args.tolerances:
+            U_solved, P_solved, _ = blocks[-1]
+            pairs = zip(U_solved.T, P_solved.T, strict=True)
+            training_states = [(Phi.T @ u, Psi.T @ p) for u, p in pairs]
+        for row in local_rows(mesh, Phi, Psi, path, training_states, args, rest):
+            results.append({**head, **row})
     return results
+
+
+def local_rows(mesh, Phi, Psi, path, states, args, rest):
+    """The Galerkin model on every element, then ECSW at each of ``--tolerances`` trained on
+    ``states`` (reduced (q, pi) pairs; none: the Galerkin model alone), along ``path``: one
+    printed line and one dict each."""
+    split = args.split == "linear"
+    tolerances = ["galerkin"] + ([float(v) for v in args.tolerances.split(",")] if states else [])
+    G = training_matrix(mesh, Phi, Psi, states, split=split, rest=rest)[0] if states else None
+    for tolerance in tolerances:
+        if tolerance == "galerkin":
+            model = HyperReducedModel(mesh, Phi, Psi, split=split, rest=rest)
+        else:
+            sampling = ecsw(G, tolerance=tolerance)
+            model = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights,
+                                      split=split, rest=rest)  # fmt: skip
+        solved = solve_paths(model, Phi, [path])
+        p50, p99 = kernel_times(model, *states[-1]) if states else (None, None)
+        ratios = solved["depth_ratios"][0]
+        ends = f"{ratios[0]:.3f}/{ratios[-1]:.3f}" if ratios else "-"
+        timing = f", residual and tangent p50/p99 {1e3 * p50:.2f}/{1e3 * p99:.2f} ms" if p50 else ""
+        print(f"  {tolerance!s:>8s}: {model.sampled_elements:5d} elements, depth error "
+              f"{solved['depth_error']:.2e} (ratio first/last {ends}), field "
+              f"{solved['field_error']:.2e}, solved {solved['converged']:.0%}{timing}",
+              flush=True)  # fmt: skip
+        yield {"tolerance": tolerance, "elements": model.sampled_elements, **solved,
+               "p50_s": p50, "p99_s": p99}  # fmt: skip
+
+
+def neighbour_states(data, near, modes) -> tuple[np.ndarray, np.ndarray]:
+    """The stored states and pressures of the training positions ``near`` (indices into
+    ``data``, each position's own count: a cut step stores more)."""
+    U = np.vstack([data[k]["displacement"] for k in near]).T
+    if U.shape[1] < modes:
+        raise SystemExit(f"--campaign-modes {modes}: the {len(near)} nearest positions store "
+                         f"only {U.shape[1]} states")  # fmt: skip
+    return U, np.vstack([data[k]["pressure"] for k in near]).T
+
+
+def nearby_solves(config, point, args) -> tuple[np.ndarray, np.ndarray]:
+    """The states and pressures (N, k), (cells, k) of full-order solves of the campaign's
+    load path at ``--solves-per-distance`` loadable surface nodes about each of the
+    ``--local-solves`` distances (mm) from ``point``, spread round it (each next node the
+    farthest from those chosen): nonlinear snapshots of the region itself."""
+    surface = read_surface(config.problem.mesh.file, config.load.surface)
+    organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+    distance = np.linalg.norm(surface.nodes - point, axis=1)
+    states, pressures = [], []
+    for d in (float(v) for v in args.local_solves.split(",")):
+        ring = np.flatnonzero(np.abs(distance - d) <= 0.25 * d)
+        if len(ring) < args.solves_per_distance:
+            raise SystemExit(f"--local-solves {d:g}: {len(ring)} surface nodes within 25 % of "
+                             f"that distance, {args.solves_per_distance} asked")  # fmt: skip
+        chosen = [ring[np.argmin(np.abs(distance[ring] - d))]]
+        while len(chosen) < args.solves_per_distance:
+            xyz = surface.nodes[ring]
+            gap = np.linalg.norm(xyz[:, None] - surface.nodes[chosen][None], axis=2).min(axis=1)
+            chosen.append(ring[np.argmax(gap)])
+        for node in chosen:
+            position = ToolPosition(-1, tuple(surface.nodes[node]), tuple(surface.normals[node]),
+                                    int(surface.node_tags[node]), "point")  # fmt: skip
+            datasets, _ = solve_position(config, position, organ, MPI.COMM_SELF)
+            states.append(datasets["displacement"])
+            pressures.append(datasets["pressure"])
+    return np.vstack(states).T, np.vstack(pressures).T
 
 
 def held_out_paths(store, held_out):
@@ -270,12 +357,22 @@ def main() -> None:
     parser.add_argument("--local-neighbours", type=int, default=3,
                         help="--local: the campaign modes from the states of this many "
                         "nearest training positions")  # fmt: skip
+    parser.add_argument("--local-solves", default="",
+                        help="--local: mm, full-order solves about these distances from "
+                        "each held-out position, their states' POD in its basis")  # fmt: skip
+    parser.add_argument("--solves-per-distance", type=int, default=3)
+    parser.add_argument("--state-modes", type=int, default=0,
+                        help="--local-solves: POD modes of their states")  # fmt: skip
     parser.add_argument("--out")
     args = parser.parse_args()
-    derived = args.modes - args.linear_modes - args.campaign_modes
-    if args.basis == "derivatives" and (derived < 0 or args.derivatives_of > args.linear_modes):
-        parser.error("--basis derivatives: --modes must be at least --linear-modes + "
-                     "--campaign-modes, and --derivatives-of at most --linear-modes")  # fmt: skip
+    derived = args.modes - args.linear_modes - args.campaign_modes - args.state_modes
+    uses_derivatives = args.basis == "derivatives" or args.local
+    if uses_derivatives and (derived < 0 or args.derivatives_of > args.linear_modes):
+        parser.error("--basis derivatives and --local: --modes must be at least "
+                     "--linear-modes + --campaign-modes + --state-modes, and --derivatives-of "
+                     "at most --linear-modes")  # fmt: skip
+    if args.local_solves and not (args.local and args.state_modes > 0):
+        parser.error("--local-solves needs --local and --state-modes")
     t0 = time.perf_counter()
     config = CampaignConfig.from_toml(args.config)
     store = SnapshotStore(args.campaign)

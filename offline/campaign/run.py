@@ -321,7 +321,7 @@ def _position_attrs(config, position, path: _LoadPath, sanity, seconds: float) -
     }
 
 
-def _solve_position(config, position, organ, group):
+def solve_position(config, position, organ, group):
     """One full load path; returns (datasets, attrs) on the group's root, None elsewhere."""
     problem = replace(config.problem, load=config.load.at(position))
     t0 = time.perf_counter()
@@ -467,7 +467,7 @@ def _solve_share(config, mine, organ, groups: _Groups, store, log: ProgressLog, 
     error = None
     try:
         for position in mine:
-            record = _solve_position(config, position, organ, groups.comm)
+            record = solve_position(config, position, organ, groups.comm)
             if groups.comm.rank == 0:
                 datasets, attrs = record
                 store.write_position(position.index, datasets, attrs)
@@ -564,7 +564,7 @@ def refinement_check_position(config, position: ToolPosition, store: SnapshotSto
     """The mesh-convergence check of one stored position, as ``solve --refinement-check``.
 
     The position's problem (its load, tool position and solver settings, as
-    :func:`_solve_position` built it) is solved on the next finer built-in mesh by
+    :func:`solve_position` built it) is solved on the next finer built-in mesh by
     the whole ``comm`` (the mesh and that solve in ``CAMPAIGN_DIR/refinement``) and
     compared with the stored record; the check goes to ``CAMPAIGN_DIR/refinement.json``.
     The stored positions are not touched.
