@@ -5,7 +5,9 @@ positions, beside the Galerkin model on every element (issue 18).
         [--basis campaign|bumps|both|derivatives] [--linear-modes 20] [--derivatives-of 20]
         [--campaign-modes 0] [--supremizers] [--split linear|none] [--held-out 6] [--steps 2,5,10]
         [--tolerances 0.1,0.03,0.01,0.003] [--local MM [--local-neighbours 3]
-        [--local-solves MM,MM --solves-per-distance 3 --state-modes 30]] [--out FILE.json]
+        [--local-solves MM,MM --solves-per-distance 3 --state-modes 30]
+        [--frames 100 [--frame-solver haptic|modified] [--frame-iterations 1]
+        [--tangent-slices 10] [--refresh-after 3] [--frame-tolerance 1e-6]]] [--out FILE.json]
 
 1. Bases from the training positions (all but every ``len/held-out``-th): the leading
    ``--modes`` left singular vectors of their stored states (``--basis campaign``), of the
@@ -41,7 +43,9 @@ campaign's load path there: nonlinear snapshots of the region itself), supremize
 asked; per position the distance of the full order's last state from the basis' span
 (``span``: the best any model on it could do) and one row for the Galerkin model, then,
 with ``--local-solves``, one for ECSW at each ``--tolerances`` trained on those solves'
-states.
+states. With ``--frames``, each row's model also runs the held-out path as that many
+physics steps of a haptic loop (``haptic_frames``: the time of a step, how far its state
+lags the equilibrium).
 
 Prints a table; ``--out`` writes it as JSON. Serial. Units: mm, N, MPa.
 """
@@ -67,13 +71,16 @@ from mpi4py import MPI
 
 from hapticrom.meshes.msh import read_surface
 from hapticrom.offline.campaign.config import CampaignConfig
+from hapticrom.offline.campaign.greedy import near_supports
 from hapticrom.offline.campaign.positions import ToolPosition
 from hapticrom.offline.campaign.run import solve_position
 from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.fe.organ import load_organ
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
+    HapticNewton,
     HyperReducedModel,
+    ModifiedNewton,
     group_nodes,
     mesh_elements,
     modal_derivatives,
@@ -132,13 +139,16 @@ def derivative_bases(args, mesh, operators, solve, responses, blocks, free):
     leading ``--derivatives-of`` of them (none if 0) and, for each of ``blocks`` (states
     (N, k), their pressures (cells, k), modes), that many POD modes of the states,
     ``--modes`` in all (then supremizers if asked); the pressure modes of the condensed
-    pressures of the responses and derivatives and the pressures of the blocks used."""
-    linear = pod(responses)[:, : args.linear_modes]
-    parts, pressures = [linear], [condensed_pressures(operators, responses)]
+    pressures of the responses (if any linear mode is used) and derivatives (if computed,
+    used or not) and the pressures of the blocks used."""
+    linear = pod(responses)[:, : args.linear_modes] if args.linear_modes else None
+    parts = [linear] if args.linear_modes else []
+    pressures = [condensed_pressures(operators, responses)] if args.linear_modes else []
     count = args.modes - args.linear_modes - sum(modes for _, _, modes in blocks)
-    if args.derivatives_of and count:
+    if args.derivatives_of:
         derivatives = modal_derivatives(mesh, linear[:, : args.derivatives_of], solve)
-        parts.append(pod(derivatives)[:, :count])
+        if count:
+            parts.append(pod(derivatives)[:, :count])
         pressures.append(condensed_pressures(operators, derivatives))
     for U, P, modes in blocks:
         if modes:
@@ -155,12 +165,13 @@ def condensed_pressures(operators, U) -> np.ndarray:
     return operators.Bt.T @ U / operators.compliance[:, None]
 
 
-def local_galerkin(store, training, held_out, args, mesh, rest, config) -> list[dict]:
+def local_models(store, training, held_out, args, mesh, rest, config) -> list[dict]:
     """Per held-out position, a basis of its own (``--local`` mm): the responses to bumps
     centred within that distance of it, along x, y and z (its load is not read), their
     modal derivatives, the states of the nearest training positions, those of full-order
-    solves around it (``--local-solves``) and supremizers as ``derivative_bases``; the
-    Galerkin model on every element along its load path."""
+    solves around it (``--local-solves``) and supremizers as ``derivative_bases``; along its
+    load path the Galerkin model on every element, then ECSW trained on the solves' states
+    (``local_rows``)."""
     data = [store.read_position(i)[0] for i in training]
     U = np.vstack([d["displacement"] for d in data]).T
     free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
@@ -171,30 +182,46 @@ def local_galerkin(store, training, held_out, args, mesh, rest, config) -> list[
     points = contact_points(store, training)[0]
     held_out_points = contact_points(store, held_out)[0]
     paths = held_out_paths(store, held_out)
+    solver = NearbySolver(config, args) if args.local_solves else None
     for i, point, path in zip(held_out, held_out_points, paths, strict=True):
-        loads = np.hstack([bump_loads(surface, point[None], d[None], radius, U.shape[0],
-                                      reach=args.local / radius) for d in np.eye(3)])  # fmt: skip
+        loads = np.zeros((U.shape[0], 0))  # the bumps: only if linear modes are used
+        if args.linear_modes:
+            reach = args.local / radius
+            loads = np.hstack([bump_loads(surface, point[None], d[None], radius, U.shape[0],
+                                          reach=reach) for d in np.eye(3)])  # fmt: skip
         near = np.argsort(np.linalg.norm(points - point, axis=1))[: args.local_neighbours]
         blocks = [(*neighbour_states(data, near, args.campaign_modes), args.campaign_modes)]
+        centres, forbidden, head = [point], [], {"position": i}
+        if args.second_tool:  # the reference: both tools at once; the basis: both regions
+            node, second = solver.second_tool(point, args.second_tool, args.second_force)
+            path = solver.two_tool_path(point, second)
+            centres.append(solver.surface.nodes[node])
+            forbidden = [solver.nearest(point), node]
+            head |= {"second_point": list(second[0]), "second_force": list(second[1])}
+            print(f"position {i:3d}: a second tool at {np.round(second[0], 3).tolist()} mm, "
+                  f"{np.linalg.norm(centres[1] - point):.2f} mm away, force "
+                  f"{np.round(second[1], 4).tolist()} N", flush=True)  # fmt: skip
         t = time.perf_counter()
-        if args.local_solves:
-            blocks.append((*nearby_solves(config, point, args), args.state_modes))
+        for centre in centres if solver else []:
+            blocks.append((*solver.states(centre, forbidden), args.state_modes))
+            if blocks[-1][0].shape[1] < args.state_modes:
+                raise SystemExit(f"--state-modes {args.state_modes}: the solves about position "
+                                 f"{i} converged {blocks[-1][0].shape[1]} states")  # fmt: skip
         solved_s = time.perf_counter() - t
         Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), blocks, free)
         built = time.perf_counter() - t - solved_s
         last = path[0][-1]  # the full order's last state: how far from the basis' span
         span = float(np.linalg.norm(last - Phi @ (Phi.T @ last)) / np.linalg.norm(last))
-        head = {"position": i, "bumps": loads.shape[1], "modes": Phi.shape[1],
-                "pressure_modes": Psi.shape[1], "solves_s": solved_s, "build_s": built,
-                "span_error": span}  # fmt: skip
+        head |= {"bumps": loads.shape[1], "modes": Phi.shape[1], "pressure_modes": Psi.shape[1],
+                 "solves_s": solved_s, "build_s": built, "span_error": span}  # fmt: skip
         print(f"position {i:3d}: {loads.shape[1]} bumps, {Phi.shape[1]} + {Psi.shape[1]} modes "
               f"(solves {solved_s:.0f} s, basis {built:.0f} s), span of the last state "
               f"{span:.2e}", flush=True)  # fmt: skip
         training_states = []  # ECSW's: the nearby solves' states, reduced
-        if args.local_solves and args.tolerances:
-            U_solved, P_solved, _ = blocks[-1]
-            pairs = zip(U_solved.T, P_solved.T, strict=True)
-            training_states = [(Phi.T @ u, Psi.T @ p) for u, p in pairs]
+        if solver and args.tolerances:
+            for U_solved, P_solved, _ in blocks[1:]:
+                pairs = zip(U_solved.T, P_solved.T, strict=True)
+                training_states += [(Phi.T @ u, Psi.T @ p) for u, p in pairs]
         for row in local_rows(mesh, Phi, Psi, path, training_states, args, rest):
             results.append({**head, **row})
     return results
@@ -205,7 +232,7 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest):
     ``states`` (reduced (q, pi) pairs; none: the Galerkin model alone), along ``path``: one
     printed line and one dict each."""
     split = args.split == "linear"
-    tolerances = ["galerkin"] + ([float(v) for v in args.tolerances.split(",")] if states else [])
+    tolerances = ["galerkin"] + (args.tolerances if states else [])
     G = training_matrix(mesh, Phi, Psi, states, split=split, rest=rest)[0] if states else None
     for tolerance in tolerances:
         if tolerance == "galerkin":
@@ -223,8 +250,70 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest):
               f"{solved['depth_error']:.2e} (ratio first/last {ends}), field "
               f"{solved['field_error']:.2e}, solved {solved['converged']:.0%}{timing}",
               flush=True)  # fmt: skip
-        yield {"tolerance": tolerance, "elements": model.sampled_elements, **solved,
+        row = {"tolerance": tolerance, "elements": model.sampled_elements, **solved,
                "p50_s": p50, "p99_s": p99}  # fmt: skip
+        if args.frames:
+            row["frames"] = haptic_frames(model, Phi, path, args)
+        yield row
+
+
+def haptic_frames(model, Phi, path, args) -> dict:
+    """The held-out load path as ``--frames`` physics steps of a haptic loop (the load
+    ramped to its last factor in equal increments, each step from the last: a press of that
+    many ms at 1 kHz), then held until the state is within 1e-6 of the model's equilibrium
+    (at most 100 steps). ``--frame-solver haptic``: :class:`HapticNewton`, a fixed cost a
+    step (``--frame-iterations``, ``--tangent-slices``), the state lagging; ``modified``:
+    :class:`ModifiedNewton`, each step converged (``--frame-tolerance``,
+    ``--refresh-after``). The time of a step (p50, p99, max), the evaluations, and at the
+    ramp's last step the lag behind the equilibrium and the depth and field errors against
+    the full order's last state."""
+    U, _, f, factors, depths, force = path
+    load = Phi.T @ f
+    q_end = model.solve(load, factors, tolerance=1e-10, partial=True)[0]
+    if len(q_end) < len(factors):
+        print("    frames: the model's own Newton did not reach the last step")
+        return {}
+    if args.frame_solver == "haptic":
+        slices = min(args.tangent_slices, model.sampled_elements)
+        solver = HapticNewton(model, args.frame_iterations, slices)
+
+        def step(q, pi, load):
+            if not solver.step(q, pi, load):
+                raise SystemExit("--frame-solver haptic: a step left the finite numbers")
+    else:
+        solver = ModifiedNewton(model, args.frame_tolerance, refresh_after=args.refresh_after)
+        solver.frame(np.zeros(model.n), np.zeros(model.n_p), 0.0 * load)  # the rest tangent
+        solver.residuals = solver.tangents = 0
+
+        def step(q, pi, load):
+            if solver.frame(q, pi, load) is None:
+                raise SystemExit("--frame-solver modified: a frame did not converge")
+
+    q, pi, times = np.zeros(model.n), np.zeros(model.n_p), []
+    for factor in np.linspace(0.0, factors[-1], args.frames + 1)[1:]:
+        t = time.perf_counter()
+        step(q, pi, factor * load)
+        times.append(time.perf_counter() - t)
+    u, gap = Phi @ q, lambda: float(np.linalg.norm(q - q_end[-1]) / np.linalg.norm(q_end[-1]))
+    out = {"solver": args.frame_solver, "frames": args.frames, "lag": gap(),
+           "depth_error": float(abs(u @ f / force / depths[-1] - 1.0)),
+           "field_error": float(np.linalg.norm(u - U[-1]) / np.linalg.norm(U[-1])),
+           **{f"{k}_s": float(np.percentile(times, v)) for k, v in (("p50", 50), ("p99", 99))},
+           "max_s": max(times)}  # fmt: skip
+    if args.frame_solver == "modified":
+        out |= {"residuals": solver.residuals, "tangents": solver.tangents}
+    settle = 0
+    while gap() > 1e-6 and settle < 100:
+        step(q, pi, factors[-1] * load)
+        settle += 1
+    out["settle_steps"] = settle
+    counts = (f", {out['residuals'] / args.frames:.2f} residuals a step and {out['tangents']} "
+              "tangents in all" if args.frame_solver == "modified" else "")  # fmt: skip
+    print(f"    {args.frames} steps ({args.frame_solver}{counts}): step p50/p99/max "
+          f"{1e3 * out['p50_s']:.2f}/{1e3 * out['p99_s']:.2f}/{1e3 * out['max_s']:.2f} ms; at "
+          f"the last, lag {out['lag']:.1e}, depth error {out['depth_error']:.2e}, field "
+          f"{out['field_error']:.2e}; settled to 1e-6 in {settle} steps", flush=True)  # fmt: skip
+    return out
 
 
 def neighbour_states(data, near, modes) -> tuple[np.ndarray, np.ndarray]:
@@ -237,32 +326,89 @@ def neighbour_states(data, near, modes) -> tuple[np.ndarray, np.ndarray]:
     return U, np.vstack([data[k]["pressure"] for k in near]).T
 
 
-def nearby_solves(config, point, args) -> tuple[np.ndarray, np.ndarray]:
-    """The states and pressures (N, k), (cells, k) of full-order solves of the campaign's
-    load path at ``--solves-per-distance`` loadable surface nodes about each of the
-    ``--local-solves`` distances (mm) from ``point``, spread round it (each next node the
-    farthest from those chosen): nonlinear snapshots of the region itself."""
-    surface = read_surface(config.problem.mesh.file, config.load.surface)
-    organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
-    distance = np.linalg.norm(surface.nodes - point, axis=1)
-    states, pressures = [], []
-    for d in (float(v) for v in args.local_solves.split(",")):
-        ring = np.flatnonzero(np.abs(distance - d) <= 0.25 * d)
-        if len(ring) < args.solves_per_distance:
-            raise SystemExit(f"--local-solves {d:g}: {len(ring)} surface nodes within 25 % of "
-                             f"that distance, {args.solves_per_distance} asked")  # fmt: skip
-        chosen = [ring[np.argmin(np.abs(distance[ring] - d))]]
-        while len(chosen) < args.solves_per_distance:
-            xyz = surface.nodes[ring]
-            gap = np.linalg.norm(xyz[:, None] - surface.nodes[chosen][None], axis=2).min(axis=1)
-            chosen.append(ring[np.argmax(gap)])
-        for node in chosen:
-            position = ToolPosition(-1, tuple(surface.nodes[node]), tuple(surface.normals[node]),
-                                    int(surface.node_tags[node]), "point")  # fmt: skip
-            datasets, _ = solve_position(config, position, organ, MPI.COMM_SELF)
-            states.append(datasets["displacement"])
-            pressures.append(datasets["pressure"])
-    return np.vstack(states).T, np.vstack(pressures).T
+class NearbySolver:
+    """Full-order solves of the campaign's load path at ``--solves-per-distance`` loadable
+    surface nodes about each ``--local-solves`` distance (mm) from a point: nonlinear
+    snapshots of the region itself. The organ and its surface are read once."""
+
+    def __init__(self, config, args):
+        self.config = config
+        self.distances = args.local_solves
+        self.per_distance = args.solves_per_distance
+        self.surface = read_surface(config.problem.mesh.file, config.load.surface)
+        self.organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+        # a tip on the clamped rim does not move: no snapshot there (as the greedy campaign)
+        self.excluded = near_supports(config, self.surface.nodes)
+
+    def nodes(self, point, forbidden=()) -> list[int]:
+        """The surface nodes to solve at: per distance d, those whose distance from ``point``
+        is within 25 % of d, the nearest to d first, then each next the farthest from those
+        chosen (spread round the point); no node twice, none by the supports, none of
+        ``forbidden`` (the held-out tools' own nodes: their solves are the reference)."""
+        distance = np.linalg.norm(self.surface.nodes - point, axis=1)
+        chosen: list[int] = []
+        for d in self.distances:
+            ring = np.flatnonzero(np.abs(distance - d) <= 0.25 * d)
+            skip = self.excluded | set(forbidden) | set(chosen)
+            ring = np.array([k for k in ring if k not in skip])
+            if len(ring) < self.per_distance:
+                raise SystemExit(f"--local-solves {d:g}: {len(ring)} free loadable surface "
+                                 f"nodes within 25 % of that distance, {self.per_distance} "
+                                 "asked")  # fmt: skip
+            picks = [int(ring[np.argmin(np.abs(distance[ring] - d))])]
+            while len(picks) < self.per_distance:
+                xyz = self.surface.nodes[ring][:, None]
+                gap = np.linalg.norm(xyz - self.surface.nodes[picks][None], axis=2).min(axis=1)
+                picks.append(int(ring[np.argmax(gap)]))
+            chosen += picks
+        return chosen
+
+    def states(self, point, forbidden=()) -> tuple[np.ndarray, np.ndarray]:
+        """The states and pressures (N, k), (cells, k) of the solves about ``point``, at
+        none of the ``forbidden`` nodes."""
+        solved = [self.solve(node) for node in self.nodes(point, forbidden)]
+        return (np.vstack([d["displacement"] for d in solved]).T,
+                np.vstack([d["pressure"] for d in solved]).T)  # fmt: skip
+
+    def position(self, node) -> ToolPosition:
+        s = self.surface
+        return ToolPosition(-1, tuple(s.nodes[node]), tuple(s.normals[node]),
+                            int(s.node_tags[node]), "point")  # fmt: skip
+
+    def solve(self, node, tools=()) -> dict:
+        """The datasets of the campaign's load path at surface ``node`` (with further force
+        ``tools``); a solve that fails is refused (its converged part would bias the basis
+        or the reference silently)."""
+        position = self.position(node)
+        datasets, attrs = solve_position(self.config, position, self.organ, MPI.COMM_SELF,
+                                         tools)  # fmt: skip
+        if attrs["status"] != "solved":
+            tag = self.surface.node_tags[node]
+            raise SystemExit(f"the full-order solve at surface node {tag} failed: "
+                             f"{attrs['message']}")  # fmt: skip
+        return datasets
+
+    def nearest(self, point) -> int:
+        return int(np.argmin(np.linalg.norm(self.surface.nodes - point, axis=1)))
+
+    def second_tool(self, point, distance, fraction) -> tuple[int, tuple]:
+        """A second tool ``distance`` mm from ``point`` (the free loadable node nearest to
+        that distance, not ``point``'s own): its node and its (point, force) pair,
+        ``fraction`` of the campaign's force along the campaign's direction there."""
+        gap = np.abs(np.linalg.norm(self.surface.nodes - point, axis=1) - distance)
+        gap[list(self.excluded) + [self.nearest(point)]] = np.inf
+        node = int(np.argmin(gap))
+        position = self.position(node)
+        force = fraction * self.config.load.magnitude * self.config.load.unit_direction(position)
+        return node, (position.point, tuple(float(v) for v in force))
+
+    def two_tool_path(self, point, second) -> tuple:
+        """The full order under the campaign's tool at ``point`` (its nearest surface node)
+        and the ``second`` (point, force) at once: a held-out path as ``held_out_paths``'."""
+        data = self.solve(self.nearest(point), tools=[second])
+        f, U = data["load_vector"], data["displacement"]
+        force = np.linalg.norm(f.reshape(-1, 3).sum(axis=0))
+        return U, data["pressure"], f, data["load_factor"], U @ f / force, force
 
 
 def held_out_paths(store, held_out):
@@ -332,63 +478,137 @@ def whole_rows(model, states) -> np.ndarray:
     return np.array(out)
 
 
-def main() -> None:
+# The --frames options: (flag, type, default, help).
+FRAME_OPTIONS = (
+    ("--frames", int, 0, "--local: each held-out path as this many haptic steps"),
+    ("--frame-iterations", int, 1, "haptic: modified Newton iterations a step"),
+    ("--tangent-slices", int, 10, "haptic: the steps a tangent is built over"),
+    ("--refresh-after", int, 3, "modified: iterations before a tangent"),
+    ("--frame-tolerance", float, 1e-6, "modified: the update relative to the state"),
+)
+
+
+def parse_arguments() -> argparse.Namespace:
+    """The command line, checked: lists parsed, counts consistent, options that need
+    another refused without it."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("config")
     parser.add_argument("campaign")
     parser.add_argument("--modes", type=int, default=20)
     parser.add_argument("--pressure-modes", type=int, default=10)
     parser.add_argument("--basis", choices=("campaign", "bumps", "both", "derivatives"),
-                        default="campaign")  # fmt: skip
+                        default="campaign", help="the global basis (not --local)")  # fmt: skip
     parser.add_argument("--linear-modes", type=int, default=20,
-                        help="derivatives: the linear modes, derivatives added")  # fmt: skip
+                        help="derivatives and --local: the linear modes")  # fmt: skip
     parser.add_argument("--derivatives-of", type=int, default=20,
-                        help="derivatives: of the leading linear modes")  # fmt: skip
+                        help="derivatives and --local: of the leading linear modes")  # fmt: skip
     parser.add_argument("--campaign-modes", type=int, default=0,
-                        help="derivatives: campaign POD modes added")  # fmt: skip
+                        help="derivatives and --local: campaign POD modes added")  # fmt: skip
     parser.add_argument("--supremizers", action="store_true")
     parser.add_argument("--split", choices=("none", "linear"), default="linear")
     parser.add_argument("--held-out", type=int, default=6)
-    parser.add_argument("--tolerances", default="0.1,0.03,0.01,0.003")
-    parser.add_argument("--steps", default="2,5,10")
+    parser.add_argument("--tolerances", default="0.1,0.03,0.01,0.003",
+                        help="ECSW's; '' for the Galerkin model alone (--local)")  # fmt: skip
+    parser.add_argument("--steps", default="2,5,10",
+                        help="global basis: ECSW's training states (not --local)")  # fmt: skip
     parser.add_argument("--local", type=float, default=0.0,
                         help="mm: a derivatives basis a held-out position from bumps this "
-                        "close to it (the Galerkin model only)")  # fmt: skip
+                        "close to it")  # fmt: skip
     parser.add_argument("--local-neighbours", type=int, default=3,
                         help="--local: the campaign modes from the states of this many "
                         "nearest training positions")  # fmt: skip
     parser.add_argument("--local-solves", default="",
                         help="--local: mm, full-order solves about these distances from "
                         "each held-out position, their states' POD in its basis")  # fmt: skip
-    parser.add_argument("--solves-per-distance", type=int, default=3)
-    parser.add_argument("--state-modes", type=int, default=0,
+    parser.add_argument("--solves-per-distance", type=int, default=None,
+                        help="--local-solves: solves at each distance (3)")  # fmt: skip
+    parser.add_argument("--state-modes", type=int, default=None,
                         help="--local-solves: POD modes of their states")  # fmt: skip
+    parser.add_argument("--second-tool", type=float, default=0.0,
+                        help="--local-solves: mm, a second tool this far from each held-out "
+                        "position, loaded with it; the solves about both")  # fmt: skip
+    parser.add_argument("--second-force", type=float, default=0.5,
+                        help="--second-tool: its force, of the campaign's")  # fmt: skip
+    frames = parser.add_argument_group("haptic steps (haptic_frames)")
+    frames.add_argument("--frame-solver", choices=("haptic", "modified"), default="haptic")
+    for flag, kind, default, text in FRAME_OPTIONS:
+        frames.add_argument(flag, type=kind, default=default, help=text)
     parser.add_argument("--out")
     args = parser.parse_args()
-    derived = args.modes - args.linear_modes - args.campaign_modes - args.state_modes
-    uses_derivatives = args.basis == "derivatives" or args.local
-    if uses_derivatives and (derived < 0 or args.derivatives_of > args.linear_modes):
+    try:
+        args.tolerances = [float(v) for v in args.tolerances.split(",") if v.strip()]
+        args.steps = [int(v) for v in args.steps.split(",")]
+        args.local_solves = [float(v) for v in args.local_solves.split(",") if v.strip()]
+    except ValueError as exc:
+        parser.error(f"--tolerances, --steps and --local-solves are comma-separated numbers: {exc}")
+    check_arguments(parser, args)
+    return args
+
+
+def check_arguments(parser, args) -> None:
+    """Refuse what the bench cannot honour, naming the option."""
+    counts = ("modes", "pressure_modes", "linear_modes", "derivatives_of", "campaign_modes")
+    for name in counts:
+        if getattr(args, name) < 0:
+            parser.error(f"--{name.replace('_', '-')} must be at least 0")
+    if args.local_solves:
+        if not args.local:
+            parser.error("--local-solves needs --local")
+        if min(args.local_solves) <= 0:
+            parser.error("--local-solves: distances must be positive (0 would solve the "
+                         "held-out position itself)")  # fmt: skip
+        if args.solves_per_distance is None:
+            args.solves_per_distance = 3
+        if args.solves_per_distance < 1 or not args.state_modes or args.state_modes < 1:
+            parser.error("--local-solves needs --solves-per-distance >= 1 and --state-modes >= 1")
+    elif args.solves_per_distance is not None or args.state_modes is not None:
+        parser.error("--solves-per-distance and --state-modes need --local-solves")
+    args.state_modes = args.state_modes or 0
+    if args.second_tool and not args.local_solves or args.second_tool < 0:
+        parser.error("--second-tool needs --local-solves, and a positive distance (mm)")
+    if not 0 < args.second_force <= 10:
+        parser.error("--second-force: a fraction of the campaign's force, in (0, 10]")
+    if args.frames and not args.local or args.frames < 0:
+        parser.error("--frames needs --local, and --frames >= 0")
+    if min(args.refresh_after, args.frame_iterations, args.tangent_slices) < 1:
+        parser.error("--refresh-after, --frame-iterations and --tangent-slices: at least 1")
+    if not (args.basis == "derivatives" or args.local):
+        return
+    regions = 2 if args.second_tool else 1  # --state-modes a tool's region
+    derived = args.modes - args.linear_modes - args.campaign_modes - regions * args.state_modes
+    if derived < 0 or args.derivatives_of > args.linear_modes:
         parser.error("--basis derivatives and --local: --modes must be at least "
-                     "--linear-modes + --campaign-modes + --state-modes, and --derivatives-of "
-                     "at most --linear-modes")  # fmt: skip
-    if args.local_solves and not (args.local and args.state_modes > 0):
-        parser.error("--local-solves needs --local and --state-modes")
+                     "--linear-modes + --campaign-modes + --state-modes (twice with "
+                     "--second-tool), and --derivatives-of at most --linear-modes")  # fmt: skip
+    if derived and not args.derivatives_of:
+        parser.error(f"--derivatives-of 0: {derived} modes left for derivatives; --modes must "
+                     "be --linear-modes + --campaign-modes + --state-modes")  # fmt: skip
+
+
+def main() -> None:
+    args = parse_arguments()
     t0 = time.perf_counter()
     config = CampaignConfig.from_toml(args.config)
     store = SnapshotStore(args.campaign)
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)
-    positions = store.completed()
-    training, held_out = held_out_split(positions, args.held_out)
+    training, held_out = held_out_split(store.completed(), args.held_out)
     if args.local:
-        results = local_galerkin(store, training, held_out, args, mesh, rest, config)
-        if args.out:
-            record = {"arguments": vars(args), "held_out": held_out, "results": results}
-            Path(args.out).write_text(json.dumps(record, indent=1))
-        return
+        results = local_models(store, training, held_out, args, mesh, rest, config)
+    else:
+        results = global_rows(store, training, held_out, args, mesh, rest, config, t0)
+    if args.out:
+        record = {"arguments": vars(args), "held_out": held_out, "results": results}
+        Path(args.out).write_text(json.dumps(record, indent=1))
+
+
+def global_rows(store, training, held_out, args, mesh, rest, config, t0) -> list[dict]:
+    """One basis from the training positions (``bases``); the Galerkin model, then ECSW at
+    each of ``--tolerances`` trained on the states of ``--steps``, at the held-out
+    positions: one printed row and one dict each."""
     Phi, Psi = bases(store, training, args, mesh, rest, config)
     n, split = Phi.shape[1], args.split == "linear"
-    steps = [int(s) - 1 for s in args.steps.split(",")]
+    steps = [s - 1 for s in args.steps]
 
     def states(indices):
         out = []
@@ -414,7 +634,7 @@ def main() -> None:
     widths = (9, 8, 8, 8, 8, 8, 6, 6, 7, 7)  # the rows' below
     print(" ".join(f"{c:>{w}s}" for c, w in zip(columns, widths, strict=True)))
     results = []
-    for tolerance in ["galerkin"] + [float(t) for t in args.tolerances.split(",")]:
+    for tolerance in ["galerkin"] + args.tolerances:
         if tolerance == "galerkin":
             model, count, errors = galerkin, len(mesh.X), (0.0, 0.0)
         else:
@@ -437,9 +657,7 @@ def main() -> None:
               f"{1e3 * p50:7.2f} {1e3 * p99:7.2f}", flush=True)  # fmt: skip
         ends = [f"{r[0]:.2f}/{r[-1]:.2f}" if r else "-" for r in solved["depth_ratios"]]
         print(f"{'':9s} depth ratio, first/last step per position: {' '.join(ends)}")
-    if args.out:
-        record = {"arguments": vars(args), "held_out": held_out, "results": results}
-        Path(args.out).write_text(json.dumps(record, indent=1))
+    return results
 
 
 if __name__ == "__main__":

@@ -99,6 +99,11 @@ class LoadConfig:
     - ``sphere``: a rigid frictionless sphere of radius ``contact_radius`` that touches
       the surface at ``contact_point`` and moves by ``sphere`` (mm); contact by a penalty
       ``penalty`` (N/mm^4: contact pressure per overlap squared, :mod:`.fe.sphere`).
+
+    ``tools`` (``force`` only): further tools at once, each a (contact point, force) pair
+    spread as the first over its own disk of ``contact_radius``, all scaled by the same
+    load factor (two instruments, a pinch, issue 18's references). Set in code, not read
+    from a file.
     """
 
     mode: str
@@ -113,6 +118,7 @@ class LoadConfig:
     steps: int = 10
     max_step_cuts: int = 8
     predictor: str = "secant"
+    tools: tuple[tuple[tuple[float, float, float], tuple[float, float, float]], ...] = ()
 
     @property
     def vector(self) -> tuple[float, float, float]:

@@ -18,10 +18,11 @@ which a few weighted elements reproduce poorly, while their linear part (the div
 u) is exact here (bench/ecsw_tradeoff.py measures both). With K0 = k0 = 0 the split is off
 and the whole residual is sampled.
 
-:func:`sampled_residual_tangent` is that sum and its derivative in (q, pi); the caller adds
-the linear matrices and the load. :func:`element_contributions` gives each sampled
-element's term apart, unweighted: the columns of ECSW's training matrix. Layouts, for S
-sampled elements of ``nodes`` nodes (m = 3 nodes rows, node-major as the element kernels'):
+:func:`sampled_residual_tangent` is that sum and its derivative in (q, pi), and
+:func:`sampled_residual` the sum alone; the caller adds the linear matrices and the load.
+:func:`element_contributions` gives each sampled element's term apart, unweighted: the
+columns of ECSW's training matrix. Layouts, for S sampled elements of ``nodes`` nodes
+(m = 3 nodes rows, node-major as the element kernels'):
 
     X (S, nodes, 3) reference nodes (mm); Phi (S, m, n) basis rows; Psi (S, n_p) the cell's
     pressure-basis row; params (S, PARAMETER_SIZE); weights (S,); K0 (S, m, m); k0 (S, m);
@@ -198,6 +199,33 @@ def sampled_residual_tangent(X, Phi, Psi, params, weights, K0, k0, gradients, qu
         theta = _nonlinear_parts(K0, k0, s, u, p, r_u, K_uu, K_up, scalars, params[s, KAPPA])
         _accumulate(Phi, Psi, s, weights[s], theta, r_u, K_uu, K_up, T, r, K)
     _symmetrize(K)
+
+
+@njit(f"void({_INPUTS}, {_F8_1D}, {_F8_2D}, {_F8_1D}, {_F8_1D})", cache=True, nogil=True)
+def sampled_residual(X, Phi, Psi, params, weights, K0, k0, gradients, quadrature, q, pi, r,
+                     u, r_u, scalars):  # fmt: skip
+    """The residual part of :func:`sampled_residual_tangent` alone (no tangent: an order
+    of n fewer operations an element), into r: the iterations of a modified Newton, whose
+    tangent is an earlier one. u, r_u, scalars: a :class:`Scratch`'s."""
+    S, m, n = Phi.shape
+    n_p = Psi.shape[1]
+    _check_sample(X, Phi, Psi, params, weights, K0, k0, gradients, quadrature, q, pi)
+    if r.shape[0] != n + n_p:
+        raise ValueError("r must be (n + n_p,)")
+    _check_element_scratch(m, u, r_u, scalars)
+    r[:] = 0.0
+    for s in range(S):
+        p = _element_state(Phi, Psi, s, q, pi, u)
+        _integrate(X[s], u, p, params[s], gradients, quadrature, r_u, None, None, scalars)
+        theta = _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, params[s, KAPPA])
+        weight = weights[s]
+        for i in range(n):
+            v = 0.0
+            for row in range(m):
+                v += Phi[s, row, i] * r_u[row]
+            r[i] += weight * v
+        for k in range(n_p):
+            r[n + k] += weight * Psi[s, k] * theta
 
 
 @njit(f"void({_INPUTS}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_1D})", cache=True, nogil=True)

@@ -17,7 +17,9 @@ from hapticrom.offline.campaign.run import CampaignConfig, run_campaign
 from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
+    HapticNewton,
     HyperReducedModel,
+    ModifiedNewton,
     condensed_internal_force,
     group_nodes,
     mesh_elements,
@@ -110,6 +112,93 @@ def test_sampled_model_stays_close(campaign):
     got = sampled.solve(Phi.T @ f, factors)[0] @ Phi.T
     assert np.linalg.norm(got - reference) <= 1e-2 * np.linalg.norm(reference)
     assert np.linalg.norm(got - U) <= 1e-2 * np.linalg.norm(U)
+
+
+def sampled_on_both(campaign):
+    """ECSW at 1e-4 on both positions' own states (as test_sampled_model_stays_close):
+    the sampled model, its bases, and position 0's load path."""
+    store, mesh, rest = campaign
+    states = [position(store, i) for i in store.completed()]
+    Phi, Psi = spanning_bases(np.vstack([s[0] for s in states]), np.vstack([s[1] for s in states]))
+    reduced = [(Phi.T @ u, Psi.T @ p) for U, P, _, _ in states for u, p in zip(U, P, strict=True)]
+    sampling = ecsw(training_matrix(mesh, Phi, Psi, reduced, rest=rest)[0], tolerance=1e-4)
+    model = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights, rest=rest)
+    return model, Phi, states[0]
+
+
+def test_tangent_slices_sum_to_the_tangent(campaign):
+    """The linear part and the sampled tangent over consecutive parts of the sample add up
+    to the model's tangent; the residual alone is the residual of the residual and tangent."""
+    model, Phi, (U, P, f, _) = sampled_on_both(campaign)
+    q, pi, load = Phi.T @ U[-1], np.full(model.n_p, 0.01), Phi.T @ f
+    r, K = model.residual_tangent(q, pi, load)
+    bounds = [0, 1, model.sampled_elements // 2, model.sampled_elements]
+    summed = model.linear_tangent()
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        summed += model.sampled_tangent(q, pi, slice(a, b))
+    np.testing.assert_allclose(summed, K, rtol=0, atol=1e-12 * np.abs(K).max())
+    np.testing.assert_allclose(model.residual(q, pi, load), r, rtol=0,
+                               atol=1e-12 * np.abs(r).max())  # fmt: skip
+    assert np.abs(K - model.linear_tangent()).max() > 1e-3 * np.abs(K).max()  # nonlinear here
+
+
+def test_modified_newton_frames_reach_newtons_states(campaign):
+    """Frames of a tenth of a load step each, the residual alone with an earlier tangent:
+    at each stored load factor the state of the model's Newton, with fewer tangents than
+    half the frames (18 of 40 when written: 6-12 iterations a frame)."""
+    model, Phi, (_, _, f, factors) = sampled_on_both(campaign)
+    load = Phi.T @ f
+    Q = model.solve(load, factors, tolerance=1e-12)[0]
+    newton = ModifiedNewton(model, tolerance=1e-9, refresh_after=10)
+    q, pi = np.zeros(model.n), np.zeros(model.n_p)
+    frames = np.linspace(0.0, factors[-1], 10 * len(factors) + 1)[1:]
+    for k, factor in enumerate(frames):
+        assert newton.frame(q, pi, factor * load) is not None, factor
+        if (k + 1) % 10 == 0:
+            expected = Q[k // 10]
+            assert np.linalg.norm(q - expected) <= 1e-8 * np.linalg.norm(expected), factor
+    assert newton.tangents < len(frames) / 2 and newton.residuals > len(frames), newton.tangents
+    with pytest.raises(InputError, match="at least 1"):
+        ModifiedNewton(model, refresh_after=0)
+
+
+def test_haptic_steps_settle_on_the_equilibrium(campaign):
+    """Fixed-cost steps (one modified iteration, the tangent built over three steps) along
+    a ramp lag the equilibrium, and settle on the model's own once the load holds."""
+    model, Phi, (_, _, f, factors) = sampled_on_both(campaign)
+    load = Phi.T @ f
+    expected = model.solve(load, factors, tolerance=1e-12)[0][-1]
+    haptic = HapticNewton(model, iterations=1, slices=3)
+    q, pi = np.zeros(model.n), np.zeros(model.n_p)
+    for factor in np.linspace(0.0, factors[-1], 41)[1:]:
+        haptic.step(q, pi, factor * load)
+    lag = np.linalg.norm(q - expected) / np.linalg.norm(expected)
+    for _ in range(60):
+        haptic.step(q, pi, factors[-1] * load)
+    settled = np.linalg.norm(q - expected) / np.linalg.norm(expected)
+    assert settled <= 1e-9 < lag, (lag, settled)
+    assert haptic.last_update <= 1e-9
+
+
+def test_newtons_refuse_a_step_that_leaves_the_finite_numbers(campaign):
+    """A load that is not finite: the step says so, and the state and the kept tangent are
+    as they were (the haptic loop keeps its last good state)."""
+    model, Phi, (_, _, f, _) = sampled_on_both(campaign)
+    q, pi = np.zeros(model.n), np.zeros(model.n_p)
+    bad = np.full(model.n, np.nan)
+    haptic = HapticNewton(model, iterations=1, slices=2)
+    assert haptic.step(q, pi, 0.1 * (Phi.T @ f))
+    q0, pi0, part, building = q.copy(), pi.copy(), haptic.part, haptic.building.copy()
+    assert not haptic.step(q, pi, bad)
+    assert np.array_equal(q, q0) and np.array_equal(pi, pi0)
+    assert haptic.part == part and np.array_equal(haptic.building, building)
+    newton = ModifiedNewton(model)
+    assert newton.frame(q, pi, 0.1 * (Phi.T @ f)) is not None
+    q0, factors = q.copy(), newton.factors
+    assert newton.frame(q, pi, bad) is None
+    assert np.array_equal(q, q0) and newton.factors is factors
+    with pytest.raises(InputError, match="slices"):
+        HapticNewton(model, slices=model.sampled_elements + 1)
 
 
 def test_training_columns_sum_to_the_model(campaign):

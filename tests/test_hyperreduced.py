@@ -25,7 +25,7 @@ from conftest import reseed
 
 from hapticrom.online import element_kernels as ek
 from hapticrom.online import material_kernels as mk
-from hapticrom.online.hyperreduced import Scratch, sampled_residual_tangent
+from hapticrom.online.hyperreduced import Scratch, sampled_residual, sampled_residual_tangent
 
 pytestmark = pytest.mark.serial
 RNG = np.random.default_rng(20260518)
@@ -340,6 +340,32 @@ def test_tangent_is_the_residuals_derivative(problem, split):
     assert np.abs(K_fd[n:, n:]).max() <= 1e-10 * np.abs(K_fd[n:, :n]).max()
 
 
+@pytest.mark.parametrize("split", [True, False], ids=["rest-split", "no-split"])
+def test_residual_alone_is_the_tangent_kernels_residual(problem, split):
+    """``sampled_residual`` (a modified Newton's iterations) writes every entry of r, the
+    same sums as ``sampled_residual_tangent``'s r and the numpy assembly's; a wrong r is
+    refused before anything is written."""
+    elements, weights = random_subset(problem)
+    inputs = sample(problem, elements, weights, split)
+    q, pi = random_state()
+    r_full, _ = evaluate(problem, inputs, q, pi)
+    r_ref, _ = numpy_sums(problem, elements, weights, q, pi, split)
+    scratch = Scratch(problem.nodes, MODES)
+    reference = problem.reference.gradients, problem.reference.weights
+    r = np.full(MODES + PRESSURE_MODES, np.nan)
+    sampled_residual(*inputs, *reference, q, pi, r, scratch.u, scratch.r_u, scratch.scalars)
+    assert np.isfinite(r).all()
+    n = MODES
+    for rows in (slice(0, n), slice(n, None)):  # q rows N, pi rows mm^3: apart
+        assert relative(r[rows], r_full[rows]) <= RELATIVE
+        assert relative(r[rows], r_ref[rows]) <= RELATIVE
+    wrong = np.full(MODES + PRESSURE_MODES + 1, 7.0)
+    with pytest.raises(ValueError, match="r must be"):
+        sampled_residual(*inputs, *reference, q, pi, wrong, scratch.u, scratch.r_u,
+                         scratch.scalars)  # fmt: skip
+    assert np.all(wrong == 7.0)
+
+
 # -- outputs and scratch ----------------------------------------------------------------------
 def test_every_output_written_and_scratch_reusable(problem):
     """NaN-filled r, K and scratch come back finite, equal to a fresh scratch's; a scratch
@@ -489,14 +515,15 @@ def test_too_many_nodes_refused():
 # -- no allocation ------------------------------------------------------------------------------
 def test_allocates_nothing():
     """numba's allocation counters (which see an allocating canary) move as much over 1000
-    calls of the kernel from a compiled driver as over one: the boxing of the driver's
-    arguments only."""
+    calls of the kernels (with and without the tangent) from a compiled driver as over one:
+    the boxing of the driver's arguments only."""
     code = textwrap.dedent("""
         import numpy as np
         from numba import njit
         from numba.core.runtime import rtsys
         from hapticrom.online import element_kernels as ek, material_kernels as mk
-        from hapticrom.online.hyperreduced import Scratch, sampled_residual_tangent
+        from hapticrom.online.hyperreduced import (
+            Scratch, sampled_residual, sampled_residual_tangent)
 
         @njit
         def run(X, Phi, Psi, params, w, K0, k0, G, Wq, q, pi, r, K,
@@ -505,6 +532,9 @@ def test_allocates_nothing():
             for _ in range(n):
                 sampled_residual_tangent(X, Phi, Psi, params, w, K0, k0, G, Wq, q, pi, r, K,
                                          u, r_u, K_uu, K_up, scalars, T)
+                total += r[0]
+                sampled_residual(X, Phi, Psi, params, w, K0, k0, G, Wq, q, pi, r, u, r_u,
+                                 scalars)
                 total += r[0]
             return total
 

@@ -321,9 +321,11 @@ def _position_attrs(config, position, path: _LoadPath, sanity, seconds: float) -
     }
 
 
-def solve_position(config, position, organ, group):
-    """One full load path; returns (datasets, attrs) on the group's root, None elsewhere."""
-    problem = replace(config.problem, load=config.load.at(position))
+def solve_position(config, position, organ, group, tools=()):
+    """One full load path; returns (datasets, attrs) on the group's root, None elsewhere.
+    ``tools``: further force tools ((point, force) pairs, :class:`LoadConfig`) loaded
+    with it (the load vector is then all of theirs)."""
+    problem = replace(config.problem, load=replace(config.load.at(position), tools=tuple(tools)))
     t0 = time.perf_counter()
     model = FullOrderModel(problem, comm=group, organ=organ, verbose=False)
     try:

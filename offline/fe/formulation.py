@@ -147,6 +147,7 @@ class HyperelasticModel:
         )
         self.set_load_region(np.empty(0, dtype=np.int32), self.load_weight)
         self.contact_energies = []  # e.g. a rigid sphere's penalty (:mod:`.sphere`)
+        self.further_loads = []  # (traction, weight) of further tools on the load region
 
     # -- loads -----------------------------------------------------------------
     def set_load_region(self, facets: np.ndarray, weight) -> None:
@@ -185,7 +186,10 @@ class HyperelasticModel:
 
     def external_work(self):
         """Work of the tool's dead load on the loaded surface (mJ)."""
-        return ufl.dot(self.traction, self.u) * self.load_weight * self.ds(self.LOAD_TAG)
+        work = ufl.dot(self.traction, self.u) * self.load_weight * self.ds(self.LOAD_TAG)
+        for traction, weight in self.further_loads:  # each weight vanishes off its own disk
+            work = work + ufl.dot(traction, self.u) * weight * self.ds(self.LOAD_TAG)
+        return work
 
     def potential_energy(self):
         """Total potential energy Pi = internal energy - external work (+ contact) (mJ)."""

@@ -27,7 +27,7 @@ from hapticrom.offline.fe.sanity import SanityMonitor, SanityReport, write_json
 from hapticrom.offline.fe.solver import IncrementalLoading, NewtonSolver, StepRecord
 from hapticrom.offline.fe.sphere import SphereIndenter
 from hapticrom.offline.mpi import print0
-from hapticrom.shared.errors import SolverError
+from hapticrom.shared.errors import InputError, SolverError
 
 
 @dataclass
@@ -105,6 +105,9 @@ class FullOrderModel:
     def _setup_load(self) -> None:
         load, organ, model = self.config.load, self.organ, self.model
         self.sphere = None
+        self.further = []  # further tools (force, traction, int w dA): _setup_further_tools
+        if load.tools and load.mode != "force":
+            raise InputError(f"further tools are force loads; this load is '{load.mode}'")
         if load.mode == "sphere":
             self._setup_sphere()
             return
@@ -116,7 +119,7 @@ class FullOrderModel:
                 point = organ.default_contact_point()
             self.patch = ContactPatch.around_point(organ, point, load.contact_radius, load.surface)
         if load.mode != "displacement":
-            model.set_load_region(self.patch.facets, self.patch.weight())
+            self._setup_further_tools()
         self.bcs = organ.supports(model.V)
         self.patch_blocks = self.patch.blocks(model.V)
         self.load_vector = np.asarray(load.vector, dtype=float)
@@ -129,6 +132,26 @@ class FullOrderModel:
             self.tool_bc_value = fem.Constant(organ.mesh, np.zeros(3))
             self.bcs.append(fem.dirichletbc(self.tool_bc_value, blocks, model.V))
             self.patch_blocks = blocks
+
+    def _setup_further_tools(self) -> None:
+        """The load region: the patch's facets and every further tool's (``load.tools``),
+        each further tool a traction of its own on its own disk (``further``: its force,
+        its traction and int w dA)."""
+        load, organ, model = self.config.load, self.organ, self.model
+        patches = [ContactPatch.around_point(organ, point, load.contact_radius, load.surface)
+                   for point, _ in load.tools]  # fmt: skip
+        facets = np.concatenate([self.patch.facets] + [p.facets for p in patches])
+        model.set_load_region(facets, self.patch.weight())
+        self.further = []
+        for patch, (_, force) in zip(patches, load.tools, strict=True):
+            traction = fem.Constant(organ.mesh, np.zeros(3))
+            model.further_loads.append((traction, patch.weight()))
+            area = fem.assemble_scalar(fem.form(patch.weight() * model.ds(model.LOAD_TAG)))
+            area = organ.mesh.comm.allreduce(area, op=MPI.SUM)
+            if not area > 0:
+                raise InputError(f"the tool at {patch.point.tolist()} mm carries no load on "
+                                 "this mesh: increase contact_radius")  # fmt: skip
+            self.further.append((np.asarray(force, dtype=float), traction, area))
 
     def _setup_sphere(self) -> None:
         """A rigid sphere touching the surface at the contact point, moving along the load
@@ -167,11 +190,14 @@ class FullOrderModel:
             # Dead traction load_factor * F * w(X) / int w dA: sums to load_factor * F.
             area = self.patch_displacement.integral
             self.model.traction.value[:] = load_factor * self.load_vector / area
+            for force, traction, area in self.further:
+                traction.value[:] = load_factor * force / area
         else:
             self.model.traction.value[:] = load_factor * self.load_vector
 
     def tool_force(self, load_factor: float) -> np.ndarray:
-        """Force the tool exerts on the tissue (N)."""
+        """Force the tool exerts on the tissue (N); the first tool's, beside its depth
+        (further tools' are ``further_forces``)."""
         mode = self.config.load.mode
         if mode == "displacement":
             return self.reaction()
@@ -180,6 +206,10 @@ class FullOrderModel:
         if mode == "force":
             return load_factor * self.load_vector
         return load_factor * self.load_vector * self.patch_displacement.integral
+
+    def further_forces(self, load_factor: float) -> np.ndarray:
+        """The forces of the further tools on the tissue (tools, 3), N."""
+        return load_factor * np.array([f for f, _, _ in self.further]).reshape(-1, 3)
 
     # -- solve -----------------------------------------------------------------
     def close(self) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
 import scipy.sparse.linalg
 from mpi4py import MPI
@@ -22,6 +23,7 @@ from hapticrom.online import element_kernels as ek
 from hapticrom.online.hyperreduced import (
     Scratch,
     element_contributions,
+    sampled_residual,
     sampled_residual_tangent,
 )
 from hapticrom.online.material_kernels import KAPPA, law_parameters
@@ -234,6 +236,34 @@ class HyperReducedModel:
         K[n:, n:] -= self.M
         return r, K
 
+    def residual(self, q, pi, load) -> np.ndarray:
+        """R at (q, pi) under ``load`` without the tangent (a modified Newton's iterations)."""
+        ref, n, scratch = self.reference, self.n, self.scratch
+        sampled_residual(*self.sample, ref.gradients, ref.weights, np.ascontiguousarray(q, float),
+                         np.ascontiguousarray(pi, float), self.r, scratch.u, scratch.r_u,
+                         scratch.scalars)  # fmt: skip
+        r = self.r.copy()
+        r[:n] += self.L_uu @ q + self.L_up @ pi - load
+        r[n:] += self.L_up.T @ q - self.M @ pi
+        return r
+
+    def linear_tangent(self) -> np.ndarray:
+        """The exact linear part of dR/d(q, pi): [[L_uu, L_up], [L_up^T, -M]] (a new array)."""
+        n = self.n
+        K = np.zeros((n + self.n_p,) * 2)
+        K[:n, :n], K[:n, n:], K[n:, :n], K[n:, n:] = self.L_uu, self.L_up, self.L_up.T, -self.M
+        return K
+
+    def sampled_tangent(self, q, pi, part: slice) -> np.ndarray:
+        """The sampled sum's dR/d(q, pi) over the sampled elements ``part`` alone (no linear
+        part): a slice of the tangent, for a tangent built over several steps."""
+        ref, scratch = self.reference, self.scratch
+        sample = tuple(a[part] for a in self.sample)
+        sampled_residual_tangent(*sample, ref.gradients, ref.weights,
+                                 np.ascontiguousarray(q, float), np.ascontiguousarray(pi, float),
+                                 self.r, self.K, *scratch.buffers())  # fmt: skip
+        return self.K.copy()
+
     def solve(self, load, factors, tolerance: float = 1e-9, max_iterations: int = 30,
               partial: bool = False):  # fmt: skip
         """Newton along the load path ``factors`` * ``load`` (reduced, N), each step from
@@ -268,6 +298,101 @@ class HyperReducedModel:
             if np.linalg.norm(delta[: self.n]) <= tolerance * max(np.linalg.norm(q), 1e-300):
                 return iteration
         return None
+
+
+class ModifiedNewton:
+    """The frames of a haptic loop on a :class:`HyperReducedModel`: each frame from the last
+    frame's state, iterations on the residual alone with the last factorised tangent (the
+    load moves little in a frame, so the tangent of a few frames ago still contracts); a
+    frame whose modified iterations reach ``refresh_after`` continues with full Newton
+    iterations, each refreshing the tangent kept for the next frames. Converged when the
+    update is below ``tolerance`` relative to the state, as :meth:`HyperReducedModel.solve`.
+    ``residuals`` and ``tangents`` count the evaluations of each kind."""
+
+    def __init__(self, model: HyperReducedModel, tolerance: float = 1e-8,
+                 max_iterations: int = 30, refresh_after: int = 3):  # fmt: skip
+        if refresh_after < 1 or max_iterations < 1:
+            raise InputError("refresh_after and max_iterations must be at least 1")
+        self.model = model
+        self.tolerance, self.max_iterations = tolerance, max_iterations
+        self.refresh_after = refresh_after
+        self.factors = None  # the last tangent's LU factorisation
+        self.residuals = self.tangents = 0
+
+    def frame(self, q, pi, load) -> int | None:
+        """Equilibrium under ``load`` from (q, pi), updated in place; the iterations, or
+        None if it did not converge (or left the finite numbers): then q, pi and the kept
+        tangent are as they were."""
+        n, factors = self.model.n, self.factors
+        x, y = q.copy(), pi.copy()
+        for iteration in range(1, self.max_iterations + 1):
+            if factors is None or iteration > self.refresh_after:
+                r, K = self.model.residual_tangent(x, y, load)
+                if not (np.isfinite(r).all() and np.isfinite(K).all()):
+                    return None
+                factors = scipy.linalg.lu_factor(K)
+                self.tangents += 1
+            else:
+                r = self.model.residual(x, y, load)
+                if not np.isfinite(r).all():
+                    return None
+                self.residuals += 1
+            delta = scipy.linalg.lu_solve(factors, -r)
+            x += delta[:n]
+            y += delta[n:]
+            if np.linalg.norm(delta[:n]) <= self.tolerance * max(np.linalg.norm(x), 1e-300):
+                q[:], pi[:], self.factors = x, y, factors
+                return iteration
+        return None
+
+
+class HapticNewton:
+    """A physics step of fixed cost, for a haptic loop on a :class:`HyperReducedModel`:
+    ``iterations`` modified Newton iterations (the residual alone) with the last factorised
+    tangent, then the tangent of one of ``slices`` parts of the sampled elements at the
+    step's state. When the parts are complete, their sum (each from its own step, the last
+    ``slices`` steps) with the exact linear part is factorised and used from the next step:
+    a tangent at most 2 ``slices`` steps old, at a cost a step of 1 / ``slices`` of one.
+    The state lags equilibrium by what the iterations leave; the first tangent is the
+    rest's. ``last_update``: the last iteration's |delta q| / |q|."""
+
+    def __init__(self, model: HyperReducedModel, iterations: int = 2, slices: int = 10):
+        if iterations < 1 or not 1 <= slices <= model.sampled_elements:
+            raise InputError("iterations must be at least 1, slices 1 to the sampled elements")
+        self.model, self.iterations = model, iterations
+        self.bounds = np.linspace(0, model.sampled_elements, slices + 1).astype(np.int64)
+        self.linear = model.linear_tangent()
+        zeros_q, zeros_pi = np.zeros(model.n), np.zeros(model.n_p)
+        self.factors = scipy.linalg.lu_factor(model.residual_tangent(zeros_q, zeros_pi,
+                                                                     zeros_q)[1])  # fmt: skip
+        self.building = self.linear.copy()  # the tangent being summed, part by part
+        self.part = 0  # the next part to add
+        self.last_update = np.inf
+
+    def step(self, q, pi, load) -> bool:
+        """One physics step under ``load`` from (q, pi), updated in place; False if the
+        residual or the tangent's part left the finite numbers (then nothing changed)."""
+        n = self.model.n
+        x, y = q.copy(), pi.copy()
+        for _ in range(self.iterations):
+            r = self.model.residual(x, y, load)
+            if not np.isfinite(r).all():
+                return False
+            delta = scipy.linalg.lu_solve(self.factors, -r)
+            x += delta[:n]
+            y += delta[n:]
+        part = slice(self.bounds[self.part], self.bounds[self.part + 1])
+        tangent = self.model.sampled_tangent(x, y, part)
+        if not np.isfinite(tangent).all():
+            return False
+        q[:], pi[:] = x, y
+        self.last_update = float(np.linalg.norm(delta[:n]) / max(np.linalg.norm(x), 1e-300))
+        self.building += tangent
+        self.part += 1
+        if self.part == len(self.bounds) - 1:
+            self.factors = scipy.linalg.lu_factor(self.building)
+            self.building, self.part = self.linear.copy(), 0
+        return True
 
 
 def training_matrix(mesh: MeshElements, Phi, Psi, states, split: bool = True, rest=None):
