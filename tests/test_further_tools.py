@@ -92,6 +92,9 @@ def test_further_tools_are_forces_only(mesh_dir):
     sphere = replace(load, mode="sphere", displacement=None, sphere=(0.0, 0.0, -0.1))
     with pytest.raises(InputError, match="further tools are force loads"):
         FullOrderModel(replace(config, load=sphere), verbose=False)
+    for bad in [(SIDE,), (SIDE, (0.0, np.nan, -0.01)), (SIDE, (0.0, -0.01)), "tool"]:
+        with pytest.raises(InputError, match=r"load.tools\[0\]: a \(point, force\) pair"):
+            FullOrderModel(problem(mesh_dir, APEX, (0.0, 0.0, -0.01), [bad]), verbose=False)
     off = problem(mesh_dir, APEX, (0.0, 0.0, -0.01), [((0.0, 0.0, 5.0), (0.0, 0.0, -0.01))])
     with pytest.raises(InputError, match="off the 'loadable' surface"):
         FullOrderModel(off, verbose=False)

@@ -138,6 +138,14 @@ class FullOrderModel:
         each further tool a traction of its own on its own disk (``further``: its force,
         its traction and int w dA)."""
         load, organ, model = self.config.load, self.organ, self.model
+        for k, tool in enumerate(load.tools):
+            try:
+                pair = np.asarray(tool, dtype=float)
+            except (TypeError, ValueError):  # ragged or not numbers
+                pair = None
+            if pair is None or pair.shape != (2, 3) or not np.isfinite(pair).all():
+                raise InputError(f"load.tools[{k}]: a (point, force) pair of 3 finite numbers "
+                                 f"each (mm, N), not {tool!r}")  # fmt: skip
         patches = [ContactPatch.around_point(organ, point, load.contact_radius, load.surface)
                    for point, _ in load.tools]  # fmt: skip
         facets = np.concatenate([self.patch.facets] + [p.facets for p in patches])
