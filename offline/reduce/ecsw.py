@@ -75,7 +75,7 @@ def ecsw(G: np.ndarray, b: np.ndarray | None = None, tolerance: float = 1e-2,
         _positive_least_squares(qr, w)
         excluded[:] = False
         excluded[qr.columns] = True
-        residual = b - G[:, qr.columns] @ w[qr.columns]
+        residual = b - qr.selected() @ w[qr.columns]
     order = np.sort(np.asarray(qr.columns, dtype=np.int64))
     return Sampling(
         elements=order,
@@ -93,6 +93,9 @@ class _ColumnQR:
     def __init__(self, G: np.ndarray, b: np.ndarray, capacity: int):
         self.G, self.b = G, b
         self.Q = np.zeros((G.shape[0], capacity))
+        # the selected columns of G, in order, side by side: gathering them from G (C order,
+        # each a strided column) at every iteration cost more than the rest of ECSW
+        self.A = np.zeros((G.shape[0], capacity))
         self.R = np.zeros((capacity, capacity))
         self.qtb = np.zeros(capacity)  # Q^T b
         self.columns: list[int] = []
@@ -111,10 +114,15 @@ class _ColumnQR:
         if not rest > 1e-10 * norm:
             return False
         self.Q[:, k] = v / rest
+        self.A[:, k] = self.G[:, e]
         self.R[:k, k], self.R[k, k] = r, rest
         self.qtb[k] = self.Q[:, k] @ self.b
         self.columns.append(e)
         return True
+
+    def selected(self) -> np.ndarray:
+        """The selected columns of G, (m, k), in the order of ``columns`` (a view)."""
+        return self.A[:, : len(self.columns)]
 
     def solve(self) -> np.ndarray:
         """The least-squares weights of the columns: R z = Q^T b."""
