@@ -94,6 +94,28 @@ def _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, kappa):
 
 
 @njit(inline="always")
+def _element_residual(X, Phi, Psi, params, K0, k0, gradients, quadrature, s, q, pi, u, r_u,
+                      scalars):  # fmt: skip
+    """Sampled element s's nonlinear residual at (q, pi): r_u in place; returns Theta's."""
+    p = _element_state(Phi, Psi, s, q, pi, u)
+    _integrate(X[s], u, p, params[s], gradients, quadrature, r_u, None, None, scalars)
+    return _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, params[s, KAPPA])
+
+
+@njit(inline="always")
+def _add_projected(Phi, Psi, s, weight, theta, r_u, r):
+    """r += weight (Phi[s]^T r_u, Psi[s] theta): an element's term of the reduced residual."""
+    m, n = Phi.shape[1], Phi.shape[2]
+    for i in range(n):
+        v = 0.0
+        for row in range(m):
+            v += Phi[s, row, i] * r_u[row]
+        r[i] += weight * v
+    for k in range(Psi.shape[1]):
+        r[n + k] += weight * Psi[s, k] * theta
+
+
+@njit(inline="always")
 def _nonlinear_parts(K0, k0, s, u, p, r_u, K_uu, K_up, scalars, kappa):
     """:func:`_residual_nonlinear_part`, and K_uu -= K0, K_up -= k0 in place."""
     theta = _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, kappa)
@@ -215,17 +237,9 @@ def sampled_residual(X, Phi, Psi, params, weights, K0, k0, gradients, quadrature
     _check_element_scratch(m, u, r_u, scalars)
     r[:] = 0.0
     for s in range(S):
-        p = _element_state(Phi, Psi, s, q, pi, u)
-        _integrate(X[s], u, p, params[s], gradients, quadrature, r_u, None, None, scalars)
-        theta = _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, params[s, KAPPA])
-        weight = weights[s]
-        for i in range(n):
-            v = 0.0
-            for row in range(m):
-                v += Phi[s, row, i] * r_u[row]
-            r[i] += weight * v
-        for k in range(n_p):
-            r[n + k] += weight * Psi[s, k] * theta
+        theta = _element_residual(X, Phi, Psi, params, K0, k0, gradients, quadrature, s, q, pi,
+                                  u, r_u, scalars)  # fmt: skip
+        _add_projected(Phi, Psi, s, weights[s], theta, r_u, r)
 
 
 @njit(f"void({_INPUTS}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_1D})", cache=True, nogil=True)
@@ -241,13 +255,7 @@ def element_contributions(X, Phi, Psi, params, weights, K0, k0, gradients, quadr
         raise ValueError("out must be (S, n + n_p)")
     _check_element_scratch(m, u, r_u, scalars)
     for s in range(S):
-        p = _element_state(Phi, Psi, s, q, pi, u)
-        _integrate(X[s], u, p, params[s], gradients, quadrature, r_u, None, None, scalars)
-        theta = _residual_nonlinear_part(K0, k0, s, u, p, r_u, scalars, params[s, KAPPA])
-        for i in range(n):
-            v = 0.0
-            for row in range(m):
-                v += Phi[s, row, i] * r_u[row]
-            out[s, i] = v
-        for k in range(n_p):
-            out[s, n + k] = Psi[s, k] * theta
+        theta = _element_residual(X, Phi, Psi, params, K0, k0, gradients, quadrature, s, q, pi,
+                                  u, r_u, scalars)  # fmt: skip
+        out[s, :] = 0.0
+        _add_projected(Phi, Psi, s, 1.0, theta, r_u, out[s])

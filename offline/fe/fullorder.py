@@ -105,7 +105,7 @@ class FullOrderModel:
     def _setup_load(self) -> None:
         load, organ, model = self.config.load, self.organ, self.model
         self.sphere = None
-        self.further = []  # further tools (force, traction, int w dA): _setup_further_tools
+        self.further = []  # further tools (force, traction, int w dA): _setup_load_region
         if load.tools and load.mode != "force":
             raise InputError(f"further tools are force loads; this load is '{load.mode}'")
         if load.mode == "sphere":
@@ -119,7 +119,7 @@ class FullOrderModel:
                 point = organ.default_contact_point()
             self.patch = ContactPatch.around_point(organ, point, load.contact_radius, load.surface)
         if load.mode != "displacement":
-            self._setup_further_tools()
+            self._setup_load_region()
         self.bcs = organ.supports(model.V)
         self.patch_blocks = self.patch.blocks(model.V)
         self.load_vector = np.asarray(load.vector, dtype=float)
@@ -133,8 +133,8 @@ class FullOrderModel:
             self.bcs.append(fem.dirichletbc(self.tool_bc_value, blocks, model.V))
             self.patch_blocks = blocks
 
-    def _setup_further_tools(self) -> None:
-        """The load region: the patch's facets and every further tool's (``load.tools``),
+    def _setup_load_region(self) -> None:
+        """The dead load's region: the patch's facets and every further tool's (``load.tools``),
         each further tool a traction of its own on its own disk (``further``: its force,
         its traction and int w dA)."""
         load, organ, model = self.config.load, self.organ, self.model
@@ -150,7 +150,6 @@ class FullOrderModel:
                    for point, _ in load.tools]  # fmt: skip
         facets = np.concatenate([self.patch.facets] + [p.facets for p in patches])
         model.set_load_region(facets, self.patch.weight())
-        self.further = []
         for patch, (_, force) in zip(patches, load.tools, strict=True):
             traction = fem.Constant(organ.mesh, np.zeros(3))
             model.further_loads.append((traction, patch.weight()))

@@ -216,6 +216,9 @@ class HyperReducedModel:
         self.scratch = Scratch(mesh.X.shape[1], self.n)
         size = self.n + self.n_p
         self.r, self.K = np.empty(size), np.empty((size, size))
+        n, self.linear = self.n, np.zeros((size, size))  # the tangent's exact linear part
+        self.linear[:n, :n], self.linear[:n, n:] = self.L_uu, self.L_up
+        self.linear[n:, :n], self.linear[n:, n:] = self.L_up.T, -self.M
 
     @property
     def sampled_elements(self) -> int:
@@ -223,36 +226,30 @@ class HyperReducedModel:
 
     def residual_tangent(self, q, pi, load) -> tuple[np.ndarray, np.ndarray]:
         """(R, dR/d(q, pi)) at (q, pi) under the reduced load ``load`` (n,), N."""
-        ref, n = self.reference, self.n
+        ref = self.reference
         sampled_residual_tangent(*self.sample, ref.gradients, ref.weights,
                                  np.ascontiguousarray(q, float), np.ascontiguousarray(pi, float),
                                  self.r, self.K, *self.scratch.buffers())  # fmt: skip
-        r, K = self.r.copy(), self.K.copy()
-        r[:n] += self.L_uu @ q + self.L_up @ pi - load
-        r[n:] += self.L_up.T @ q - self.M @ pi
-        K[:n, :n] += self.L_uu
-        K[:n, n:] += self.L_up
-        K[n:, :n] += self.L_up.T
-        K[n:, n:] -= self.M
-        return r, K
+        return self._with_linear_part(self.r, q, pi, load), self.K + self.linear
 
     def residual(self, q, pi, load) -> np.ndarray:
         """R at (q, pi) under ``load`` without the tangent (a modified Newton's iterations)."""
-        ref, n, scratch = self.reference, self.n, self.scratch
+        ref, scratch = self.reference, self.scratch
         sampled_residual(*self.sample, ref.gradients, ref.weights, np.ascontiguousarray(q, float),
                          np.ascontiguousarray(pi, float), self.r, scratch.u, scratch.r_u,
                          scratch.scalars)  # fmt: skip
-        r = self.r.copy()
+        return self._with_linear_part(self.r, q, pi, load)
+
+    def _with_linear_part(self, sampled, q, pi, load) -> np.ndarray:
+        """The sampled residual plus its exact linear part and the load (a new array)."""
+        n, r = self.n, sampled.copy()
         r[:n] += self.L_uu @ q + self.L_up @ pi - load
         r[n:] += self.L_up.T @ q - self.M @ pi
         return r
 
     def linear_tangent(self) -> np.ndarray:
         """The exact linear part of dR/d(q, pi): [[L_uu, L_up], [L_up^T, -M]] (a new array)."""
-        n = self.n
-        K = np.zeros((n + self.n_p,) * 2)
-        K[:n, :n], K[:n, n:], K[n:, :n], K[n:, n:] = self.L_uu, self.L_up, self.L_up.T, -self.M
-        return K
+        return self.linear.copy()
 
     def sampled_tangent(self, q, pi, part: slice) -> np.ndarray:
         """The sampled sum's dR/d(q, pi) over the sampled elements ``part`` alone (no linear
@@ -361,11 +358,10 @@ class HapticNewton:
             raise InputError("iterations must be at least 1, slices 1 to the sampled elements")
         self.model, self.iterations = model, iterations
         self.bounds = np.linspace(0, model.sampled_elements, slices + 1).astype(np.int64)
-        self.linear = model.linear_tangent()
         zeros_q, zeros_pi = np.zeros(model.n), np.zeros(model.n_p)
         self.factors = scipy.linalg.lu_factor(model.residual_tangent(zeros_q, zeros_pi,
                                                                      zeros_q)[1])  # fmt: skip
-        self.building = self.linear.copy()  # the tangent being summed, part by part
+        self.building = model.linear_tangent()  # the tangent being summed, part by part
         self.part = 0  # the next part to add
         self.last_update = np.inf
 
@@ -391,7 +387,7 @@ class HapticNewton:
         self.part += 1
         if self.part == len(self.bounds) - 1:
             self.factors = scipy.linalg.lu_factor(self.building)
-            self.building, self.part = self.linear.copy(), 0
+            self.building, self.part = self.model.linear_tangent(), 0
         return True
 
 
