@@ -77,6 +77,7 @@ from hapticrom.offline.campaign.run import solve_position
 from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.fe.organ import load_organ
 from hapticrom.offline.reduce.ecsw import ecsw
+from hapticrom.offline.reduce.ecsw_indicator import error_indicator
 from hapticrom.offline.reduce.ecsw_model import (
     HapticNewton,
     HyperReducedModel,
@@ -202,11 +203,11 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
                   f"{np.linalg.norm(centres[1] - point):.2f} mm away, force "
                   f"{np.round(second[1], 4).tolist()} N", flush=True)  # fmt: skip
         t = time.perf_counter()
-        for centre in centres if solver else []:
-            blocks.append((*solver.states(centre, forbidden), args.state_modes))
-            if blocks[-1][0].shape[1] < args.state_modes:
-                raise SystemExit(f"--state-modes {args.state_modes}: the solves about position "
-                                 f"{i} converged {blocks[-1][0].shape[1]} states")  # fmt: skip
+        blocks += nearby_blocks(solver, centres, forbidden, args) if solver else []
+        for U_solved, _, modes in blocks[1:]:
+            if U_solved.shape[1] < modes:
+                raise SystemExit(f"--state-modes {modes}: the solves about position {i} "
+                                 f"converged {U_solved.shape[1]} states")  # fmt: skip
         solved_s = time.perf_counter() - t
         Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), blocks, free)
         built = time.perf_counter() - t - solved_s
@@ -222,15 +223,37 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
             for U_solved, P_solved, _ in blocks[1:]:
                 pairs = zip(U_solved.T, P_solved.T, strict=True)
                 training_states += [(Phi.T @ u, Psi.T @ p) for u, p in pairs]
-        for row in local_rows(mesh, Phi, Psi, path, training_states, args, rest):
+        tails = [pod(U)[:, m : m + args.indicator_modes] for U, _, m in blocks if m]
+        enrichment = np.hstack(tails) if args.indicator_modes and tails else None
+        for row in local_rows(mesh, Phi, Psi, path, training_states, args, rest, enrichment):
             results.append({**head, **row})
     return results
 
 
-def local_rows(mesh, Phi, Psi, path, states, args, rest):
+def nearby_blocks(solver, centres, forbidden, args) -> list[tuple]:
+    """The full-order snapshots about the held-out tools (``centres``: one, or two with
+    ``--second-tool``), a (states, pressures, modes kept) block each: ``--second-basis
+    single``: the single-tool solves about each centre; ``paired``: one block of two-tool
+    solves, the first tool at a node about the first centre and the second at a node about
+    the second (the k-th of each, ``--second-force`` of the campaign's force along its
+    normal); ``both``: all three."""
+    basis = args.second_basis if len(centres) == 2 else "single"
+    single = [(*solver.states(c, forbidden), args.state_modes) for c in centres
+              if basis != "paired"]  # fmt: skip
+    if basis == "single":
+        return single
+    pairs = zip(*(solver.nodes(c, forbidden) for c in centres), strict=True)
+    solved = [solver.solve(a, tools=[solver.tool(b, args.second_force)]) for a, b in pairs]
+    paired = (np.vstack([d["displacement"] for d in solved]).T,
+              np.vstack([d["pressure"] for d in solved]).T, args.state_modes)  # fmt: skip
+    return single + [paired]
+
+
+def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None):
     """The Galerkin model on every element, then ECSW at each of ``--tolerances`` trained on
     ``states`` (reduced (q, pi) pairs; none: the Galerkin model alone), along ``path``: one
-    printed line and one dict each."""
+    printed line and one dict each; with ``enrichment`` (N, k) the error indicator of each
+    (``indicator_row``)."""
     split = args.split == "linear"
     tolerances = ["galerkin"] + (args.tolerances if states else [])
     G = training_matrix(mesh, Phi, Psi, states, split=split, rest=rest)[0] if states else None
@@ -254,7 +277,50 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest):
                "p50_s": p50, "p99_s": p99}  # fmt: skip
         if args.frames:
             row["frames"] = haptic_frames(model, Phi, path, args)
+        if enrichment is not None:
+            bases = (Phi, Psi, enrichment)
+            row["indicator"] = indicator_row(model, bases, states, path, args, mesh, rest)
         yield row
+
+
+def indicator_row(model, bases, states, path, args, mesh, rest) -> dict:
+    """The error indicator of ``model`` (on every element for the Galerkin model, else on a
+    second sample at ``--indicator-tolerance``, apart from the model's with
+    ``--indicator-apart``) against the true error along the held-out ``path``: at each step
+    the model's Newton converged, eta and the field's error (relative L2 against the full
+    order's), their ratio (the effectivity); the time of one estimate (p50, p99).
+    ``bases``: the model's Phi and Psi and the enrichment."""
+    Phi, Psi, enrichment = bases
+    galerkin = model.sampled_elements == len(mesh.X)
+    exclude = model.elements if args.indicator_apart and not galerkin else ()
+    indicator = error_indicator(mesh, Phi, Psi, enrichment, None if galerkin else states,
+                                args.indicator_tolerance, exclude, split=args.split == "linear",
+                                rest=rest)  # fmt: skip
+    U, _, f, factors, _, _ = path
+    Q, Pi, _ = model.solve(Phi.T @ f, factors, tolerance=1e-10, partial=True)
+    load = indicator.basis.T @ f
+    eta = [indicator.estimate(q, pi, c * load) for q, pi, c in zip(Q, Pi, factors, strict=False)]
+    error = [
+        float(np.linalg.norm(Phi @ q - u) / np.linalg.norm(u)) for q, u in zip(Q, U, strict=False)
+    ]
+    times = []
+    for _ in range((10 if galerkin else 300) if len(Q) else 0):
+        t = time.perf_counter()
+        indicator.estimate(Q[-1], Pi[-1], factors[len(Q) - 1] * load)
+        times.append(time.perf_counter() - t)
+    ratio = [e / t for e, t in zip(eta, error, strict=True) if t > 0]
+    out = {"eta": eta, "error": error, "enriched_modes": indicator.enriched.n,
+           "elements": indicator.enriched.sampled_elements, "fit": indicator.fit,
+           "effectivity": [min(ratio), max(ratio)] if ratio else None,
+           **{f"{k}_s": float(np.percentile(times, v)) if times else None
+              for k, v in (("p50", 50), ("p99", 99))}}  # fmt: skip
+    if ratio:
+        print(f"    indicator ({out['enriched_modes']} modes, {out['elements']} elements, fit "
+              f"{indicator.fit:.1e}): at the last step eta {eta[-1]:.2e}, error "
+              f"{error[-1]:.2e}; effectivity {min(ratio):.2f}-{max(ratio):.2f} over "
+              f"{len(ratio)} steps; estimate p50/p99 {1e3 * out['p50_s']:.2f}/"
+              f"{1e3 * out['p99_s']:.2f} ms", flush=True)  # fmt: skip
+    return out
 
 
 def haptic_frames(model, Phi, path, args) -> dict:
@@ -391,16 +457,20 @@ class NearbySolver:
     def nearest(self, point) -> int:
         return int(np.argmin(np.linalg.norm(self.surface.nodes - point, axis=1)))
 
+    def tool(self, node, fraction) -> tuple:
+        """A further force tool at surface ``node``: its (point, force) pair, ``fraction``
+        of the campaign's force along the campaign's direction there."""
+        position = self.position(node)
+        force = fraction * self.config.load.magnitude * self.config.load.unit_direction(position)
+        return position.point, tuple(float(v) for v in force)
+
     def second_tool(self, point, distance, fraction) -> tuple[int, tuple]:
         """A second tool ``distance`` mm from ``point`` (the free loadable node nearest to
-        that distance, not ``point``'s own): its node and its (point, force) pair,
-        ``fraction`` of the campaign's force along the campaign's direction there."""
+        that distance, not ``point``'s own): its node and its ``tool``."""
         gap = np.abs(np.linalg.norm(self.surface.nodes - point, axis=1) - distance)
         gap[list(self.excluded) + [self.nearest(point)]] = np.inf
         node = int(np.argmin(gap))
-        position = self.position(node)
-        force = fraction * self.config.load.magnitude * self.config.load.unit_direction(position)
-        return node, (position.point, tuple(float(v) for v in force))
+        return node, self.tool(node, fraction)
 
     def two_tool_path(self, point, second) -> tuple:
         """The full order under the campaign's tool at ``point`` (its nearest surface node)
@@ -529,6 +599,16 @@ def parse_arguments() -> argparse.Namespace:
                         "position, loaded with it; the solves about both")  # fmt: skip
     parser.add_argument("--second-force", type=float, default=0.5,
                         help="--second-tool: its force, of the campaign's")  # fmt: skip
+    parser.add_argument("--second-basis", choices=("single", "paired", "both"),
+                        default="single", help="--second-tool: the solves about the two "
+                        "tools: each alone, in pairs (both tools at once), or both")  # fmt: skip
+    parser.add_argument("--indicator-modes", type=int, default=0,
+                        help="--local-solves: the error indicator, on the basis enriched by "
+                        "this many further POD modes of each block of solves")  # fmt: skip
+    parser.add_argument("--indicator-tolerance", type=float, default=1e-3,
+                        help="--indicator-modes: ECSW's tolerance of its sample")  # fmt: skip
+    parser.add_argument("--indicator-apart", action="store_true",
+                        help="--indicator-modes: a sample apart from the model's")  # fmt: skip
     frames = parser.add_argument_group("haptic steps (haptic_frames)")
     frames.add_argument("--frame-solver", choices=("haptic", "modified"), default="haptic")
     for flag, kind, default, text in FRAME_OPTIONS:
@@ -566,6 +646,12 @@ def check_arguments(parser, args) -> None:
     args.state_modes = args.state_modes or 0
     if args.second_tool and not args.local_solves or args.second_tool < 0:
         parser.error("--second-tool needs --local-solves, and a positive distance (mm)")
+    if args.indicator_modes and not args.local_solves or args.indicator_modes < 0:
+        parser.error("--indicator-modes needs --local-solves, and a count >= 0")
+    if not 0 < args.indicator_tolerance < 1:
+        parser.error("--indicator-tolerance: in (0, 1)")
+    if args.second_basis != "single" and not args.second_tool:
+        parser.error("--second-basis needs --second-tool")
     if not 0 < args.second_force <= 10:
         parser.error("--second-force: a fraction of the campaign's force, in (0, 10]")
     if args.frames and not args.local or args.frames < 0:
@@ -574,12 +660,13 @@ def check_arguments(parser, args) -> None:
         parser.error("--refresh-after, --frame-iterations and --tangent-slices: at least 1")
     if not (args.basis == "derivatives" or args.local):
         return
-    regions = 2 if args.second_tool else 1  # --state-modes a tool's region
+    # --state-modes a block of nearby solves: per tool, or the pairs', or all three
+    regions = {"single": 2, "paired": 1, "both": 3}[args.second_basis] if args.second_tool else 1
     derived = args.modes - args.linear_modes - args.campaign_modes - regions * args.state_modes
     if derived < 0 or args.derivatives_of > args.linear_modes:
         parser.error("--basis derivatives and --local: --modes must be at least "
-                     "--linear-modes + --campaign-modes + --state-modes (twice with "
-                     "--second-tool), and --derivatives-of at most --linear-modes")  # fmt: skip
+                     "--linear-modes + --campaign-modes + --state-modes (a block each, see "
+                     "--second-basis), and --derivatives-of at most --linear-modes")  # fmt: skip
     if derived and not args.derivatives_of:
         parser.error(f"--derivatives-of 0: {derived} modes left for derivatives; --modes must "
                      "be --linear-modes + --campaign-modes + --state-modes")  # fmt: skip

@@ -209,7 +209,8 @@ class HyperReducedModel:
         else:
             self.L_uu, self.L_up = np.zeros((self.n, self.n)), np.zeros((self.n, self.n_p))
             K0, k0 = np.zeros_like(K0), np.zeros_like(k0)
-        s = elements
+        s = self.elements = elements.copy()  # the sampled elements' indices in the mesh
+        s.flags.writeable = False
         arrays = (mesh.X[s], Phi_e[s], Psi_e[s], mesh.params[s], weights, K0[s], k0[s])
         self.sample = tuple(_readonly(a) for a in arrays)
         self.reference = mesh.reference
