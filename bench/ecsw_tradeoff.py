@@ -242,7 +242,8 @@ def nearby_blocks(solver, centres, forbidden, args) -> list[tuple]:
               if basis != "paired"]  # fmt: skip
     if basis == "single":
         return single
-    pairs = zip(*(solver.nodes(c, forbidden) for c in centres), strict=True)
+    first = solver.nodes(centres[0], forbidden)  # never both tools on one node
+    pairs = zip(first, solver.nodes(centres[1], [*forbidden, *first]), strict=True)
     solved = [solver.solve(a, tools=[solver.tool(b, args.second_force)]) for a, b in pairs]
     paired = (np.vstack([d["displacement"] for d in solved]).T,
               np.vstack([d["pressure"] for d in solved]).T, args.state_modes)  # fmt: skip
@@ -279,30 +280,33 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None):
             row["frames"] = haptic_frames(model, Phi, path, args)
         if enrichment is not None:
             bases = (Phi, Psi, enrichment)
-            row["indicator"] = indicator_row(model, bases, states, path, args, mesh, rest)
+            sampled = None if tolerance == "galerkin" else states
+            row["indicator"] = indicator_row(model, bases, sampled, path, args, mesh, rest)
         yield row
 
 
 def indicator_row(model, bases, states, path, args, mesh, rest) -> dict:
-    """The error indicator of ``model`` (on every element for the Galerkin model, else on a
-    second sample at ``--indicator-tolerance``, apart from the model's with
-    ``--indicator-apart``) against the true error along the held-out ``path``: at each step
-    the model's Newton converged, eta and the field's error (relative L2 against the full
-    order's), their ratio (the effectivity); the time of one estimate (p50, p99).
-    ``bases``: the model's Phi and Psi and the enrichment."""
+    """The error indicator of ``model`` (``states`` None: the Galerkin model's, on every
+    element; else on a second sample trained at ``states``, ``--indicator-tolerance``,
+    apart from the model's with ``--indicator-apart``) against the true error along the
+    held-out ``path``: at each step the model's Newton converged, eta and the error
+    ||Phi q - u|| / ||Phi q|| (u the full order's; eta's norm), their ratio (the
+    effectivity); the time of one estimate (p50, p99). ``bases``: the model's Phi and Psi
+    and the enrichment."""
     Phi, Psi, enrichment = bases
-    galerkin = model.sampled_elements == len(mesh.X)
-    exclude = model.elements if args.indicator_apart and not galerkin else ()
-    indicator = error_indicator(mesh, Phi, Psi, enrichment, None if galerkin else states,
-                                args.indicator_tolerance, exclude, split=args.split == "linear",
-                                rest=rest)  # fmt: skip
+    galerkin = states is None
+    apart = model.elements if args.indicator_apart else ()
+    options = {} if galerkin else {"tolerance": args.indicator_tolerance, "exclude": apart}
+    indicator = error_indicator(mesh, Phi, Psi, enrichment, states,
+                                split=args.split == "linear", rest=rest, **options)  # fmt: skip
+    if indicator.enriched.n == Phi.shape[1]:
+        raise SystemExit("--indicator-modes: the blocks' further modes add nothing to the basis")
     U, _, f, factors, _, _ = path
     Q, Pi, _ = model.solve(Phi.T @ f, factors, tolerance=1e-10, partial=True)
     load = indicator.basis.T @ f
     eta = [indicator.estimate(q, pi, c * load) for q, pi, c in zip(Q, Pi, factors, strict=False)]
-    error = [
-        float(np.linalg.norm(Phi @ q - u) / np.linalg.norm(u)) for q, u in zip(Q, U, strict=False)
-    ]
+    pairs = zip(Q, U, strict=False)  # U: every step; Q: those that converged
+    error = [float(np.linalg.norm(Phi @ q - u) / np.linalg.norm(q)) for q, u in pairs]
     times = []
     for _ in range((10 if galerkin else 300) if len(Q) else 0):
         t = time.perf_counter()
@@ -604,7 +608,7 @@ def parse_arguments() -> argparse.Namespace:
                         "tools: each alone, in pairs (both tools at once), or both")  # fmt: skip
     parser.add_argument("--indicator-modes", type=int, default=0,
                         help="--local-solves: the error indicator, on the basis enriched by "
-                        "this many further POD modes of each block of solves")  # fmt: skip
+                        "this many further POD modes of each block kept in it")  # fmt: skip
     parser.add_argument("--indicator-tolerance", type=float, default=1e-3,
                         help="--indicator-modes: ECSW's tolerance of its sample")  # fmt: skip
     parser.add_argument("--indicator-apart", action="store_true",
@@ -650,6 +654,8 @@ def check_arguments(parser, args) -> None:
         parser.error("--indicator-modes needs --local-solves, and a count >= 0")
     if not 0 < args.indicator_tolerance < 1:
         parser.error("--indicator-tolerance: in (0, 1)")
+    if args.indicator_apart and not (args.indicator_modes and args.tolerances):
+        parser.error("--indicator-apart needs --indicator-modes and ECSW --tolerances")
     if args.second_basis != "single" and not args.second_tool:
         parser.error("--second-basis needs --second-tool")
     if not 0 < args.second_force <= 10:

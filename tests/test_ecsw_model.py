@@ -343,8 +343,8 @@ def linear_solution(campaign, scale=1e-6):
     return u, operators.Bt.T @ u / operators.compliance, scale * f
 
 
-@pytest.mark.parametrize("holds", [True, False])
-def test_indicator_is_the_error_when_the_enriched_basis_holds_the_solution(campaign, holds):
+@pytest.mark.parametrize("phi_holds", [True, False])
+def test_indicator_is_the_error_when_the_enriched_basis_holds_the_solution(campaign, phi_holds):
     """In the linear range (1e-5 of the campaign's load), every element integrated, the
     enriched space holding the full order's (u*, p*): eta is the true error
     ||u* - Phi q|| / ||Phi q|| (a Newton step in W lands on the Galerkin solution in W,
@@ -353,32 +353,39 @@ def test_indicator_is_the_error_when_the_enriched_basis_holds_the_solution(campa
     store, mesh, rest = campaign
     u, p, f = linear_solution(campaign, 1e-5)
     U1 = position(store, 1)[0]
-    Phi = np.linalg.qr((np.vstack([U1, u]) if holds else U1).T)[0]
+    Phi = np.linalg.qr((np.vstack([U1, u]) if phi_holds else U1).T)[0]
     Psi = np.linalg.qr(np.vstack([position(store, 0)[1], p]).T)[0]
     model = HyperReducedModel(mesh, Phi, Psi, rest=rest)
     q, pi, _ = model.solve(Phi.T @ f, [1.0])
     error = np.linalg.norm(u - Phi @ q[0]) / np.linalg.norm(Phi @ q[0])
     for at_state in (True, False):
         indicator = error_indicator(mesh, Phi, Psi, u[:, None], rest=rest, at_state=at_state)
-        assert indicator.basis.shape[1] == Phi.shape[1] + (0 if holds else 1)
+        assert indicator.basis.shape[1] == Phi.shape[1] + (0 if phi_holds else 1)
         eta = indicator.estimate(q[0], pi[0], indicator.basis.T @ f)
-        if holds:
+        if phi_holds:
             assert error < 1e-5 and eta < 1e-5
         else:
             assert error > 0.1  # the test means something: Phi misses most of u*
             assert abs(eta / error - 1.0) < 1e-5
 
 
-def test_enriched_basis_keeps_phi_and_drops_its_span():
-    """W starts with Phi itself, is orthonormal, and a direction already in Phi's span adds
+@pytest.mark.parametrize("order", ["in-span last", "in-span first", "repeated"])
+def test_enriched_basis_keeps_phi_and_drops_its_span(order):
+    """W starts with Phi itself, is orthonormal, spans every enrichment column, and a
+    direction already in Phi's span (or a repeated column), wherever it stands, adds
     nothing."""
     rng = np.random.default_rng(5)
     Phi = np.linalg.qr(rng.standard_normal((60, 4)))[0]
-    extra = np.hstack([rng.standard_normal((60, 2)), Phi @ rng.standard_normal((4, 1))])
+    a, b = rng.standard_normal((60, 1)), rng.standard_normal((60, 1))
+    inside = Phi @ rng.standard_normal((4, 1))
+    columns = {"in-span last": [a, b, inside], "in-span first": [inside, a, b],
+               "repeated": [a, a, b]}[order]  # fmt: skip
+    extra = np.hstack(columns)
     W = enriched_basis(Phi, extra)
     assert W.shape == (60, 6)
     assert np.array_equal(W[:, :4], Phi)
     np.testing.assert_allclose(W.T @ W, np.eye(6), atol=1e-13)
+    assert np.linalg.norm(extra - W @ (W.T @ extra)) <= 1e-12 * np.linalg.norm(extra)
 
 
 def test_sampled_indicator_reads_the_error(campaign):
@@ -407,4 +414,7 @@ def test_sampled_indicator_reads_the_error(campaign):
             assert 0.5 < eta / error < 2.0, (c, eta, error)
     apart = error_indicator(mesh, Phi, Psi, U0.T, states, 1e-4, sampling.elements, rest=rest)
     assert not set(apart.enriched.elements) & set(sampling.elements)
-    assert apart.fit > 0.0
+    assert 0.0 <= apart.fit < 1.0
+    assert np.isfinite(apart.estimate(Q[-1], Pi[-1], factors[-1] * (apart.basis.T @ f)))
+    with pytest.raises(InputError, match="states must be on Phi"):
+        error_indicator(mesh, Phi, Psi, U0.T, [(q[:-1], pi) for q, pi in states], rest=rest)
