@@ -12,11 +12,17 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from mpi4py import MPI
 
+from hapticrom.meshes.msh import read_surface
+from hapticrom.offline.campaign.config import CampaignConfig
+from hapticrom.offline.campaign.positions import ToolPosition
+from hapticrom.offline.campaign.run import solve_position
 from hapticrom.offline.config import LoadConfig, ProblemConfig
 from hapticrom.offline.fe.dofs import CanonicalOrder
 from hapticrom.offline.fe.fullorder import FullOrderModel
 from hapticrom.offline.fe.operators import load_vector
+from hapticrom.offline.fe.organ import load_organ
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial
@@ -98,3 +104,42 @@ def test_further_tools_are_forces_only(mesh_dir):
     off = problem(mesh_dir, APEX, (0.0, 0.0, -0.01), [((0.0, 0.0, 5.0), (0.0, 0.0, -0.01))])
     with pytest.raises(InputError, match="off the 'loadable' surface"):
         FullOrderModel(off, verbose=False)
+
+
+CAMPAIGN = """
+[campaign]
+name = "further-tools"
+[mesh]
+file = "{mesh}"
+[material]
+law = "hgo"
+[load]
+mode = "force"
+magnitude = 0.005
+direction = "normal"
+contact_radius = 0.6
+steps = 2
+[positions]
+points = [[0.0, 0.0, 0.0]]
+"""
+
+
+def test_solve_position_records_its_tools(mesh_dir, tmp_path):
+    """A position solved with further tools says so in its attributes (a row of point and
+    force each), and their load is in its load vector; without, no such attribute."""
+    path = tmp_path / "campaign.toml"
+    path.write_text(CAMPAIGN.format(mesh=mesh_dir / "cornea-coarse.msh"))
+    config = CampaignConfig.from_toml(path)
+    surface = read_surface(config.problem.mesh.file, config.load.surface)
+    k = int(np.argmin(np.linalg.norm(surface.nodes - np.array(APEX), axis=1)))
+    position = ToolPosition(-1, tuple(surface.nodes[k]), tuple(surface.normals[k]),
+                            int(surface.node_tags[k]), "point")  # fmt: skip
+    organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+    side = (0.0, 0.0, -2e-3)
+    data, attrs = solve_position(config, position, organ, MPI.COMM_SELF, [(SIDE, side)])
+    plain, alone = solve_position(config, position, organ, MPI.COMM_SELF)
+    assert attrs["status"] == alone["status"] == "solved"
+    np.testing.assert_array_equal(attrs["tools"], [[*SIDE, *side]])
+    assert "tools" not in alone
+    extra = (data["load_vector"] - plain["load_vector"]).reshape(-1, 3).sum(axis=0)
+    np.testing.assert_allclose(extra, side, rtol=1e-10, atol=1e-15)

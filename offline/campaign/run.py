@@ -305,9 +305,12 @@ def _position_datasets(path: _LoadPath, order, pressure_order, contact, f, sanit
     return datasets
 
 
-def _position_attrs(config, position, path: _LoadPath, sanity, seconds: float) -> dict:
-    """The attributes of a position's record: its outcome, where and how it was loaded."""
-    return {
+def _position_attrs(config, position, path: _LoadPath, sanity, seconds: float,
+                    tools=()) -> dict:  # fmt: skip
+    """The attributes of a position's record: its outcome, where and how it was loaded
+    (``tools``: the further force tools, a row (point mm, force N) each, if any)."""
+    further = {"tools": np.array([[*point, *force] for point, force in tools], float)}
+    return (further if len(tools) else {}) | {
         "status": path.status,
         "message": path.message,
         "point": np.asarray(position.point),
@@ -339,7 +342,8 @@ def solve_position(config, position, organ, group, tools=()):
     if group.rank != 0:
         return None
     datasets = _position_datasets(path, order, pressure_order, contact, f, model.sanity)
-    attrs = _position_attrs(config, position, path, model.sanity, time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    attrs = _position_attrs(config, position, path, model.sanity, seconds, problem.load.tools)
     return datasets, attrs
 
 
