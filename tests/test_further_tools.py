@@ -106,29 +106,14 @@ def test_further_tools_are_forces_only(mesh_dir):
         FullOrderModel(off, verbose=False)
 
 
-CAMPAIGN = """
-[campaign]
-name = "further-tools"
-[mesh]
-file = "{mesh}"
-[material]
-law = "hgo"
-[load]
-mode = "force"
-magnitude = 0.005
-direction = "normal"
-contact_radius = 0.6
-steps = 2
-[positions]
-points = [[0.0, 0.0, 0.0]]
-"""
-
-
 def test_solve_position_records_its_tools(mesh_dir, tmp_path):
     """A position solved with further tools says so in its attributes (a row of point and
     force each), and their load is in its load vector; without, no such attribute."""
+    from conftest import FORCE_CAMPAIGN
+
     path = tmp_path / "campaign.toml"
-    path.write_text(CAMPAIGN.format(mesh=mesh_dir / "cornea-coarse.msh"))
+    mesh = mesh_dir / "cornea-coarse.msh"
+    path.write_text(FORCE_CAMPAIGN.format(name="further-tools", mesh=mesh, points=[list(APEX)]))
     config = CampaignConfig.from_toml(path)
     surface = read_surface(config.problem.mesh.file, config.load.surface)
     k = int(np.argmin(np.linalg.norm(surface.nodes - np.array(APEX), axis=1)))
