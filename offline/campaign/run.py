@@ -309,8 +309,7 @@ def _position_attrs(config, position, path: _LoadPath, sanity, seconds: float,
                     tools=()) -> dict:  # fmt: skip
     """The attributes of a position's record: its outcome, where and how it was loaded
     (``tools``: the further force tools, a row (point mm, force N) each, if any)."""
-    further = {"tools": np.array([[*point, *force] for point, force in tools], float)}
-    return (further if len(tools) else {}) | {
+    attrs = {
         "status": path.status,
         "message": path.message,
         "point": np.asarray(position.point),
@@ -322,6 +321,9 @@ def _position_attrs(config, position, path: _LoadPath, sanity, seconds: float,
         "seconds": seconds,
         "sanity": dumps(sanity.summary()),
     }
+    if tools:
+        attrs["tools"] = np.array([[*point, *force] for point, force in tools], float)
+    return attrs
 
 
 def solve_position(config, position, organ, group, tools=()):

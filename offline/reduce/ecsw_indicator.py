@@ -39,17 +39,18 @@ class ErrorIndicator:
     """eta(q, pi, load) of the model whose basis is the first ``n`` columns of ``basis``
     (W (N, n_W)); ``enriched``: a :class:`HyperReducedModel` on W and the model's Psi."""
 
-    def __init__(self, enriched: HyperReducedModel, basis, n: int, at_state: bool = True):
+    def __init__(self, enriched: HyperReducedModel, basis, n: int, at_state: bool = True,
+                 fit: float = 0.0):  # fmt: skip
         if basis.shape[1] != enriched.n or not 0 < n <= enriched.n:
             raise InputError(f"the model's {n} modes must be the first of the enriched basis' "
                              f"{enriched.n} ({basis.shape[1]} given)")  # fmt: skip
         self.enriched, self.basis, self.n, self.at_state = enriched, basis, n, at_state
         self.q = np.zeros(enriched.n)  # the state in W's coordinates (the Phi_e part zero)
         self.factor = None  # the rest tangent's, factorised (at_state False)
-        self.fit = 0.0  # the second sample's ECSW residual (error_indicator sets it)
+        self.fit = fit  # the second sample's relative ECSW residual (0: every element)
         if not at_state:
             zero = np.zeros(enriched.n_p)
-            rest = enriched.residual_tangent(self.q, zero, self.q)[1]
+            rest = enriched.residual_tangent(np.zeros(enriched.n), zero, np.zeros(enriched.n))[1]
             self.factor = scipy.linalg.lu_factor(rest)
 
     def estimate(self, q, pi, load) -> float:
@@ -71,24 +72,23 @@ def enriched_basis(Phi, enrichment) -> np.ndarray:
     wherever they stand, lose nothing of the others); directions already in Phi's span are
     dropped."""
     E = enrichment - Phi @ (Phi.T @ enrichment)
-    E -= Phi @ (Phi.T @ E)
+    E -= Phi @ (Phi.T @ E)  # twice: orthogonal to Phi to round-off
     size = max(float(np.linalg.norm(enrichment, axis=0).max(initial=0.0)), 1e-300)
     U, s, _ = np.linalg.svd(E, full_matrices=False)
-    Q = U[:, s > 1e-8 * size]  # what is left of a column in Phi's span: round-off
-    Q -= Phi @ (Phi.T @ Q)
-    return np.hstack([Phi, np.linalg.qr(Q)[0]])
+    return np.hstack([Phi, U[:, s > 1e-8 * size]])  # below: a column in Phi's span, round-off
 
 
 def error_indicator(mesh: MeshElements, Phi, Psi, enrichment, states=None,
-                    tolerance: float = 1e-3, exclude=(), split: bool = True, rest=None,
+                    tolerance: float | None = None, exclude=(), split: bool = True, rest=None,
                     at_state: bool = True) -> ErrorIndicator:  # fmt: skip
     """The indicator of the model on ``Phi``, ``Psi``: its second sample ECSW at
-    ``tolerance`` on the enriched basis' training matrix at ``states`` (the model's (q, pi)
-    pairs), none of the elements ``exclude`` (the model's own sample: an independent one);
+    ``tolerance`` (1e-3 if None) on the enriched basis' training matrix at ``states`` (the
+    model's (q, pi) pairs), none of the elements ``exclude`` (the model's own sample: an
+    independent one);
     ``states`` None: every element (the indicator of the Galerkin model, or the reference
     of a sampled one). ``fit``: the second sample's relative ECSW residual (an excluded
     sample may not reach the tolerance where few elements carry the nonlinearity)."""
-    if states is None and (len(exclude) or tolerance != 1e-3):
+    if states is None and (len(exclude) or tolerance is not None):
         raise InputError("error_indicator: every element (states None) takes no exclude or "
                          "tolerance")  # fmt: skip
     if states is not None and any(len(q) != Phi.shape[1] for q, _ in states):
@@ -101,9 +101,7 @@ def error_indicator(mesh: MeshElements, Phi, Psi, enrichment, states=None,
     G = training_matrix(mesh, W, Psi, padded, split=split, rest=rest)[0]
     b = G.sum(axis=1)  # the sum over every element, the excluded ones' included
     G[:, np.asarray(exclude, dtype=np.int64)] = 0.0  # never chosen
-    sampling = ecsw(G, b, tolerance=tolerance)
+    sampling = ecsw(G, b, tolerance=1e-3 if tolerance is None else tolerance)
     model = HyperReducedModel(mesh, W, Psi, sampling.elements, sampling.weights, split=split,
                               rest=rest)  # fmt: skip
-    indicator = ErrorIndicator(model, W, Phi.shape[1], at_state)
-    indicator.fit = sampling.residual
-    return indicator
+    return ErrorIndicator(model, W, Phi.shape[1], at_state, sampling.residual)
