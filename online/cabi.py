@@ -279,7 +279,7 @@ SURFACE_ARRAYS = (
     "halo",  # (1,) int64
     "charted",  # (C,) int64
     "charted_node",  # (C,) int64
-    "charted_frac",  # (C, 2)
+    "charted_frac",  # (2, C) float32
     "uncharted",  # (U,) int64
     "fields",  # (2, 3, N) float32 scratch
     "rectangles",  # (3, 5) int64 scratch
@@ -294,6 +294,8 @@ SURFACE_ARRAYS = (
     "triangle_grid",  # (7,) float64: origin, cell size, dims of the triangles' grid
     "grid_starts",  # (cells + 1,) int64
     "grid_ids",  # (entries,) int64
+    "read_fracs",  # transport: (2, C) float32 scratch
+    "read_cells",  # (C,) int64 scratch
 )
 DIMS = 4
 (A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_MODE_SCALE,
@@ -301,7 +303,8 @@ DIMS = 4
  A_SAMPLE_NORMALS, A_SHAPE, A_ROWS, A_COLUMNS, A_HALO, A_CHARTED, A_CHARTED_NODE,
  A_CHARTED_FRAC, A_UNCHARTED, A_FIELDS, A_RECTANGLES, A_SHIFTS, A_SAMPLE_POINTS,
  A_SURFACE_VERTICES, A_FIELD_TRIANGLES, A_CONTACT_FIELDS, A_TRIANGLE_ROWS, A_SAMPLE_ROWS,
- A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS) = range(len(SURFACE_ARRAYS))  # fmt: skip
+ A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS, A_READ_FRACS,
+ A_READ_CELLS) = range(len(SURFACE_ARRAYS))  # fmt: skip
 
 
 @njit(inline="always")
@@ -353,11 +356,12 @@ def _transported(arrays, dims, buf, c, out):
         _view1(arrays, dims, A_COLUMNS, np.int64),
         _view1(arrays, dims, A_HALO, np.int64)[0],
         _view1(arrays, dims, A_CHARTED, np.int64), _view1(arrays, dims, A_CHARTED_NODE, np.int64),
-        _view2(arrays, dims, A_CHARTED_FRAC, np.float64),
+        _view2(arrays, dims, A_CHARTED_FRAC, np.float32),
         _view1(arrays, dims, A_UNCHARTED, np.int64),
         _view3(arrays, dims, A_BASIS_T, np.float32), _view3(arrays, dims, A_FIELDS, np.float32),
         _view2(arrays, dims, A_RECTANGLES, np.int64), _view2(arrays, dims, A_SHIFTS, np.float64),
-        out,
+        _view2(arrays, dims, A_READ_FRACS, np.float32),
+        _view1(arrays, dims, A_READ_CELLS, np.int64), out,
     )  # fmt: skip
 
 
@@ -522,6 +526,8 @@ def _surface_arrays(sim: Simulator) -> dict[str, np.ndarray]:
             "charted_node": ch.charted_node, "charted_frac": ch.charted_frac,
             "uncharted": ch.uncharted, "fields": np.zeros((2, 3, nodes), dtype=np.float32),
             "rectangles": np.zeros((3, 5), dtype=np.int64), "shifts": np.zeros((3, 12)),
+            "read_fracs": np.zeros((2, len(ch.charted)), dtype=np.float32),
+            "read_cells": np.zeros(len(ch.charted), dtype=np.int64),
         }  # fmt: skip
     if sim.interpolation == "compliance":
         f = m.contact_fields

@@ -37,6 +37,9 @@ class SurfaceWork:
         self.chart_fields = np.zeros((2, 3, nodes), dtype=np.float32)
         self.chart_rectangles = np.zeros((3, 5), dtype=np.int64)
         self.chart_shifts = np.zeros((3, 12))
+        charted = len(model.chart.charted) if interpolation == "transport" else 1
+        self.chart_fracs = np.zeros((2, charted), dtype=np.float32)  # each vertex's read
+        self.chart_cells = np.zeros(charted, dtype=np.int64)
         self.frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
         self.frames_of = -1.0  # the contact (buf[CONTACTS]) the frames are of
         self.scratch = np.zeros(3 + 3 * n)  # (unused) + three n-vectors
@@ -60,7 +63,7 @@ def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork,
             buf, c, ch.node_basis, ch.mode_scale, ch.sample_grid, m.sample_normals, ch.shape,
             ch.read_rows, ch.read_columns, ch.halo, ch.charted, ch.charted_node, ch.charted_frac,
             ch.uncharted, m.surface_basis_t, work.chart_fields, work.chart_rectangles,
-            work.chart_shifts, out,
+            work.chart_shifts, work.chart_fracs, work.chart_cells, out,
         )  # fmt: skip
     elif interpolation == "grassmann":
         g = m.grassmann

@@ -75,7 +75,8 @@ class SurfaceChart:
     uncharted: np.ndarray  # (U,) int64: the vertices that keep the blended field
     charted: np.ndarray  # (C,) int64: the others, in the order of their cells (locality)
     charted_node: np.ndarray  # (C,) int64: vertex_node of those, in that order
-    charted_frac: np.ndarray  # (C, 2): vertex_frac of those, in that order
+    charted_frac: np.ndarray  # (2, C) float32: vertex_frac of those, in that order, a plane
+    # each (the read's first loop vectorises over the planes: surface_kernels.read_grid)
     read_rows: np.ndarray  # (2,) int64: the rows [a0, a1) the charted vertices' cells read
     read_columns: np.ndarray  # (2,) int64: the columns [b0, b1) they read
 
@@ -193,7 +194,7 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
         uncharted=np.flatnonzero(vertex_node < 0).astype(np.int64),
         charted=charted,
         charted_node=np.ascontiguousarray(vertex_node[charted]),
-        charted_frac=np.ascontiguousarray(vertex_frac[charted]),
+        charted_frac=np.ascontiguousarray(vertex_frac[charted].T, dtype=np.float32),
         read_rows=np.array([a.min(), a.max() + 2] if len(used) else [0, 0], dtype=np.int64),
         read_columns=np.array([b.min(), b.max() + 2] if len(used) else [0, 0], dtype=np.int64),
     )

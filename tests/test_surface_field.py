@@ -104,6 +104,8 @@ class PlateModel:
         self.fields = np.zeros((2, 3, nodes), dtype=np.float32)
         self.rectangles = np.zeros((3, 5), dtype=np.int64)
         self.shifts = np.zeros((3, 12))
+        self.fracs = np.zeros((2, len(self.chart.charted)), dtype=np.float32)
+        self.cells = np.zeros(len(self.chart.charted), dtype=np.int64)
         self.buf = np.zeros(kernels.buffer_size(2))
         self.coefficients = np.tile(np.asarray(coefficients, dtype=float), (3, 1))
         for a in (self.basis, self.basis_t, *vars(self.chart).values()):
@@ -130,7 +132,8 @@ class PlateModel:
         surface_kernels.transported_surface(
             self.buf, self.coefficients, c.node_basis, c.mode_scale, c.sample_grid, self.normals,
             c.shape, c.read_rows, c.read_columns, c.halo, c.charted, c.charted_node, c.charted_frac,
-            c.uncharted, self.basis_t, self.fields, self.rectangles, self.shifts, out,
+            c.uncharted, self.basis_t, self.fields, self.rectangles, self.shifts, self.fracs,
+            self.cells, out,
         )  # fmt: skip
         return out
 

@@ -210,7 +210,8 @@ def render_on_poisoned_scratch(model, sim) -> np.ndarray:
     """The kernel itself, on the simulator's state, with its per-neighbour scratch fields
     filled with NaN first: add_neighbour writes the rectangle the reads need (the first
     neighbour's pass, or the first of several), so a NaN in the result is a read outside it
-    (an independent check of the mirror)."""
+    (an independent check of the mirror). The reads' scratch places are NaN too: each read
+    must find its own first."""
     chart = model.chart
     coefficients = np.zeros((3, model.num_modes))
     surface_kernels.curves_coefficients(sim._buf, model.coefficients, coefficients)
@@ -220,7 +221,9 @@ def render_on_poisoned_scratch(model, sim) -> np.ndarray:
         sim._buf, coefficients, chart.node_basis, chart.mode_scale, chart.sample_grid,
         model.sample_normals, chart.shape, chart.read_rows, chart.read_columns, chart.halo,
         chart.charted, chart.charted_node, chart.charted_frac, chart.uncharted,
-        model.surface_basis_t, fields, np.zeros((3, 5), dtype=np.int64), np.zeros((3, 12)), out,
+        model.surface_basis_t, fields, np.zeros((3, 5), dtype=np.int64), np.zeros((3, 12)),
+        np.full((2, len(chart.charted)), np.nan, dtype=np.float32),
+        np.zeros(len(chart.charted), dtype=np.int64), out,
     )  # fmt: skip
     return out
 
