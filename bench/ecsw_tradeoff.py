@@ -7,7 +7,9 @@ positions, beside the Galerkin model on every element (issue 18).
         [--tolerances 0.1,0.03,0.01,0.003] [--local MM [--local-neighbours 3]
         [--local-solves MM,MM --solves-per-distance 3 --state-modes 30]
         [--frames 100 [--frame-solver haptic|modified] [--frame-iterations 1]
-        [--tangent-slices 10] [--refresh-after 3] [--frame-tolerance 1e-6]]] [--out FILE.json]
+        [--tangent-slices 10] [--refresh-after 3] [--frame-tolerance 1e-6]]
+        [--second-tool MM [--second-force 0.5] [--second-basis single|paired|both]
+        | --pinch N | --oblique FRACTION]] [--out FILE.json]
 
 1. Bases from the training positions (all but every ``len/held-out``-th): the leading
    ``--modes`` left singular vectors of their stored states (``--basis campaign``), of the
@@ -47,6 +49,11 @@ states. With ``--frames``, each row's model also runs the held-out path as that 
 physics steps of a haptic loop (``haptic_frames``: the time of a step, how far its state
 lags the equilibrium).
 
+Load cases beside the campaign's (each held-out position's reference a full-order solve
+under it, and the nearby solves under the same kind of load): ``--second-tool`` (a second
+tool that far away), ``--pinch`` (nine forces at neighbouring nodes, thesis §3.4.3),
+``--oblique`` (a tangential force beside the tool's; the snapshots' in other directions).
+
 Prints a table; ``--out`` writes it as JSON. Serial. Units: mm, N, MPa.
 """
 
@@ -55,6 +62,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import h5py  # noqa: F401  (before dolfinx: see the README)
@@ -192,16 +200,8 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
                                           reach=reach) for d in np.eye(3)])  # fmt: skip
         near = np.argsort(np.linalg.norm(points - point, axis=1))[: args.local_neighbours]
         blocks = [(*neighbour_states(data, near, args.campaign_modes), args.campaign_modes)]
-        centres, forbidden, head = [point], [], {"position": i}
-        if args.second_tool:  # the reference: both tools at once; the basis: both regions
-            node, second = solver.second_tool(point, args.second_tool, args.second_force)
-            path = solver.two_tool_path(point, second)
-            centres.append(solver.surface.nodes[node])
-            forbidden = [solver.nearest(point), node]
-            head |= {"second_point": list(second[0]), "second_force": list(second[1])}
-            print(f"position {i:3d}: a second tool at {np.round(second[0], 3).tolist()} mm, "
-                  f"{np.linalg.norm(centres[1] - point):.2f} mm away, force "
-                  f"{np.round(second[1], 4).tolist()} N", flush=True)  # fmt: skip
+        path, centres, forbidden, head = held_out_case(solver, point, path, args)
+        head = {"position": i, **head}
         t = time.perf_counter()
         blocks += nearby_blocks(solver, centres, forbidden, args) if solver else []
         for U_solved, _, modes in blocks[1:]:
@@ -230,13 +230,43 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
     return results
 
 
+def held_out_case(solver, point, path, args) -> tuple:
+    """(path, centres, forbidden nodes, record) of a held-out position's load case: its
+    stored path (the campaign's tool alone); with ``--second-tool`` the full order under both
+    tools at once (the basis: about both); with ``--pinch`` or ``--oblique`` under that load
+    at its node (``NearbySolver.case_tools``). The forbidden nodes are the held-out tools'
+    own: no snapshot is centred there."""
+    if not (args.second_tool or args.pinch or args.oblique):
+        return path, [point], [], {}
+    node = solver.nearest(point)
+    if args.second_tool:
+        second_node, second = solver.second_tool(point, args.second_tool, args.second_force)
+        centres = [point, solver.surface.nodes[second_node]]
+        forbidden, tools = [node, second_node], [second]
+        print(f"  a second tool at {np.round(second[0], 3).tolist()} mm, "
+              f"{np.linalg.norm(centres[1] - point):.2f} mm away, force "
+              f"{np.round(second[1], 4).tolist()} N", flush=True)  # fmt: skip
+    else:
+        centres, forbidden, tools = [point], [node], solver.case_tools(node, args)
+        total = solver.tool(node, 1.0)[1] + np.sum([f for _, f in tools], axis=0)
+        print(f"  {'pinch' if args.pinch else 'oblique press'}: {len(tools) + 1} forces, total "
+              f"{np.round(total, 4).tolist()} N", flush=True)  # fmt: skip
+    head = {"tools": [[*p, *f] for p, f in tools]}
+    return solver.path(node, tools), centres, forbidden, head
+
+
 def nearby_blocks(solver, centres, forbidden, args) -> list[tuple]:
     """The full-order snapshots about the held-out tools (``centres``: one, or two with
     ``--second-tool``), a (states, pressures, modes kept) block each: ``--second-basis
     single``: the single-tool solves about each centre; ``paired``: one block of two-tool
     solves, the first tool at a node about the first centre and the second at a node about
     the second (the k-th of each, ``--second-force`` of the campaign's force along its
-    normal); ``both``: all three."""
+    normal); ``both``: all three. With ``--pinch`` or ``--oblique``: one block of that load
+    at each nearby node (the k-th oblique press along its own direction)."""
+    if args.pinch or args.oblique:  # the held-out load's kind at each nearby node
+        nodes = solver.nodes(centres[0], forbidden)
+        return [stacked([solver.solve(n, solver.case_tools(n, args, k))
+                         for k, n in enumerate(nodes)], args.state_modes)]  # fmt: skip
     basis = args.second_basis if len(centres) == 2 else "single"
     single = [(*solver.states(c, forbidden), args.state_modes) for c in centres
               if basis != "paired"]  # fmt: skip
@@ -245,9 +275,13 @@ def nearby_blocks(solver, centres, forbidden, args) -> list[tuple]:
     first = solver.nodes(centres[0], forbidden)  # never both tools on one node
     pairs = zip(first, solver.nodes(centres[1], [*forbidden, *first]), strict=True)
     solved = [solver.solve(a, tools=[solver.tool(b, args.second_force)]) for a, b in pairs]
-    paired = (np.vstack([d["displacement"] for d in solved]).T,
-              np.vstack([d["pressure"] for d in solved]).T, args.state_modes)  # fmt: skip
-    return single + [paired]
+    return single + [stacked(solved, args.state_modes)]
+
+
+def stacked(solved, modes) -> tuple:
+    """A block of solves: (states (N, k), pressures (cells, k), modes kept)."""
+    return (np.vstack([d["displacement"] for d in solved]).T,
+            np.vstack([d["pressure"] for d in solved]).T, modes)  # fmt: skip
 
 
 def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None):
@@ -402,7 +436,13 @@ class NearbySolver:
     snapshots of the region itself. The organ and its surface are read once."""
 
     def __init__(self, config, args):
-        self.config = config
+        if (args.pinch or args.oblique or args.second_tool) and config.load.mode != "force":
+            raise SystemExit("--second-tool, --pinch and --oblique add force tools: the "
+                             f"campaign's load is '{config.load.mode}', not force")  # fmt: skip
+        # --pinch: the campaign's tool at the centre node presses with a pinch's force
+        load = replace(config.load, magnitude=args.pinch) if args.pinch else config.load
+        self.config = replace(config, load=load)
+        self.oblique = args.oblique
         self.distances = args.local_solves
         self.per_distance = args.solves_per_distance
         self.surface = read_surface(config.problem.mesh.file, config.load.surface)
@@ -476,10 +516,39 @@ class NearbySolver:
         node = int(np.argmin(gap))
         return node, self.tool(node, fraction)
 
-    def two_tool_path(self, point, second) -> tuple:
-        """The full order under the campaign's tool at ``point`` (its nearest surface node)
-        and the ``second`` (point, force) at once: a held-out path as ``held_out_paths``'."""
-        data = self.solve(self.nearest(point), tools=[second])
+    def case_tools(self, node, args, k=None) -> list[tuple]:
+        """The further tools of a pinch or an oblique press at surface ``node`` (the
+        campaign's tool on it is the first force): ``--pinch``, the eight nearest free
+        loadable nodes, each pressing with the same force along the campaign's direction
+        there (thesis §3.4.3: nine neighbouring nodes, 0.014 N each; a snapshot's pinch,
+        centred 0.25 or 0.5 mm away, shares some of the held-out pinch's nodes, as a
+        single tool's nearby solves share its bump); ``--oblique``, a tangential force
+        on the same point, ``--oblique`` of the campaign's along the surface (the k-th
+        snapshot at azimuth k x 120 degrees from the tangent nearest x, the held-out press
+        (k None) at 45 degrees: a direction no snapshot has)."""
+        s = self.surface
+        if args.pinch:
+            distance = np.linalg.norm(s.nodes - s.nodes[node], axis=1)
+            distance[list(self.excluded) + [node]] = np.inf
+            nearest = np.argsort(distance)[:8]
+            if not np.isfinite(distance[nearest]).all():
+                raise SystemExit(f"--pinch: fewer than eight free loadable nodes beside "
+                                 f"surface node {s.node_tags[node]}")  # fmt: skip
+            return [self.tool(int(n), 1.0) for n in nearest]
+        normal = np.asarray(s.normals[node], float)
+        e1 = np.eye(3)[0] - normal[0] * normal  # x on the tangent plane
+        if np.linalg.norm(e1) < 0.1:  # a normal near x: y's
+            e1 = np.eye(3)[1] - normal[1] * normal
+        e1 /= np.linalg.norm(e1)
+        azimuth = np.radians(45.0 if k is None else 120.0 * k)
+        tangent = np.cos(azimuth) * e1 + np.sin(azimuth) * np.cross(normal, e1)
+        force = self.oblique * self.config.load.magnitude * tangent
+        return [(self.position(node).point, tuple(float(v) for v in force))]
+
+    def path(self, node, tools=()) -> tuple:
+        """The full order under the campaign's tool at surface ``node`` and the further
+        ``tools`` at once: a held-out path as ``held_out_paths``'."""
+        data = self.solve(node, tools=tools)
         f, U = data["load_vector"], data["displacement"]
         force = np.linalg.norm(f.reshape(-1, 3).sum(axis=0))
         return U, data["pressure"], f, data["load_factor"], U @ f / force, force
@@ -606,6 +675,13 @@ def parse_arguments() -> argparse.Namespace:
     parser.add_argument("--second-basis", choices=("single", "paired", "both"),
                         default="single", help="--second-tool: the solves about the two "
                         "tools: each alone, in pairs (both tools at once), or both")  # fmt: skip
+    parser.add_argument("--pinch", type=float, default=0.0,
+                        help="--local-solves: N, a held-out load of nine forces this large at "
+                        "neighbouring nodes (thesis §3.4.3: 0.014); the solves: pinches about "
+                        "it")  # fmt: skip
+    parser.add_argument("--oblique", type=float, default=0.0,
+                        help="--local-solves: a tangential force beside the tool's, this "
+                        "fraction of it; the solves: oblique presses about it")  # fmt: skip
     parser.add_argument("--indicator-modes", type=int, default=0,
                         help="--local-solves: the error indicator, on the basis enriched by "
                         "this many further POD modes of each block kept in it")  # fmt: skip
@@ -650,6 +726,13 @@ def check_arguments(parser, args) -> None:
     args.state_modes = args.state_modes or 0
     if args.second_tool and not args.local_solves or args.second_tool < 0:
         parser.error("--second-tool needs --local-solves, and a positive distance (mm)")
+    cases = [name for name in ("second_tool", "pinch", "oblique") if getattr(args, name)]
+    if len(cases) > 1:
+        parser.error("--second-tool, --pinch and --oblique: one load case at a time")
+    if (args.pinch or args.oblique) and not args.local_solves:
+        parser.error("--pinch and --oblique need --local-solves (the snapshots about the load)")
+    if not (np.isfinite(args.pinch) and args.pinch >= 0 and 0 <= args.oblique <= 10):
+        parser.error("--pinch: a force (N) > 0; --oblique: a fraction of the tool's, in (0, 10]")
     if args.indicator_modes and not args.local_solves or args.indicator_modes < 0:
         parser.error("--indicator-modes needs --local-solves, and a count >= 0")
     if not 0 < args.indicator_tolerance < 1:
