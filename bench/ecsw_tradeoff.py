@@ -442,7 +442,6 @@ class NearbySolver:
         # --pinch: the campaign's tool at the centre node presses with a pinch's force
         load = replace(config.load, magnitude=args.pinch) if args.pinch else config.load
         self.config = replace(config, load=load)
-        self.oblique = args.oblique
         self.distances = args.local_solves
         self.per_distance = args.solves_per_distance
         self.surface = read_surface(config.problem.mesh.file, config.load.surface)
@@ -542,7 +541,7 @@ class NearbySolver:
         e1 /= np.linalg.norm(e1)
         azimuth = np.radians(45.0 if k is None else 120.0 * k)
         tangent = np.cos(azimuth) * e1 + np.sin(azimuth) * np.cross(normal, e1)
-        force = self.oblique * self.config.load.magnitude * tangent
+        force = args.oblique * self.config.load.magnitude * tangent
         return [(self.position(node).point, tuple(float(v) for v in force))]
 
     def path(self, node, tools=()) -> tuple:
