@@ -271,12 +271,52 @@ def _mirror(K_uu):
             K_uu[column, row] = K_uu[row, column]
 
 
+@njit(inline="always")
+def _add_point(dN, dV, u, p, params, F, P, g, A, B, r_u, K_uu, K_up):
+    """One quadrature point's terms of r_u and (unless None) K_uu's upper block triangle and
+    K_up; returns its (rest + p theta, theta). Per point one law evaluation gives the mixed
+    stress dRest + p dTheta and tangent d2Rest + p d2Theta (rest weighted 1, kappa 0, theta
+    p), a second dTheta alone."""
+    _deformation_gradient(u, dN, F)
+    if K_uu is not None:
+        rest, theta = _evaluate(F, params, (1.0, 0.0, p), P, A)
+        _evaluate(F, params, _THETA, g, None)
+    else:
+        rest, theta = _evaluate(F, params, (1.0, 0.0, p), P, None)
+    for a in range(u.shape[0]):
+        g0, g1, g2 = dN[a, 0] * dV, dN[a, 1] * dV, dN[a, 2] * dV
+        for i in range(3):
+            r_u[3 * a + i] += P[i, 0] * g0 + P[i, 1] * g1 + P[i, 2] * g2
+            if K_uu is not None:
+                K_up[3 * a + i] += g[i, 0] * g0 + g[i, 1] * g1 + g[i, 2] * g2
+    if K_uu is not None:
+        _add_stiffness(dN, A, dV, B, K_uu)
+    return rest + p * theta, theta
+
+
+@njit(inline="always")
+def _start(r_u, K_uu, K_up):
+    r_u[:] = 0.0
+    if K_uu is not None:
+        K_uu[:, :] = 0.0
+        K_up[:] = 0.0
+
+
+@njit(inline="always")
+def _finish(p, inverse_kappa, energy, volumetric, volume, K_uu, scalars):
+    """K_uu's lower triangle and the scalars from the points' sums."""
+    if K_uu is not None:
+        _mirror(K_uu)
+    scalars[PRESSURE_RESIDUAL] = volumetric - p * inverse_kappa * volume
+    scalars[PRESSURE_STIFFNESS] = -volume * inverse_kappa
+    scalars[ENERGY] = energy - 0.5 * p * p * inverse_kappa * volume
+    scalars[VOLUME] = volume
+
+
 @njit(nogil=True)  # not inlined: the residual's None outputs prune their branches
 def _integrate(X, u, p, params, reference, weights, r_u, K_uu, K_up, scalars):
     """The element's r_u, scalars and (unless None) K_uu, K_up; see the module's formulas.
-
-    Per point one law evaluation gives the mixed stress dRest + p dTheta and tangent
-    d2Rest + p d2Theta (rest weighted 1, kappa 0, theta p), a second dTheta alone."""
+    The physical gradients are computed at every point from X (see _integrate_mapped)."""
     n = X.shape[0]
     dN = carray(_stack_doubles(81), (MAX_NODES, 3))  # 81 = 3 MAX_NODES: a literal for the stack
     F = carray(_stack_doubles(9), (3, 3))
@@ -284,37 +324,35 @@ def _integrate(X, u, p, params, reference, weights, r_u, K_uu, K_up, scalars):
     g = carray(_stack_doubles(9), (3, 3))
     A = carray(_stack_doubles(81), (9, 9))
     B = carray(_stack_doubles(27), (3, 9))
-    inverse_kappa = 1.0 / params[KAPPA]
-    r_u[:] = 0.0
-    if K_uu is not None:
-        K_uu[:, :] = 0.0
-        K_up[:] = 0.0
+    _start(r_u, K_uu, K_up)
     energy = volumetric = volume = 0.0
     for q in range(weights.shape[0]):
         dV = weights[q] * abs(_physical_gradients(X, reference, q, dN))
-        _deformation_gradient(u, dN, F)
-        if K_uu is not None:
-            rest, theta = _evaluate(F, params, (1.0, 0.0, p), P, A)
-            _evaluate(F, params, _THETA, g, None)
-        else:
-            rest, theta = _evaluate(F, params, (1.0, 0.0, p), P, None)
-        energy += dV * (rest + p * theta - 0.5 * p * p * inverse_kappa)
+        mixed, theta = _add_point(dN[:n], dV, u, p, params, F, P, g, A, B, r_u, K_uu, K_up)
+        energy += dV * mixed
         volumetric += dV * theta
         volume += dV
-        for a in range(n):
-            g0, g1, g2 = dN[a, 0] * dV, dN[a, 1] * dV, dN[a, 2] * dV
-            for i in range(3):
-                r_u[3 * a + i] += P[i, 0] * g0 + P[i, 1] * g1 + P[i, 2] * g2
-                if K_uu is not None:
-                    K_up[3 * a + i] += g[i, 0] * g0 + g[i, 1] * g1 + g[i, 2] * g2
-        if K_uu is not None:
-            _add_stiffness(dN[:n], A, dV, B, K_uu)
-    if K_uu is not None:
-        _mirror(K_uu)
-    scalars[PRESSURE_RESIDUAL] = volumetric - p * inverse_kappa * volume
-    scalars[PRESSURE_STIFFNESS] = -volume * inverse_kappa
-    scalars[ENERGY] = energy
-    scalars[VOLUME] = volume
+    _finish(p, 1.0 / params[KAPPA], energy, volumetric, volume, K_uu, scalars)
+
+
+@njit(inline="always")  # compiled into its caller, with its flags (hyperreduced's _SUMS)
+def _integrate_mapped(dN, dV, u, p, params, r_u, K_uu, K_up, scalars):
+    """:func:`_integrate` with the element's physical gradients dN (points, nodes, 3) and
+    point volumes dV (points,) given (:func:`element_geometry`'s): the same sums without
+    the map's Jacobian at every point, for a model that evaluates its elements many times."""
+    F = carray(_stack_doubles(9), (3, 3))
+    P = carray(_stack_doubles(9), (3, 3))
+    g = carray(_stack_doubles(9), (3, 3))
+    A = carray(_stack_doubles(81), (9, 9))
+    B = carray(_stack_doubles(27), (3, 9))
+    _start(r_u, K_uu, K_up)
+    energy = volumetric = volume = 0.0
+    for q in range(dV.shape[0]):
+        mixed, theta = _add_point(dN[q], dV[q], u, p, params, F, P, g, A, B, r_u, K_uu, K_up)
+        energy += dV[q] * mixed
+        volumetric += dV[q] * theta
+        volume += dV[q]
+    _finish(p, 1.0 / params[KAPPA], energy, volumetric, volume, K_uu, scalars)
 
 
 @njit(inline="always")
@@ -363,3 +401,25 @@ def element_residual_tangent(X, u, p, params, gradients, weights, r_u, K_uu, K_u
     if K_uu.shape[0] != m or K_uu.shape[1] != m or K_up.shape[0] != m:
         raise ValueError("an output array has the wrong shape (K_uu: 3 nodes square, K_up)")
     _integrate(X, u, p, params, gradients, weights, r_u, K_uu, K_up, scalars)
+
+
+@njit(f"void({ro_f8_3d}, {ro_f8_3d}, {ro_f8_1d}, float64[:, :, :, ::1], {f8_2d})", cache=True,
+      nogil=True)  # fmt: skip
+def element_geometry(X, gradients, weights, dN, dV):
+    """Each element's physical shape-function gradients dN[e, point] (nodes, 3; 1/mm) and
+    point volumes dV[e, point] = weight |det J| (mm^3), for E elements X (E, nodes, 3) of
+    the reference tabulation ``gradients``, ``weights``: what :func:`_integrate` computes at
+    every point, once (a hyper-reduced model's sampled elements, :mod:`.hyperreduced`)."""
+    E, n = X.shape[0], X.shape[1]
+    points = weights.shape[0]
+    if X.shape[2] != 3 or n < 1:  # no stack scratch here: any number of nodes
+        raise ValueError("X must be (elements, nodes, 3) with at least one node")
+    if gradients.shape[0] != points or gradients.shape[1] != n or gradients.shape[2] != 3:
+        raise ValueError("gradients must be (points, nodes, 3) with X's nodes, one weight a point")
+    if dN.shape[0] != E or dN.shape[1] != points or dN.shape[2] != n or dN.shape[3] != 3:
+        raise ValueError("dN must be (elements, points, nodes, 3) and dV (elements, points)")
+    if dV.shape[0] != E or dV.shape[1] != points:
+        raise ValueError("dN must be (elements, points, nodes, 3) and dV (elements, points)")
+    for e in range(E):
+        for q in range(points):
+            dV[e, q] = weights[q] * abs(_physical_gradients(X[e], gradients, q, dN[e, q]))

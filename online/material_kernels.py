@@ -262,10 +262,12 @@ def _weights(part, kappa, theta):
 
 # -- the laws: (rest, theta), writing P and A (unless None) as _weights says ----------------
 # Not inlined: each is compiled once per (P, A) kind and shared by the kernels (a None
-# output's branch is pruned at compile time). A tangent is symmetric: its upper triangle
-# is computed from 9-vectors in a stack buffer (a tuple indexed by a loop variable would
-# cost a branch per read) and mirrored.
-@njit(nogil=True)
+# output's branch is pruned at compile time). fastmath=False is explicit: numba otherwise
+# gives a callee the flags of whichever caller compiles it first (the hyper-reduced sums'
+# reassociation), so a law's rounding would depend on numba's cache state. A tangent is
+# symmetric: its upper triangle is computed from 9-vectors in a stack buffer (a tuple
+# indexed by a loop variable would cost a branch per read) and mirrored.
+@njit(nogil=True, fastmath=False)
 def _svk(Fa, params, part, P, A):
     """rest = mu E:E, theta = tr E, E = (F^T F - I)/2; dTheta = F, d2Theta = identity."""
     F = _matrix(Fa)
@@ -311,7 +313,7 @@ def _svk_tangent(work, wmu, b, c, A):
                     A[s, r] = v
 
 
-@njit(nogil=True)
+@njit(nogil=True, fastmath=False)
 def _neo_hookean(Fa, params, part, P, A):
     """rest = mu/2 (F:F - 3) - mu ln J, theta = ln J; dTheta = F^-T, d2Theta = -F^-1_jk F^-1_li."""
     F = _matrix(Fa)
@@ -355,7 +357,7 @@ def _fibre(I, k_stiff, k_exp, tension_only):
     return 0.5 * k_stiff / k_exp * e_minus_1, k_stiff * x * e, k_stiff * e * (1.0 + 2.0 * q)
 
 
-@njit(nogil=True)
+@njit(nogil=True, fastmath=False)
 def _hgo(Fa, params, part, P, A):
     """rest = C1/2 (I1b - 3) + C2/2 (I2b - 3) + fibre(I4b) + fibre(I6b), theta = ln J.
 

@@ -10,6 +10,7 @@ solve. Units: mm, N, MPa; displacement rows in the campaign's canonical order.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg
@@ -40,6 +41,16 @@ class MeshElements:
     cell: np.ndarray  # (E,) the element's canonical cell (pressure) index
     params: np.ndarray  # (E, PARAMETER_SIZE) packed law, each cell's fibres
     reference: ek.ReferenceElement
+
+    @cached_property
+    def geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every element's physical gradients (E, points, nodes, 3) and point volumes
+        (E, points), mm: ``element_kernels.element_geometry``'s, computed once."""
+        ref = self.reference
+        dN = np.empty((len(self.X), len(ref.weights), self.X.shape[1], 3))
+        dV = np.empty((len(self.X), len(ref.weights)))
+        ek.element_geometry(_readonly(self.X), ref.gradients, ref.weights, dN, dV)
+        return dN, dV
 
 
 def mesh_elements(mesh_file, material) -> MeshElements:
@@ -184,7 +195,10 @@ class HyperReducedModel:
     """R(q, pi) = 0 on the bases ``Phi`` (N, n) and ``Psi`` (cells, n_p) with the internal
     forces of the sampled ``elements`` (indices) and ``weights``; every element with weight
     1 if ``elements`` is None (the Galerkin model itself). ``split``: the linear part exact
-    (else sampled with the rest). ``rest``: :func:`rest_tangents`' output, if computed."""
+    (else sampled with the rest). ``rest``: :func:`rest_tangents`' output, if computed.
+    ``L_uu``, ``L_up``: the exact linear matrices over every element; ``linear``: the
+    tangent's constant part, with the hyperreduced module's L_q, L_qp (the exact matrices
+    less the sample's weighted share of them, which its kernels sum whole)."""
 
     def __init__(self, mesh: MeshElements, Phi, Psi, elements=None, weights=None,
                  split: bool = True, rest=None):  # fmt: skip
@@ -203,23 +217,25 @@ class HyperReducedModel:
         Psi_e = Psi[mesh.cell]  # (E, n_p)
         self.n, self.n_p = Phi.shape[1], Psi.shape[1]
         self.M = np.einsum("e,ek,el->kl", volumes / mesh.params[:, KAPPA], Psi_e, Psi_e)
-        if split:
-            self.L_uu = np.einsum("emi,emj->ij", Phi_e, np.einsum("emk,ekj->emj", K0, Phi_e))
-            self.L_up = np.einsum("emi,em,ek->ik", Phi_e, k0, Psi_e)
-        else:
-            self.L_uu, self.L_up = np.zeros((self.n, self.n)), np.zeros((self.n, self.n_p))
-            K0, k0 = np.zeros_like(K0), np.zeros_like(k0)
+        # the exact linear matrices, and the part of them the sampled sum holds
+        self.L_uu = np.einsum("emi,emj->ij", Phi_e, np.einsum("emk,ekj->emj", K0, Phi_e))
+        self.L_up = np.einsum("emi,em,ek->ik", Phi_e, k0, Psi_e)
         s = self.elements = elements.copy()  # the sampled elements' indices in the mesh
         s.flags.writeable = False
-        arrays = (mesh.X[s], Phi_e[s], Psi_e[s], mesh.params[s], weights, K0[s], k0[s])
+        n, size = self.n, self.n + self.n_p
+        self.linear = np.zeros((size, size))  # the tangent's constant part (module doc)
+        if split:
+            K0_Phi = np.einsum("emk,ekj->emj", K0[s], Phi_e[s])
+            self.linear[:n, :n] = self.L_uu - np.einsum("e,emi,emj->ij", weights, Phi_e[s], K0_Phi)
+            self.linear[:n, n:] = self.L_up - np.einsum("e,emi,em,ek->ik", weights, Phi_e[s],
+                                                        k0[s], Psi_e[s])  # fmt: skip
+        self.linear[n:, :n], self.linear[n:, n:] = self.linear[:n, n:].T, -self.M
+        dN, dV = mesh.geometry
+        arrays = (dN[s], dV[s], Phi_e[s], Psi_e[s], mesh.params[s], weights)
         self.sample = tuple(_readonly(a) for a in arrays)
-        self.reference = mesh.reference
+        self.rest = (_readonly(K0[s]), _readonly(k0[s])) if split else None
         self.scratch = Scratch(mesh.X.shape[1], self.n)
-        size = self.n + self.n_p
         self.r, self.K = np.empty(size), np.empty((size, size))
-        n, self.linear = self.n, np.zeros((size, size))  # the tangent's exact linear part
-        self.linear[:n, :n], self.linear[:n, n:] = self.L_uu, self.L_up
-        self.linear[n:, :n], self.linear[n:, n:] = self.L_up.T, -self.M
 
     @property
     def sampled_elements(self) -> int:
@@ -227,39 +243,38 @@ class HyperReducedModel:
 
     def residual_tangent(self, q, pi, load) -> tuple[np.ndarray, np.ndarray]:
         """(R, dR/d(q, pi)) at (q, pi) under the reduced load ``load`` (n,), N."""
-        ref = self.reference
-        sampled_residual_tangent(*self.sample, ref.gradients, ref.weights,
-                                 np.ascontiguousarray(q, float), np.ascontiguousarray(pi, float),
-                                 self.r, self.K, *self.scratch.buffers())  # fmt: skip
+        sampled_residual_tangent(*self.sample, np.ascontiguousarray(q, float),
+                                 np.ascontiguousarray(pi, float), self.r, self.K,
+                                 *self.scratch.buffers())  # fmt: skip
         return self._with_linear_part(self.r, q, pi, load), self.K + self.linear
 
     def residual(self, q, pi, load) -> np.ndarray:
         """R at (q, pi) under ``load`` without the tangent (a modified Newton's iterations)."""
-        ref, scratch = self.reference, self.scratch
-        sampled_residual(*self.sample, ref.gradients, ref.weights, np.ascontiguousarray(q, float),
+        scratch = self.scratch
+        sampled_residual(*self.sample, np.ascontiguousarray(q, float),
                          np.ascontiguousarray(pi, float), self.r, scratch.u, scratch.r_u,
                          scratch.scalars)  # fmt: skip
         return self._with_linear_part(self.r, q, pi, load)
 
     def _with_linear_part(self, sampled, q, pi, load) -> np.ndarray:
-        """The sampled residual plus its exact linear part and the load (a new array)."""
+        """The sampled residual plus the constant tangent's part and the load (a new array)."""
         n, r = self.n, sampled.copy()
-        r[:n] += self.L_uu @ q + self.L_up @ pi - load
-        r[n:] += self.L_up.T @ q - self.M @ pi
+        r += self.linear[:, :n] @ q + self.linear[:, n:] @ pi
+        r[:n] -= load
         return r
 
     def linear_tangent(self) -> np.ndarray:
-        """The exact linear part of dR/d(q, pi): [[L_uu, L_up], [L_up^T, -M]] (a new array)."""
+        """The constant part of dR/d(q, pi): [[L_q, L_qp], [L_qp^T, -M]] (a new array; the
+        module's L_q, L_qp: the exact linear matrices less the sample's share of them)."""
         return self.linear.copy()
 
     def sampled_tangent(self, q, pi, part: slice) -> np.ndarray:
         """The sampled sum's dR/d(q, pi) over the sampled elements ``part`` alone (no linear
         part): a slice of the tangent, for a tangent built over several steps."""
-        ref, scratch = self.reference, self.scratch
         sample = tuple(a[part] for a in self.sample)
-        sampled_residual_tangent(*sample, ref.gradients, ref.weights,
-                                 np.ascontiguousarray(q, float), np.ascontiguousarray(pi, float),
-                                 self.r, self.K, *scratch.buffers())  # fmt: skip
+        sampled_residual_tangent(*sample, np.ascontiguousarray(q, float),
+                                 np.ascontiguousarray(pi, float), self.r, self.K,
+                                 *self.scratch.buffers())  # fmt: skip
         return self.K.copy()
 
     def solve(self, load, factors, tolerance: float = 1e-9, max_iterations: int = 30,
@@ -349,8 +364,9 @@ class HapticNewton:
     ``iterations`` modified Newton iterations (the residual alone) with the last factorised
     tangent, then the tangent of one of ``slices`` parts of the sampled elements at the
     step's state. When the parts are complete, their sum (each from its own step, the last
-    ``slices`` steps) with the exact linear part is factorised and used from the next step:
-    a tangent at most 2 ``slices`` steps old, at a cost a step of 1 / ``slices`` of one.
+    ``slices`` steps) with the model's constant part (``linear_tangent``) is factorised and
+    used from the next step: a tangent at most 2 ``slices`` steps old, at a cost a step of
+    1 / ``slices`` of one.
     The state lags equilibrium by what the iterations leave; the first tangent is the
     rest's. ``last_update``: the last iteration's |delta q| / |q|."""
 
@@ -399,14 +415,16 @@ def training_matrix(mesh: MeshElements, Phi, Psi, states, split: bool = True, re
     the norm of their full sums over the states, so that both weigh alike (the pressure
     rows are mm^3, the others N). Returns (G, the scale of a state's n + n_p rows)."""
     everything = HyperReducedModel(mesh, Phi, Psi, split=split, rest=rest)
-    ref, n, n_p = mesh.reference, everything.n, everything.n_p
-    scratch = everything.scratch
+    n, n_p, scratch = everything.n, everything.n_p, everything.scratch
+    rows = everything.sample[2]
+    rest_terms = everything.rest or (_readonly(np.zeros(rows.shape[:2] + rows.shape[1:2])),
+                                     _readonly(np.zeros(rows.shape[:2])))  # fmt: skip
     out = np.empty((len(mesh.X), n + n_p))
     blocks = []
     for q, pi in states:
-        element_contributions(*everything.sample, ref.gradients, ref.weights,
-                              np.ascontiguousarray(q, float), np.ascontiguousarray(pi, float),
-                              out, scratch.u, scratch.r_u, scratch.scalars)  # fmt: skip
+        element_contributions(*everything.sample, *rest_terms, np.ascontiguousarray(q, float),
+                              np.ascontiguousarray(pi, float), out, scratch.u, scratch.r_u,
+                              scratch.scalars)  # fmt: skip
         blocks.append(out.T.copy())
     G = np.vstack(blocks)
     sums = G.sum(axis=1).reshape(-1, n + n_p)
