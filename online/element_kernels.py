@@ -313,17 +313,21 @@ def _finish(p, inverse_kappa, energy, volumetric, volume, K_uu, scalars):
     scalars[VOLUME] = volume
 
 
+@njit(inline="always")  # inlined: the buffers are on the integrating function's stack
+def _point_scratch():
+    """A point's buffers: F, P, g (3, 3), A (9, 9), B (3, 9)."""
+    return (carray(_stack_doubles(9), (3, 3)), carray(_stack_doubles(9), (3, 3)),
+            carray(_stack_doubles(9), (3, 3)), carray(_stack_doubles(81), (9, 9)),
+            carray(_stack_doubles(27), (3, 9)))  # fmt: skip
+
+
 @njit(nogil=True)  # not inlined: the residual's None outputs prune their branches
 def _integrate(X, u, p, params, reference, weights, r_u, K_uu, K_up, scalars):
     """The element's r_u, scalars and (unless None) K_uu, K_up; see the module's formulas.
     The physical gradients are computed at every point from X (see _integrate_mapped)."""
     n = X.shape[0]
     dN = carray(_stack_doubles(81), (MAX_NODES, 3))  # 81 = 3 MAX_NODES: a literal for the stack
-    F = carray(_stack_doubles(9), (3, 3))
-    P = carray(_stack_doubles(9), (3, 3))
-    g = carray(_stack_doubles(9), (3, 3))
-    A = carray(_stack_doubles(81), (9, 9))
-    B = carray(_stack_doubles(27), (3, 9))
+    F, P, g, A, B = _point_scratch()
     _start(r_u, K_uu, K_up)
     energy = volumetric = volume = 0.0
     for q in range(weights.shape[0]):
@@ -340,11 +344,7 @@ def _integrate_mapped(dN, dV, u, p, params, r_u, K_uu, K_up, scalars):
     """:func:`_integrate` with the element's physical gradients dN (points, nodes, 3) and
     point volumes dV (points,) given (:func:`element_geometry`'s): the same sums without
     the map's Jacobian at every point, for a model that evaluates its elements many times."""
-    F = carray(_stack_doubles(9), (3, 3))
-    P = carray(_stack_doubles(9), (3, 3))
-    g = carray(_stack_doubles(9), (3, 3))
-    A = carray(_stack_doubles(81), (9, 9))
-    B = carray(_stack_doubles(27), (3, 9))
+    F, P, g, A, B = _point_scratch()
     _start(r_u, K_uu, K_up)
     energy = volumetric = volume = 0.0
     for q in range(dV.shape[0]):
