@@ -87,7 +87,6 @@ from hapticrom.offline.fe.organ import load_organ
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_indicator import error_indicator
 from hapticrom.offline.reduce.ecsw_model import (
-    HapticNewton,
     HyperReducedModel,
     ModifiedNewton,
     group_nodes,
@@ -98,6 +97,7 @@ from hapticrom.offline.reduce.ecsw_model import (
     supremizers,
     training_matrix,
 )
+from hapticrom.online.haptic_newton import HapticNewton
 
 
 def bases(store, training, args, mesh, rest, config):
@@ -379,7 +379,7 @@ def haptic_frames(model, Phi, path, args) -> dict:
         return {}
     if args.frame_solver == "haptic":
         slices = min(args.tangent_slices, model.sampled_elements)
-        solver = HapticNewton(model, args.frame_iterations, slices)
+        solver = HapticNewton(model.sample, model.linear, args.frame_iterations, slices)
 
         def step(q, pi, load):
             if not solver.step(q, pi, load):
@@ -669,8 +669,8 @@ def parse_arguments() -> argparse.Namespace:
     parser.add_argument("--second-tool", type=float, default=0.0,
                         help="--local-solves: mm, a second tool this far from each held-out "
                         "position, loaded with it; the solves about both")  # fmt: skip
-    parser.add_argument("--second-force", type=float, default=0.5,
-                        help="--second-tool: its force, of the campaign's")  # fmt: skip
+    parser.add_argument("--second-force", type=float, default=None,
+                        help="--second-tool: its force, of the campaign's (0.5)")  # fmt: skip
     parser.add_argument("--second-basis", choices=("single", "paired", "both"),
                         default="single", help="--second-tool: the solves about the two "
                         "tools: each alone, in pairs (both tools at once), or both")  # fmt: skip
@@ -740,6 +740,9 @@ def check_arguments(parser, args) -> None:
         parser.error("--indicator-apart needs --indicator-modes and ECSW --tolerances")
     if args.second_basis != "single" and not args.second_tool:
         parser.error("--second-basis needs --second-tool")
+    if args.second_force is not None and not args.second_tool:
+        parser.error("--second-force needs --second-tool")
+    args.second_force = 0.5 if args.second_force is None else args.second_force
     if not 0 < args.second_force <= 10:
         parser.error("--second-force: a fraction of the campaign's force, in (0, 10]")
     if args.frames and not args.local or args.frames < 0:

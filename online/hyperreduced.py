@@ -156,6 +156,32 @@ def _nonlinear_part(K0, k0, s, u, p, r_u, theta):
     return theta
 
 
+@njit(inline="always")
+def _residual_sum(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, u, r_u, scalars):
+    """r = the sum over the sampled elements first..last - 1 (shapes checked by the caller)."""
+    r[:] = 0.0
+    for s in range(first, last):
+        p = _element_state(Phi, Psi, s, q, pi, u)
+        _integrate_mapped(dN[s], dV[s], u, p, params[s], r_u, None, None, scalars)
+        _add_projected(Phi, Psi, s, weights[s], _theta(scalars, p, params[s, KAPPA]), r_u, r)
+
+
+@njit(inline="always")
+def _tangent_sum(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, K, u, r_u, K_uu,
+                 K_up, scalars, T):  # fmt: skip
+    """r and K = the sums over the sampled elements first..last - 1 (shapes checked by the
+    caller): a whole tangent, or a slice of one (:mod:`.haptic_newton`)."""
+    r[:] = 0.0
+    K[:, :] = 0.0
+    for s in range(first, last):
+        p = _element_state(Phi, Psi, s, q, pi, u)
+        _integrate_mapped(dN[s], dV[s], u, p, params[s], r_u, K_uu, K_up, scalars)
+        theta = _theta(scalars, p, params[s, KAPPA])
+        _add_projected(Phi, Psi, s, weights[s], theta, r_u, r)
+        _add_projected_tangent(Phi, Psi, s, weights[s], K_uu, K_up, T, K)
+    _symmetrize(K)
+
+
 _RO = "Array(float64, {}, 'C', readonly=True)"
 _F8_1D, _F8_2D = "float64[::1]", "float64[:, ::1]"
 # dN, dV, Phi, Psi, params, weights
@@ -187,6 +213,18 @@ def _check_element_scratch(m, u, r_u, scalars):
         raise ValueError("the scratch does not fit these elements and modes (Scratch)")
 
 
+@njit(inline="always")
+def _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, T):
+    """r (n + n_p,), K square of that size and a Scratch for m element rows and n modes."""
+    if r.shape[0] != n + n_p or K.shape[0] != n + n_p or K.shape[1] != n + n_p:
+        raise ValueError("r must be (n + n_p,) and K square of that size")
+    _check_element_scratch(m, u, r_u, scalars)
+    if K_uu.shape[0] != m or K_uu.shape[1] != m or K_up.shape[0] != m:
+        raise ValueError("the scratch does not fit these elements and modes (Scratch)")
+    if T.shape[0] != m or T.shape[1] != n:
+        raise ValueError("the scratch does not fit these elements and modes (Scratch)")
+
+
 @njit(f"void({_SAMPLE}, {_STATE}, {_F8_1D}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_2D}, {_F8_1D}, "
       f"{_F8_1D}, {_F8_2D})", cache=True, nogil=True, fastmath=_SUMS)  # fmt: skip
 def sampled_residual_tangent(dN, dV, Phi, Psi, params, weights, q, pi, r, K, u, r_u, K_uu,
@@ -196,22 +234,9 @@ def sampled_residual_tangent(dN, dV, Phi, Psi, params, weights, q, pi, r, K, u, 
     S, m, n = Phi.shape
     n_p = Psi.shape[1]
     _check_sample(dN, dV, Phi, Psi, params, weights, q, pi)
-    if r.shape[0] != n + n_p or K.shape[0] != n + n_p or K.shape[1] != n + n_p:
-        raise ValueError("r must be (n + n_p,) and K square of that size")
-    _check_element_scratch(m, u, r_u, scalars)
-    if K_uu.shape[0] != m or K_uu.shape[1] != m or K_up.shape[0] != m:
-        raise ValueError("the scratch does not fit these elements and modes (Scratch)")
-    if T.shape[0] != m or T.shape[1] != n:
-        raise ValueError("the scratch does not fit these elements and modes (Scratch)")
-    r[:] = 0.0
-    K[:, :] = 0.0
-    for s in range(S):
-        p = _element_state(Phi, Psi, s, q, pi, u)
-        _integrate_mapped(dN[s], dV[s], u, p, params[s], r_u, K_uu, K_up, scalars)
-        theta = _theta(scalars, p, params[s, KAPPA])
-        _add_projected(Phi, Psi, s, weights[s], theta, r_u, r)
-        _add_projected_tangent(Phi, Psi, s, weights[s], K_uu, K_up, T, K)
-    _symmetrize(K)
+    _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, T)
+    _tangent_sum(dN, dV, Phi, Psi, params, weights, 0, S, q, pi, r, K, u, r_u, K_uu, K_up,
+                 scalars, T)  # fmt: skip
 
 
 @njit(f"void({_SAMPLE}, {_STATE}, {_F8_1D}, {_F8_2D}, {_F8_1D}, {_F8_1D})", cache=True,
@@ -226,11 +251,7 @@ def sampled_residual(dN, dV, Phi, Psi, params, weights, q, pi, r, u, r_u, scalar
     if r.shape[0] != n + n_p:
         raise ValueError("r must be (n + n_p,)")
     _check_element_scratch(m, u, r_u, scalars)
-    r[:] = 0.0
-    for s in range(S):
-        p = _element_state(Phi, Psi, s, q, pi, u)
-        _integrate_mapped(dN[s], dV[s], u, p, params[s], r_u, None, None, scalars)
-        _add_projected(Phi, Psi, s, weights[s], _theta(scalars, p, params[s, KAPPA]), r_u, r)
+    _residual_sum(dN, dV, Phi, Psi, params, weights, 0, S, q, pi, r, u, r_u, scalars)
 
 
 @njit(f"void({_SAMPLE}, {_RO.format(3)}, {_RO.format(2)}, {_STATE}, {_F8_2D}, {_F8_2D}, "

@@ -19,7 +19,6 @@ from hapticrom.offline.campaign.store import SnapshotStore
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_indicator import enriched_basis, error_indicator
 from hapticrom.offline.reduce.ecsw_model import (
-    HapticNewton,
     HyperReducedModel,
     ModifiedNewton,
     condensed_internal_force,
@@ -33,6 +32,7 @@ from hapticrom.offline.reduce.ecsw_model import (
 )
 from hapticrom.online import element_kernels as ek
 from hapticrom.online import material_kernels as mk
+from hapticrom.online.haptic_newton import HapticNewton
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial
@@ -243,7 +243,7 @@ def test_haptic_steps_settle_on_the_equilibrium(campaign):
     model, Phi, (_, _, f, factors) = sampled_on_both(campaign)
     load = Phi.T @ f
     expected = model.solve(load, factors, tolerance=1e-12)[0][-1]
-    haptic = HapticNewton(model, iterations=1, slices=3)
+    haptic = HapticNewton(model.sample, model.linear, iterations=1, slices=3)
     q, pi = np.zeros(model.n), np.zeros(model.n_p)
     for factor in np.linspace(0.0, factors[-1], 41)[1:]:
         haptic.step(q, pi, factor * load)
@@ -261,19 +261,21 @@ def test_newtons_refuse_a_step_that_leaves_the_finite_numbers(campaign):
     model, Phi, (_, _, f, _) = sampled_on_both(campaign)
     q, pi = np.zeros(model.n), np.zeros(model.n_p)
     bad = np.full(model.n, np.nan)
-    haptic = HapticNewton(model, iterations=1, slices=2)
+    haptic = HapticNewton(model.sample, model.linear, iterations=1, slices=2)
     assert haptic.step(q, pi, 0.1 * (Phi.T @ f))
     q0, pi0, part, building = q.copy(), pi.copy(), haptic.part, haptic.building.copy()
+    lu, pivots = haptic.lu.copy(), haptic.pivots.copy()
     assert not haptic.step(q, pi, bad)
     assert np.array_equal(q, q0) and np.array_equal(pi, pi0)
     assert haptic.part == part and np.array_equal(haptic.building, building)
+    assert np.array_equal(haptic.lu, lu) and np.array_equal(haptic.pivots, pivots)
     newton = ModifiedNewton(model)
     assert newton.frame(q, pi, 0.1 * (Phi.T @ f)) is not None
     q0, factors = q.copy(), newton.factors
     assert newton.frame(q, pi, bad) is None
     assert np.array_equal(q, q0) and newton.factors is factors
     with pytest.raises(InputError, match="slices"):
-        HapticNewton(model, slices=model.sampled_elements + 1)
+        HapticNewton(model.sample, model.linear, slices=model.sampled_elements + 1)
 
 
 def test_training_columns_sum_to_the_model(campaign):

@@ -11,10 +11,6 @@ kernels themselves, bad shapes, and no allocation in a runtime free of the FE st
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import textwrap
 from types import SimpleNamespace
 
 import basix
@@ -22,6 +18,7 @@ import numpy as np
 import pytest
 import scipy.sparse
 import ufl
+from allocation_probe import BLOCK_FE_STACK, run_probe
 from conftest import reseed
 from dolfinx import fem, mesh
 from dolfinx.fem.petsc import assemble_matrix
@@ -384,18 +381,7 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
     """Compiled afresh (an empty numba cache) with the finite-element stack and scipy
     blocked; then numba's allocation counters (which see an allocating canary) do not
     move over 1000 calls of each kernel."""
-    code = textwrap.dedent("""
-        import sys, importlib.abc
-        class _Block(importlib.abc.MetaPathFinder):
-            BLOCKED = ("scipy", "dolfinx", "petsc4py", "slepc4py", "mpi4py", "ufl", "gmsh",
-                       "matplotlib", "basix", "ffcx")
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in self.BLOCKED:
-                    raise ModuleNotFoundError(f"No module named {name!r}", name=name)
-        sys.meta_path.insert(0, _Block())
-        import numpy as np
-        from numba import njit
-        from numba.core.runtime import rtsys
+    body = """
         from hapticrom.online import element_kernels as ek, material_kernels as mk
 
         @njit
@@ -408,18 +394,6 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
                 total += s[0]
             return total
 
-        @njit
-        def allocating(n):  # the counters' canary: one array per iteration
-            total = 0.0
-            for _ in range(n):
-                total += np.ones(3)[0]
-            return total
-
-        allocating(1)
-        before = rtsys.get_allocation_stats().alloc
-        allocating(100)
-        assert rtsys.get_allocation_stats().alloc - before == 100
-
         fibres = dict(m0=np.array([1.0, 0.0, 0.0]), n0=np.array([0.0, 1.0, 0.0]))
         laws = [mk.law_parameters("svk", E=1.0, nu=0.3),
                 mk.law_parameters("neo-hookean", E=1.0, nu=0.3),
@@ -431,20 +405,9 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
             m = X.size
             buffers = (np.empty(m), np.empty((m, m)), np.empty(m), np.empty(ek.SCALAR_SIZE))
             for params in laws:
-                arguments = (X, u, params, ref.gradients, ref.weights, *buffers)
-                run(*arguments, 1)  # compile the driver
-                before = rtsys.get_allocation_stats()
-                run(*arguments, 1)
-                once = rtsys.get_allocation_stats()
-                run(*arguments, 1000)
-                after = rtsys.get_allocation_stats()
-                per_call = [b - a for a, b in zip(before, once)]  # the arguments' boxing only
-                assert [b - a for a, b in zip(once, after)] == per_call, (before, once, after)
+                same_allocations(run, X, u, params, ref.gradients, ref.weights, *buffers)
         loaded = [m for m in ("ufl", "dolfinx", "scipy", "petsc4py") if m in sys.modules]
         assert not loaded, loaded
         print("ok")
-    """)
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "NUMBA_NRT_STATS": "1"}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                          timeout=900)  # fmt: skip
-    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+    """
+    run_probe(body, BLOCK_FE_STACK, {"NUMBA_CACHE_DIR": str(tmp_path / "numba")})

@@ -13,15 +13,12 @@ reused scratch, wrong shapes refused before writing, no allocation.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import textwrap
 from dataclasses import dataclass
 from itertools import cycle
 
 import numpy as np
 import pytest
+from allocation_probe import run_probe
 from conftest import reseed
 
 from hapticrom.online import element_kernels as ek
@@ -531,10 +528,7 @@ def test_allocates_nothing():
     """numba's allocation counters (which see an allocating canary) move as much over 1000
     calls of the kernels (with and without the tangent) from a compiled driver as over one:
     the boxing of the driver's arguments only."""
-    code = textwrap.dedent("""
-        import numpy as np
-        from numba import njit
-        from numba.core.runtime import rtsys
+    body = """
         from hapticrom.online import element_kernels as ek, material_kernels as mk
         from hapticrom.online.hyperreduced import (
             Scratch, sampled_residual, sampled_residual_tangent)
@@ -549,18 +543,6 @@ def test_allocates_nothing():
                 sampled_residual(dN, dV, Phi, Psi, params, w, q, pi, r, u, r_u, scalars)
                 total += r[0]
             return total
-
-        @njit
-        def allocating(n):  # the counters' canary: one array per iteration
-            total = 0.0
-            for _ in range(n):
-                total += np.ones(3)[0]
-            return total
-
-        allocating(1)
-        before = rtsys.get_allocation_stats().alloc
-        allocating(100)
-        assert rtsys.get_allocation_stats().alloc - before == 100
 
         def readonly(a):
             a = np.array(a, dtype=np.float64, order="C")
@@ -584,18 +566,8 @@ def test_allocates_nothing():
                       readonly(rng.standard_normal(n)), readonly(0.1 * rng.standard_normal(n_p)),
                       np.empty(n + n_p), np.empty((n + n_p, n + n_p)),
                       *Scratch(len(ref.nodes), n).buffers())
-            run(*inputs, 1)  # compile the driver
-            before = rtsys.get_allocation_stats()
-            run(*inputs, 1)
-            once = rtsys.get_allocation_stats()
-            run(*inputs, 1000)
-            after = rtsys.get_allocation_stats()
-            per_call = [b - a for a, b in zip(before, once)]
-            assert [b - a for a, b in zip(once, after)] == per_call, (before, once, after)
+            same_allocations(run, *inputs)
             assert np.isfinite(inputs[8]).all()
         print("ok")
-    """)
-    env = {**os.environ, "NUMBA_NRT_STATS": "1"}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                          timeout=900)  # fmt: skip
-    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+    """
+    run_probe(body)

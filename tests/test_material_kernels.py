@@ -11,14 +11,10 @@ of the finite-element stack.
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import textwrap
-
 import numpy as np
 import pytest
 import ufl
+from allocation_probe import BLOCK_FE_STACK, run_probe
 from dolfinx import fem, mesh
 from mpi4py import MPI
 
@@ -384,18 +380,7 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
     """Compiled afresh (an empty numba cache) with the finite-element stack and scipy
     blocked; then numba's allocation counters (which see an allocating canary) do not
     move over 1000 calls of each kernel."""
-    code = textwrap.dedent("""
-        import sys, importlib.abc
-        class _Block(importlib.abc.MetaPathFinder):
-            BLOCKED = ("scipy", "dolfinx", "petsc4py", "slepc4py", "mpi4py", "ufl", "gmsh",
-                       "matplotlib", "basix", "ffcx")
-            def find_spec(self, name, path=None, target=None):
-                if name.split(".")[0] in self.BLOCKED:
-                    raise ModuleNotFoundError(f"No module named {name!r}", name=name)
-        sys.meta_path.insert(0, _Block())
-        import numpy as np
-        from numba import njit
-        from numba.core.runtime import rtsys
+    body = """
         from hapticrom.online import material_kernels as mk
 
         @njit
@@ -410,18 +395,6 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
                 total += mk.theta_derivatives(F, params, g, H)
             return total
 
-        @njit
-        def allocating(n):  # the counters' canary: one array per iteration
-            total = 0.0
-            for _ in range(n):
-                total += np.ones(3)[0]
-            return total
-
-        allocating(1)
-        before = rtsys.get_allocation_stats().alloc
-        allocating(100)
-        assert rtsys.get_allocation_stats().alloc - before == 100
-
         F = np.eye(3) + 0.1 * np.arange(9.0).reshape(3, 3) / 9
         fibres = dict(m0=np.array([1.0, 0.0, 0.0]), n0=np.array([0.0, 1.0, 0.0]))
         laws = [mk.law_parameters("svk", E=1.0, nu=0.3),
@@ -429,19 +402,9 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
                 mk.law_parameters("hgo", **fibres, C2=0.1, fibre_tension_only=True)]
         buffers = (np.empty((3, 3)), np.empty((9, 9)), np.empty((3, 3)), np.empty((9, 9)))
         for params in laws:
-            run(F, params, *buffers, 1)  # compile the driver
-            before = rtsys.get_allocation_stats()
-            run(F, params, *buffers, 1)
-            once = rtsys.get_allocation_stats()
-            run(F, params, *buffers, 1000)
-            after = rtsys.get_allocation_stats()
-            per_call = [b - a for a, b in zip(before, once)]  # the arguments' boxing only
-            assert [b - a for a, b in zip(once, after)] == per_call, (before, once, after)
+            same_allocations(run, F, params, *buffers)
         loaded = [m for m in ("ufl", "dolfinx", "scipy", "petsc4py") if m in sys.modules]
         assert not loaded, loaded
         print("ok")
-    """)
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "numba"), "NUMBA_NRT_STATS": "1"}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
-                          timeout=900)  # fmt: skip
-    assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stderr[-2000:]
+    """
+    run_probe(body, BLOCK_FE_STACK, {"NUMBA_CACHE_DIR": str(tmp_path / "numba")})

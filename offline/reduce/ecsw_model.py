@@ -359,55 +359,6 @@ class ModifiedNewton:
         return None
 
 
-class HapticNewton:
-    """A physics step of fixed cost, for a haptic loop on a :class:`HyperReducedModel`:
-    ``iterations`` modified Newton iterations (the residual alone) with the last factorised
-    tangent, then the tangent of one of ``slices`` parts of the sampled elements at the
-    step's state. When the parts are complete, their sum (each from its own step, the last
-    ``slices`` steps) with the model's constant part (``linear_tangent``) is factorised and
-    used from the next step: a tangent at most 2 ``slices`` steps old, at a cost a step of
-    1 / ``slices`` of one.
-    The state lags equilibrium by what the iterations leave; the first tangent is the
-    rest's. ``last_update``: the last iteration's |delta q| / |q|."""
-
-    def __init__(self, model: HyperReducedModel, iterations: int = 2, slices: int = 10):
-        if iterations < 1 or not 1 <= slices <= model.sampled_elements:
-            raise InputError("iterations must be at least 1, slices 1 to the sampled elements")
-        self.model, self.iterations = model, iterations
-        self.bounds = np.linspace(0, model.sampled_elements, slices + 1).astype(np.int64)
-        zeros_q, zeros_pi = np.zeros(model.n), np.zeros(model.n_p)
-        self.factors = scipy.linalg.lu_factor(model.residual_tangent(zeros_q, zeros_pi,
-                                                                     zeros_q)[1])  # fmt: skip
-        self.building = model.linear_tangent()  # the tangent being summed, part by part
-        self.part = 0  # the next part to add
-        self.last_update = np.inf
-
-    def step(self, q, pi, load) -> bool:
-        """One physics step under ``load`` from (q, pi), updated in place; False if the
-        residual or the tangent's part left the finite numbers (then nothing changed)."""
-        n = self.model.n
-        x, y = q.copy(), pi.copy()
-        for _ in range(self.iterations):
-            r = self.model.residual(x, y, load)
-            if not np.isfinite(r).all():
-                return False
-            delta = scipy.linalg.lu_solve(self.factors, -r)
-            x += delta[:n]
-            y += delta[n:]
-        part = slice(self.bounds[self.part], self.bounds[self.part + 1])
-        tangent = self.model.sampled_tangent(x, y, part)
-        if not np.isfinite(tangent).all():
-            return False
-        q[:], pi[:] = x, y
-        self.last_update = float(np.linalg.norm(delta[:n]) / max(np.linalg.norm(x), 1e-300))
-        self.building += tangent
-        self.part += 1
-        if self.part == len(self.bounds) - 1:
-            self.factors = scipy.linalg.lu_factor(self.building)
-            self.building, self.part = self.model.linear_tangent(), 0
-        return True
-
-
 def training_matrix(mesh: MeshElements, Phi, Psi, states, split: bool = True, rest=None):
     """ECSW's G for the model on ``Phi``, ``Psi``: column e stacks element e's sampled
     contribution (unweighted) at each of ``states``, reduced coordinates (q, pi); rows

@@ -1,0 +1,247 @@
+"""A physics step of fixed cost for a haptic loop on a hyper-reduced model (issue 18), in
+one compiled call: no Python, LAPACK or allocation between the sums.
+
+The model is :mod:`.hyperreduced`'s: R(q, pi) = the sampled sums + ``linear`` (q, pi) -
+(load, 0), its tangent the sampled sums' derivative + ``linear``. A step from (q, pi):
+
+1. ``iterations`` modified Newton iterations on the residual alone, with the last
+   factorised tangent;
+2. the tangent of one part of the sampled elements (``bounds[part]`` to
+   ``bounds[part + 1]``) at the step's new state, added to the tangent being built; after
+   the last part, that tangent (with ``linear``) factorised for the next steps.
+
+The factorised tangent is therefore at most 2 x parts steps old; the state lags equilibrium
+by what the iterations leave (it settles on it once the load holds). The first tangent is
+the rest's (:class:`HapticNewton`). The factorisation is not given a step of its own: one
+more step of age made the held steps diverge on test_ecsw_model's cornea at 3 parts
+(measured: the same schedule in numpy diverged, this one settles to 1e-14).
+
+A step whose updated state or tangent part is not finite is refused: :func:`haptic_step`
+returns ``REFUSED`` and q, pi and the kept state are as they were. A built tangent that
+does not factorise (an entry not finite, or singular to working precision: see
+:func:`~hapticrom.online.dense_solve._lu_factor`) is dropped: the last factors stay and
+``counters[FAILED_FACTORISATIONS]`` counts it. Buffers (all the caller's, reused, none
+overlapping another: :class:`HapticNewton` makes them so), between steps:
+
+    counters (COUNTER_SIZE,) int64: PART, the part the next step sums,
+      FAILED_FACTORISATIONS;
+    lu (size, size), pivots (2, size): the factorised tangent and its pivots (row 0, as
+      dense_solve.lu_factor leaves them; row 1 the factorisation's scratch); building
+      (size, size): the tangent being summed (``linear`` plus the parts before PART);
+    x, r (size,), K (size, size): the step's state, residual and part; then a
+    :class:`~hapticrom.online.hyperreduced.Scratch`'s buffers; size = n + n_p.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from hapticrom.online.dense_solve import _check_factors, _lu_factor, _lu_solve, lu_factor
+from hapticrom.online.hyperreduced import (
+    _F8_1D,
+    _F8_2D,
+    _RO,
+    _SAMPLE,
+    _SUMS,
+    Scratch,
+    _check_sample,
+    _check_tangent_outputs,
+    _residual_sum,
+    _tangent_sum,
+    sampled_residual_tangent,
+)
+from hapticrom.shared.errors import InputError
+
+PART, FAILED_FACTORISATIONS, COUNTER_SIZE = 0, 1, 2  # offsets into the counters
+REFUSED = -1.0  # haptic_step's answer to a step it refused
+
+
+@njit(inline="always")
+def _finite(a) -> bool:
+    for v in a.flat:
+        if not np.isfinite(v):
+            return False
+    return True
+
+
+@njit(inline="always")
+def _negative_residual(linear, x, load, r):
+    """r = -(r + linear x - (load, 0)): the right-hand side of a Newton update."""
+    size, n = x.shape[0], load.shape[0]
+    for i in range(size):
+        v = r[i]
+        for j in range(size):
+            v += linear[i, j] * x[j]
+        if i < n:
+            v -= load[i]
+        r[i] = -v
+
+
+@njit(inline="always")
+def _relative_update(delta, x, n) -> float:
+    """|delta q| / |q| (q = x[:n]), the last update against the state."""
+    step = state = 0.0
+    for i in range(n):
+        step += delta[i] * delta[i]
+        state += x[i] * x[i]
+    return np.sqrt(step) / max(np.sqrt(state), 1e-300)
+
+
+@njit(inline="always")
+def _check_step(linear, bounds, load, counters, lu, pivots, building, x, n, S):
+    size = linear.shape[0]
+    square = linear.shape[1] == size and lu.shape[0] == size and lu.shape[1] == size
+    if not (square and building.shape[0] == size and building.shape[1] == size):
+        raise ValueError("linear, lu, building must be square of n + n_p (the Scratch's)")
+    if x.shape[0] != size or pivots.shape[0] != 2 or pivots.shape[1] != size:
+        raise ValueError("x must be (n + n_p,) and pivots (2, n + n_p)")
+    if load.shape[0] != n or counters.shape[0] != COUNTER_SIZE:
+        raise ValueError("load must be (n,) and counters (COUNTER_SIZE,)")
+    parts = bounds.shape[0] - 1
+    if parts < 1 or bounds[0] != 0 or bounds[parts] != S:
+        raise ValueError("bounds must run from 0 to the sampled elements")
+    for k in range(parts):
+        if bounds[k + 1] < bounds[k]:
+            raise ValueError("bounds must not decrease")
+    if not 0 <= counters[PART] < parts:
+        raise ValueError("counters[PART] must be a part of bounds")
+    _check_factors(lu, pivots[0])
+
+
+@njit(inline="always")
+def _next_tangent(linear, counters, lu, pivots, building, K):
+    """After the last part: building factorised into lu (else dropped and counted), and a
+    new sum started."""
+    size = linear.shape[0]
+    for i in range(size):
+        for j in range(size):
+            K[i, j] = building[i, j]
+            building[i, j] = linear[i, j]
+    if _lu_factor(K, pivots[1]):
+        lu[:, :] = K
+        pivots[0, :] = pivots[1]
+    else:
+        counters[FAILED_FACTORISATIONS] += 1
+    counters[PART] = 0
+
+
+_I8_1D, _I8_2D = "int64[::1]", "int64[:, ::1]"
+_STEP = (f"float64({_SAMPLE}, {_RO.format(2)}, Array(int64, 1, 'C', readonly=True), "
+         f"int64, {_RO.format(1)}, {_F8_1D}, {_F8_1D}, {_I8_1D}, {_F8_2D}, {_I8_2D}, {_F8_2D}, "
+         f"{_F8_1D}, {_F8_1D}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_2D}, {_F8_1D}, {_F8_1D}, "
+         f"{_F8_2D})")  # fmt: skip
+
+
+@njit(_STEP, cache=True, nogil=True, fastmath=_SUMS)
+def haptic_step(dN, dV, Phi, Psi, params, weights, linear, bounds, iterations, load, q, pi,
+                counters, lu, pivots, building, x, r, K, u, r_u, K_uu, K_up, scalars,
+                T):  # fmt: skip
+    """One step under ``load`` (n,) from (q, pi), updated in place (the module's steps and
+    buffers); returns the last iteration's |delta q| / |q|, or REFUSED (nothing changed).
+    Shapes are checked (ValueError) before anything is written."""
+    S, m, n = Phi.shape
+    n_p = Psi.shape[1]
+    _check_sample(dN, dV, Phi, Psi, params, weights, q, pi)
+    _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, T)
+    _check_step(linear, bounds, load, counters, lu, pivots, building, x, n, S)
+    if iterations < 1:
+        raise ValueError("iterations must be at least 1")
+    x[:n] = q
+    x[n:] = pi
+    update = 0.0
+    for _ in range(iterations):
+        _residual_sum(dN, dV, Phi, Psi, params, weights, 0, S, x[:n], x[n:], r, u, r_u, scalars)
+        _negative_residual(linear, x, load, r)
+        _lu_solve(lu, pivots[0], r)
+        for i in range(n + n_p):
+            x[i] += r[i]
+        if not _finite(x):  # x is the step's own: q, pi unchanged
+            return REFUSED
+        update = _relative_update(r, x, n)
+    part = counters[PART]
+    _tangent_sum(dN, dV, Phi, Psi, params, weights, bounds[part], bounds[part + 1], x[:n],
+                 x[n:], r, K, u, r_u, K_uu, K_up, scalars, T)  # fmt: skip
+    if not _finite(K):
+        return REFUSED
+    for i in range(n + n_p):
+        for j in range(n + n_p):
+            building[i, j] += K[i, j]
+    counters[PART] = part + 1
+    if part + 1 == bounds.shape[0] - 1:
+        _next_tangent(linear, counters, lu, pivots, building, K)
+    q[:] = x[:n]
+    pi[:] = x[n:]
+    return update
+
+
+def _readonly(a, dtype=np.float64) -> np.ndarray:
+    a = np.array(a, dtype=dtype, order="C")
+    a.flags.writeable = False
+    return a
+
+
+class HapticNewton:
+    """The haptic loop's physics on a hyper-reduced model: :func:`haptic_step` with its
+    buffers. ``sample``: the model's (dN, dV, Phi, Psi, params, weights) (a
+    ``HyperReducedModel``'s ``.sample``, or an artifact's), ``linear`` (n + n_p square) its
+    constant tangent; ``iterations`` a step, the tangent in ``slices`` parts (the defaults
+    1 and 20: stop 42's two-tool measurement; the Python class it replaced had 2 and 10).
+    The first tangent is the rest's. InputError for values the class checks (the counts,
+    non-finite arrays, weights, a rest tangent that does not factorise); sample shapes that
+    do not agree raise the kernels' ValueError."""
+
+    def __init__(self, sample, linear, iterations: int = 1, slices: int = 20):
+        if len(sample) != 6:
+            raise InputError("sample must be (dN, dV, Phi, Psi, params, weights)")
+        self.sample = tuple(_readonly(a) for a in sample)
+        for name, a in zip(("dN", "dV", "Phi", "Psi", "params", "weights"), self.sample,
+                           strict=True):  # fmt: skip
+            if not np.isfinite(a).all():
+                raise InputError(f"the sample's {name} must be finite")
+        if not (self.sample[5] > 0).all():
+            raise InputError("the sample's weights must be positive")
+        S, m, n = self.sample[2].shape
+        size = n + self.sample[3].shape[1]
+        self.linear = _readonly(linear)
+        if self.linear.shape != (size, size) or not np.isfinite(self.linear).all():
+            raise InputError(f"linear must be finite and square of n + n_p = {size}")
+        for name, value, low, high in (("iterations", iterations, 1, None),
+                                       ("slices", slices, 1, S)):  # fmt: skip
+            integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
+            if not integer or value < low or (high is not None and value > high):
+                upto = f" to the sampled elements ({high})" if high is not None else ""
+                raise InputError(f"{name} must be an integer from {low}{upto}")
+        self.iterations = int(iterations)
+        self.bounds = _readonly(np.linspace(0, S, slices + 1).astype(np.int64), np.int64)
+        self.counters = np.zeros(COUNTER_SIZE, np.int64)
+        self.lu, self.building = np.empty((size, size)), self.linear.copy()
+        self.pivots = np.zeros((2, size), np.int64)
+        self.x, self.r, self.K = np.empty(size), np.empty(size), np.empty((size, size))
+        self.scratch = Scratch(m // 3, n)
+        sampled_residual_tangent(*self.sample, np.zeros(n), np.zeros(size - n), self.r,
+                                 self.K, *self.scratch.buffers())  # fmt: skip
+        np.add(self.K, self.linear, out=self.lu)
+        if not lu_factor(self.lu, self.pivots[0]):
+            raise InputError("the model's tangent at rest is singular: no first step")
+        self.last_update = np.inf  # the last step's |delta q| / |q|
+
+    @property
+    def part(self) -> int:
+        """The tangent part the next step sums."""
+        return int(self.counters[PART])
+
+    @property
+    def failed_factorisations(self) -> int:
+        return int(self.counters[FAILED_FACTORISATIONS])
+
+    def step(self, q, pi, load) -> bool:
+        """One step under ``load`` (n,) from (q, pi) (float64, contiguous), updated in place;
+        False if it was refused (then nothing changed)."""
+        update = haptic_step(*self.sample, self.linear, self.bounds, self.iterations, load, q,
+                             pi, self.counters, self.lu, self.pivots, self.building, self.x,
+                             self.r, self.K, *self.scratch.buffers())  # fmt: skip
+        if update == REFUSED:
+            return False
+        self.last_update = update
+        return True
