@@ -9,7 +9,7 @@ positions, beside the Galerkin model on every element (issue 18).
         [--frames 100 [--frame-solver haptic|modified] [--frame-iterations 1]
         [--tangent-slices 10] [--refresh-after 3] [--frame-tolerance 1e-6]]
         [--second-tool MM [--second-force 0.5] [--second-basis single|paired|both]
-        | --pinch N | --oblique FRACTION]] [--out FILE.json]
+        | --pinch N | --oblique FRACTION | --held-tool MM]] [--out FILE.json]
 
 1. Bases from the training positions (all but every ``len/held-out``-th): the leading
    ``--modes`` left singular vectors of their stored states (``--basis campaign``), of the
@@ -52,7 +52,11 @@ lags the equilibrium).
 Load cases beside the campaign's (each held-out position's reference a full-order solve
 under it, and the nearby solves under the same kind of load): ``--second-tool`` (a second
 tool that far away), ``--pinch`` (nine forces at neighbouring nodes, thesis §3.4.3),
-``--oblique`` (a tangential force beside the tool's; the snapshots' in other directions).
+``--oblique`` (a tangential force beside the tool's; the snapshots' in other directions),
+``--held-tool`` (a tool that far away holds its patch in place while the position's
+presses: grasping forceps beside a probe; the snapshots pair a press about the position
+with a holder about the holder's node, and each reduced model holds the held-out holder's
+patch by a penalty, ``hold``).
 
 Prints a table; ``--out`` writes it as JSON. Serial. Units: mm, N, MPa.
 """
@@ -143,7 +147,7 @@ def rest_solver(operators, free):
     return solve
 
 
-def derivative_bases(args, mesh, operators, solve, responses, blocks, free):
+def derivative_bases(args, mesh, operators, solve, responses, blocks, free, extra=None):
     """``--linear-modes`` of the responses, the POD of the modal derivatives of the
     leading ``--derivatives-of`` of them (none if 0) and, for each of ``blocks`` (states
     (N, k), their pressures (cells, k), modes), that many POD modes of the states,
@@ -163,6 +167,9 @@ def derivative_bases(args, mesh, operators, solve, responses, blocks, free):
         if modes:
             parts.append(pod(U)[:, :modes])
             pressures.append(P)
+    if extra is not None:  # further displacement modes kept whole (--held-tool's)
+        parts.append(extra)
+        pressures.append(condensed_pressures(operators, extra))
     Psi = pod(np.hstack(pressures))[:, : args.pressure_modes]
     if args.supremizers:
         parts.append(supremizers(operators, Psi, free))
@@ -201,6 +208,7 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
         near = np.argsort(np.linalg.norm(points - point, axis=1))[: args.local_neighbours]
         blocks = [(*neighbour_states(data, near, args.campaign_modes), args.campaign_modes)]
         path, centres, forbidden, head = held_out_case(solver, point, path, args)
+        held_nodes = head.pop("held_nodes", None)  # --held-tool: the holder's patch
         head = {"position": i, **head}
         t = time.perf_counter()
         blocks += nearby_blocks(solver, centres, forbidden, args) if solver else []
@@ -209,7 +217,13 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
                 raise SystemExit(f"--state-modes {modes}: the solves about position {i} "
                                  f"converged {U_solved.shape[1]} states")  # fmt: skip
         solved_s = time.perf_counter() - t
-        Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), blocks, free)
+        holder = None  # --held-tool: the responses to a force at the holder, x, y and z
+        if held_nodes is not None:
+            forces = [bump_loads(surface, centres[1][None], d[None], radius, U.shape[0],
+                                 reach=1e-9) for d in np.eye(3)]  # fmt: skip
+            holder = solve(np.hstack(forces))
+        Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), blocks, free,
+                                    holder)  # fmt: skip
         built = time.perf_counter() - t - solved_s
         last = path[0][-1]  # the full order's last state: how far from the basis' span
         span = float(np.linalg.norm(last - Phi @ (Phi.T @ last)) / np.linalg.norm(last))
@@ -225,7 +239,8 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
                 training_states += [(Phi.T @ u, Psi.T @ p) for u, p in pairs]
         tails = [pod(U)[:, m : m + args.indicator_modes] for U, _, m in blocks if m]
         enrichment = np.hstack(tails) if args.indicator_modes and tails else None
-        for row in local_rows(mesh, Phi, Psi, path, training_states, args, rest, enrichment):
+        for row in local_rows(mesh, Phi, Psi, path, training_states, args, rest, enrichment,
+                              held_nodes):  # fmt: skip
             results.append({**head, **row})
     return results
 
@@ -236,9 +251,18 @@ def held_out_case(solver, point, path, args) -> tuple:
     tools at once (the basis: about both); with ``--pinch`` or ``--oblique`` under that load
     at its node (``NearbySolver.case_tools``). The forbidden nodes are the held-out tools'
     own: no snapshot is centred there."""
-    if not (args.second_tool or args.pinch or args.oblique):
+    if not (args.second_tool or args.pinch or args.oblique or args.held_tool):
         return path, [point], [], {}
     node = solver.nearest(point)
+    if args.held_tool:
+        holder = solver.second_tool(point, args.held_tool, 1.0)[0]
+        centres = [point, solver.surface.nodes[holder]]
+        path, held_nodes = solver.held_path(holder, node)
+        print(f"  a holder at {np.round(centres[1], 3).tolist()} mm, "
+              f"{np.linalg.norm(centres[1] - point):.2f} mm away, its patch "
+              f"{len(held_nodes)} nodes", flush=True)  # fmt: skip
+        return path, centres, [node, holder], {"holder": centres[1].tolist(),
+                                               "held_nodes": held_nodes}  # fmt: skip
     if args.second_tool:
         second_node, second = solver.second_tool(point, args.second_tool, args.second_force)
         centres = [point, solver.surface.nodes[second_node]]
@@ -263,6 +287,12 @@ def nearby_blocks(solver, centres, forbidden, args) -> list[tuple]:
     the second (the k-th of each, ``--second-force`` of the campaign's force along its
     normal); ``both``: all three. With ``--pinch`` or ``--oblique``: one block of that load
     at each nearby node (the k-th oblique press along its own direction)."""
+    if args.held_tool:  # the k-th press about the first centre, held about the second
+        presses = solver.nodes(centres[0], forbidden)
+        holders = solver.nodes(centres[1], [*forbidden, *presses])
+        solved = [solver.solve(b, tools=[solver.tool(a, 1.0)], config=solver.held)
+                  for a, b in zip(presses, holders, strict=True)]  # fmt: skip
+        return [stacked(solved, args.state_modes)]
     if args.pinch or args.oblique:  # the held-out load's kind at each nearby node
         nodes = solver.nodes(centres[0], forbidden)
         return [stacked([solver.solve(n, solver.case_tools(n, args, k))
@@ -284,11 +314,11 @@ def stacked(solved, modes) -> tuple:
             np.vstack([d["pressure"] for d in solved]).T, modes)  # fmt: skip
 
 
-def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None):
+def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_nodes=None):
     """The Galerkin model on every element, then ECSW at each of ``--tolerances`` trained on
     ``states`` (reduced (q, pi) pairs; none: the Galerkin model alone), along ``path``: one
     printed line and one dict each; with ``enrichment`` (N, k) the error indicator of each
-    (``indicator_row``)."""
+    (``indicator_row``); with ``held_nodes`` each model holds them (``hold``)."""
     split = args.split == "linear"
     tolerances = ["galerkin"] + (args.tolerances if states else [])
     G = training_matrix(mesh, Phi, Psi, states, split=split, rest=rest)[0] if states else None
@@ -299,6 +329,8 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None):
             sampling = ecsw(G, tolerance=tolerance)
             model = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights,
                                       split=split, rest=rest)  # fmt: skip
+        if held_nodes is not None:
+            hold(model, Phi, held_nodes)
         solved = solve_paths(model, Phi, [path])
         p50, p99 = kernel_times(model, *states[-1]) if states else (None, None)
         ratios = solved["depth_ratios"][0]
@@ -317,6 +349,24 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None):
             sampled = None if tolerance == "galerkin" else states
             row["indicator"] = indicator_row(model, bases, sampled, path, args, mesh, rest)
         yield row
+
+
+HOLD_STIFFNESS = 1e4  # the holder's penalty, of the model's stiffest reduced diagonal entry
+
+
+def hold(model, Phi, nodes) -> None:
+    """A holder that keeps the mean displacement of ``nodes`` (canonical: its patch) in
+    place, in the reduced space: the energy k/2 |mean_P Phi_P q|^2, a constant k A^T A in
+    the model's constant tangent (so in its residual, its Newton's and HapticNewton's), A
+    (3, n) the patch's mean rows, k ``HOLD_STIFFNESS`` of the largest diagonal entry of
+    the exact q-q matrix. The mean, not each node: a basis holds no states with the patch
+    exactly still (its solves hold patches about it): a penalty on each held row (without
+    the responses below) left the depth 79.5 % short at position 6 (README, stop 42). The
+    basis carries the responses to a force at the holder (``derivative_bases``' extra)
+    for its reaction."""
+    A = Phi.reshape(-1, 3, Phi.shape[1])[np.asarray(nodes)].mean(axis=0)
+    k = HOLD_STIFFNESS * float(np.abs(np.diag(model.L_uu)).max())
+    model.linear[: model.n, : model.n] += k * (A.T @ A)
 
 
 def indicator_row(model, bases, states, path, args, mesh, rest) -> dict:
@@ -436,12 +486,16 @@ class NearbySolver:
     snapshots of the region itself. The organ and its surface are read once."""
 
     def __init__(self, config, args):
-        if (args.pinch or args.oblique or args.second_tool) and config.load.mode != "force":
-            raise SystemExit("--second-tool, --pinch and --oblique add force tools: the "
+        further = args.pinch or args.oblique or args.second_tool or args.held_tool
+        if further and config.load.mode != "force":
+            raise SystemExit("--second-tool, --pinch, --oblique and --held-tool add force "
+                             "tools: the "
                              f"campaign's load is '{config.load.mode}', not force")  # fmt: skip
         # --pinch: the campaign's tool at the centre node presses with a pinch's force
         load = replace(config.load, magnitude=args.pinch) if args.pinch else config.load
         self.config = replace(config, load=load)
+        # --held-tool: the first tool holds its patch in place, the others press
+        self.held = replace(config, load=replace(config.load, mode="displacement", magnitude=0.0))
         self.distances = args.local_solves
         self.per_distance = args.solves_per_distance
         self.surface = read_surface(config.problem.mesh.file, config.load.surface)
@@ -484,13 +538,13 @@ class NearbySolver:
         return ToolPosition(-1, tuple(s.nodes[node]), tuple(s.normals[node]),
                             int(s.node_tags[node]), "point")  # fmt: skip
 
-    def solve(self, node, tools=()) -> dict:
+    def solve(self, node, tools=(), config=None) -> dict:
         """The datasets of the campaign's load path at surface ``node`` (with further force
-        ``tools``); a solve that fails is refused (its converged part would bias the basis
-        or the reference silently)."""
+        ``tools``; ``config``: another campaign's load, ``held``); a solve that fails is
+        refused (its converged part would bias the basis or the reference silently)."""
         position = self.position(node)
-        datasets, attrs = solve_position(self.config, position, self.organ, MPI.COMM_SELF,
-                                         tools)  # fmt: skip
+        datasets, attrs = solve_position(config or self.config, position, self.organ,
+                                         MPI.COMM_SELF, tools)  # fmt: skip
         if attrs["status"] != "solved":
             tag = self.surface.node_tags[node]
             raise SystemExit(f"the full-order solve at surface node {tag} failed: "
@@ -543,6 +597,16 @@ class NearbySolver:
         tangent = np.cos(azimuth) * e1 + np.sin(azimuth) * np.cross(normal, e1)
         force = args.oblique * self.config.load.magnitude * tangent
         return [(self.position(node).point, tuple(float(v) for v in force))]
+
+    def held_path(self, holder, node) -> tuple:
+        """The full order with the campaign's force at surface ``node`` while a tool holds
+        its patch at ``holder`` in place: a held-out path as ``path``'s (the depth the
+        pressing tool's), and the held patch's nodes (canonical)."""
+        data = self.solve(holder, tools=[self.tool(node, 1.0)], config=self.held)
+        f, U = data["load_vector"], data["displacement"]
+        force = np.linalg.norm(f.reshape(-1, 3).sum(axis=0))
+        path = (U, data["pressure"], f, data["load_factor"], U @ f / force, force)
+        return path, np.asarray(data["contact_nodes"], dtype=np.int64)
 
     def path(self, node, tools=()) -> tuple:
         """The full order under the campaign's tool at surface ``node`` and the further
@@ -669,6 +733,9 @@ def parse_arguments() -> argparse.Namespace:
     parser.add_argument("--second-tool", type=float, default=0.0,
                         help="--local-solves: mm, a second tool this far from each held-out "
                         "position, loaded with it; the solves about both")  # fmt: skip
+    parser.add_argument("--held-tool", type=float, default=0.0,
+                        help="--local-solves: mm, a tool this far from each held-out position "
+                        "holds its patch in place while the position's tool presses")  # fmt: skip
     parser.add_argument("--second-force", type=float, default=None,
                         help="--second-tool: its force, of the campaign's (0.5)")  # fmt: skip
     parser.add_argument("--second-basis", choices=("single", "paired", "both"),
@@ -723,11 +790,14 @@ def check_arguments(parser, args) -> None:
     elif args.solves_per_distance is not None or args.state_modes is not None:
         parser.error("--solves-per-distance and --state-modes need --local-solves")
     args.state_modes = args.state_modes or 0
-    if args.second_tool and not args.local_solves or args.second_tool < 0:
-        parser.error("--second-tool needs --local-solves, and a positive distance (mm)")
-    cases = [name for name in ("second_tool", "pinch", "oblique") if getattr(args, name)]
+    for name in ("second_tool", "held_tool"):
+        if getattr(args, name) and not args.local_solves or not getattr(args, name) >= 0:
+            parser.error(f"--{name.replace('_', '-')} needs --local-solves, and a positive "
+                         "distance (mm)")  # fmt: skip
+    cases = [n for n in ("second_tool", "pinch", "oblique", "held_tool") if getattr(args, n)]
     if len(cases) > 1:
-        parser.error("--second-tool, --pinch and --oblique: one load case at a time")
+        parser.error("--second-tool, --pinch, --oblique and --held-tool: one load case at a "
+                     "time")  # fmt: skip
     if (args.pinch or args.oblique) and not args.local_solves:
         parser.error("--pinch and --oblique need --local-solves (the snapshots about the load)")
     if not (np.isfinite(args.pinch) and args.pinch >= 0 and 0 <= args.oblique <= 10):

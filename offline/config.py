@@ -100,10 +100,11 @@ class LoadConfig:
       the surface at ``contact_point`` and moves by ``sphere`` (mm); contact by a penalty
       ``penalty`` (N/mm^4: contact pressure per overlap squared, :mod:`.fe.sphere`).
 
-    ``tools`` (``force`` only): further tools at once, each a (contact point, force) pair
-    spread as the first over its own disk of ``contact_radius``, all scaled by the same
-    load factor (two instruments, a pinch, issue 18's references). Set in code, not read
-    from a file.
+    ``tools`` (``force`` or ``displacement``): further force tools at once, each a (contact
+    point, force) pair spread over its own disk of ``contact_radius``, all scaled by the
+    same load factor (two instruments, a pinch, issue 18's references); beside a
+    ``displacement`` first tool they press while it holds (grasps) its patch, moved by
+    ``displacement`` (zero: held in place). Set in code, not read from a file.
     """
 
     mode: str

@@ -3,7 +3,9 @@ a pinch, an oblique press), on the coarse cornea.
 
 The tools' dead loads add: the load vector of two tools is the sum of each alone's, to
 round-off (overlapping disks included), and in the linear range the tissue's equilibrium
-under both is the sum of each's. A tool that is not a force is refused.
+under both is the sum of each's. Beside a first tool under displacement control (one that
+holds its patch: grasping forceps) they press as alone, and the holder's reaction opposes
+them. A further tool that is not a force, or beside a sphere, is refused.
 """
 
 from __future__ import annotations
@@ -88,13 +90,49 @@ def test_two_tools_superpose_in_the_linear_range(mesh_dir):
     np.testing.assert_allclose(further, [side], rtol=1e-12, atol=0)
 
 
+def held(mesh_dir, press) -> ProblemConfig:
+    """The first tool holds its patch at SIDE in place (displacement control, zero), a
+    further one presses at APEX: grasping forceps beside a probe."""
+    config = problem(mesh_dir, APEX, press)
+    load = replace(config.load, mode="displacement", displacement=(0.0, 0.0, 0.0), force=None,
+                   contact_point=SIDE, tools=((APEX, press),))  # fmt: skip
+    return replace(config, load=load)
+
+
+def solved_depth(config, press) -> tuple[float, FullOrderModel]:
+    """The pressing tool's depth after the load path: the load-weighted mean displacement
+    along its force, u . f / |force| (the benches' depth; f its load vector), and the
+    model (to be closed)."""
+    model = FullOrderModel(config, verbose=False)
+    result = model.solve()
+    model.set_load(1.0)
+    order = CanonicalOrder(model.model.V)
+    f = load_vector(model.model, order)
+    depth = order.gather(model.model.u.x.array) @ f / np.linalg.norm(press)
+    return float(depth), model, result, f
+
+
+def test_a_held_tool_beside_a_pressing_one(mesh_dir):
+    """The held patch does not move; the load vector is the pressing tool's alone; the
+    holder pulls up against a downward press (it keeps the tissue beside the probe from
+    following it), and the probe sinks less than without the holder."""
+    press = (0.0, 0.0, -0.01)
+    depth_held, model, result, f = solved_depth(held(mesh_dir, press), press)
+    u = model.model.u.x.array.reshape(-1, 3)
+    assert len(model.patch_blocks) > 0 and not u[model.patch_blocks].any()
+    np.testing.assert_allclose(f.reshape(-1, 3).sum(axis=0), press, rtol=0, atol=1e-14)
+    holder = result.force[-1]  # the holder's force on the tissue: its reaction
+    model.close()
+    depth_alone, alone, _, _ = solved_depth(problem(mesh_dir, APEX, press), press)
+    alone.close()
+    assert holder[2] > 0.05 * abs(press[2]), holder
+    assert 0.0 < depth_held < depth_alone, (depth_held, depth_alone)
+
+
 def test_further_tools_are_forces_only(mesh_dir):
     config = problem(mesh_dir, APEX, (0.0, 0.0, -0.01), [(SIDE, (0.0, 0.0, -0.01))])
     load = LoadConfig(mode="displacement", displacement=(0.0, 0.0, -0.1), contact_point=APEX,
                       tools=config.load.tools)  # fmt: skip
-    displaced = replace(config, load=load)
-    with pytest.raises(InputError, match="further tools are force loads"):
-        FullOrderModel(displaced, verbose=False)
     sphere = replace(load, mode="sphere", displacement=None, sphere=(0.0, 0.0, -0.1))
     with pytest.raises(InputError, match="further tools are force loads"):
         FullOrderModel(replace(config, load=sphere), verbose=False)
@@ -128,3 +166,29 @@ def test_solve_position_records_its_tools(mesh_dir, tmp_path):
     assert "tools" not in alone
     extra = (data["load_vector"] - plain["load_vector"]).reshape(-1, 3).sum(axis=0)
     np.testing.assert_allclose(extra, side, rtol=1e-10, atol=1e-15)
+
+
+def test_solve_position_of_a_held_tool_records_the_pressing_load(mesh_dir, tmp_path):
+    """A position whose tool holds its patch (displacement control, zero) beside a
+    pressing tool: its load vector is the pressing tool's alone, its contact nodes the held
+    patch, which does not move (the benches' --held-tool reference)."""
+    from conftest import FORCE_CAMPAIGN
+
+    path = tmp_path / "campaign.toml"
+    mesh = mesh_dir / "cornea-coarse.msh"
+    path.write_text(FORCE_CAMPAIGN.format(name="held-tool", mesh=mesh, points=[list(SIDE)]))
+    config = CampaignConfig.from_toml(path)
+    config = replace(config, load=replace(config.load, mode="displacement", magnitude=0.0))
+    surface = read_surface(config.problem.mesh.file, config.load.surface)
+    k = int(np.argmin(np.linalg.norm(surface.nodes - np.array(SIDE), axis=1)))
+    position = ToolPosition(-1, tuple(surface.nodes[k]), tuple(surface.normals[k]),
+                            int(surface.node_tags[k]), "point")  # fmt: skip
+    organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+    press = (0.0, 0.0, -5e-3)
+    data, attrs = solve_position(config, position, organ, MPI.COMM_SELF, [(APEX, press)])
+    assert attrs["status"] == "solved"
+    total = data["load_vector"].reshape(-1, 3).sum(axis=0)
+    np.testing.assert_allclose(total, press, rtol=0, atol=1e-14)
+    held = data["contact_nodes"]
+    U = data["displacement"].reshape(len(data["displacement"]), -1, 3)
+    assert len(held) > 0 and not U[:, held].any() and U[-1].any()

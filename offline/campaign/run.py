@@ -276,11 +276,15 @@ def _solve_load_path(model: FullOrderModel, order, pressure_order, group) -> _Lo
 
 
 def _load_and_contact(config, model: FullOrderModel, order):
-    """(The load vector at load factor 1 under force control (None otherwise), the contact
-    patch's local blocks); collective over the group."""
+    """(The load vector at load factor 1 under force control, or of the further force
+    tools beside a displacement-controlled one (None otherwise), the contact patch's local
+    blocks); collective over the group."""
     if config.load.mode == "force":
         model.set_load(1.0)
         return load_vector(model.model, order), model.patch.blocks(model.model.V)
+    if config.load.mode == "displacement" and model.config.load.tools:
+        model.set_load(1.0)
+        return load_vector(model.model, order), model.patch_blocks
     return None, model.patch_blocks
 
 

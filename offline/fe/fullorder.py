@@ -106,8 +106,9 @@ class FullOrderModel:
         load, organ, model = self.config.load, self.organ, self.model
         self.sphere = None
         self.further = []  # further tools (force, traction, int w dA): _setup_load_region
-        if load.tools and load.mode != "force":
-            raise InputError(f"further tools are force loads; this load is '{load.mode}'")
+        if load.tools and load.mode not in ("force", "displacement"):
+            raise InputError(f"further tools are force loads beside a force or displacement "
+                             f"tool; this load is '{load.mode}'")  # fmt: skip
         if load.mode == "sphere":
             self._setup_sphere()
             return
@@ -118,7 +119,9 @@ class FullOrderModel:
             if point is None:
                 point = organ.default_contact_point()
             self.patch = ContactPatch.around_point(organ, point, load.contact_radius, load.surface)
-        if load.mode != "displacement":
+        if load.mode != "displacement" or load.tools:
+            # under displacement control the first patch carries no traction (the model's
+            # stays zero): the region is the further tools' (a held tool beside pressing ones)
             self._setup_load_region()
         self.bcs = organ.supports(model.V)
         self.patch_blocks = self.patch.blocks(model.V)
@@ -193,6 +196,8 @@ class FullOrderModel:
             self.sphere.move(self.sphere.start + load_factor * self.load_vector)
         elif mode == "displacement":
             self.tool_bc_value.value[:] = load_factor * self.load_vector
+            for force, traction, area in self.further:
+                traction.value[:] = load_factor * force / area
         elif mode == "force":
             # Dead traction load_factor * F * w(X) / int w dA: sums to load_factor * F.
             area = self.patch_displacement.integral
