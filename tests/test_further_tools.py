@@ -144,20 +144,26 @@ def test_further_tools_are_forces_only(mesh_dir):
         FullOrderModel(off, verbose=False)
 
 
-def test_solve_position_records_its_tools(mesh_dir, tmp_path):
-    """A position solved with further tools says so in its attributes (a row of point and
-    force each), and their load is in its load vector; without, no such attribute."""
+def campaign_position(mesh_dir, tmp_path, point) -> tuple:
+    """(A force campaign on the coarse cornea, its position at the surface node nearest
+    ``point``, the organ)."""
     from conftest import FORCE_CAMPAIGN
 
     path = tmp_path / "campaign.toml"
     mesh = mesh_dir / "cornea-coarse.msh"
-    path.write_text(FORCE_CAMPAIGN.format(name="further-tools", mesh=mesh, points=[list(APEX)]))
+    path.write_text(FORCE_CAMPAIGN.format(name="further-tools", mesh=mesh, points=[list(point)]))
     config = CampaignConfig.from_toml(path)
     surface = read_surface(config.problem.mesh.file, config.load.surface)
-    k = int(np.argmin(np.linalg.norm(surface.nodes - np.array(APEX), axis=1)))
+    k = int(np.argmin(np.linalg.norm(surface.nodes - np.array(point), axis=1)))
     position = ToolPosition(-1, tuple(surface.nodes[k]), tuple(surface.normals[k]),
                             int(surface.node_tags[k]), "point")  # fmt: skip
-    organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+    return config, position, load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+
+
+def test_solve_position_records_its_tools(mesh_dir, tmp_path):
+    """A position solved with further tools says so in its attributes (a row of point and
+    force each), and their load is in its load vector; without, no such attribute."""
+    config, position, organ = campaign_position(mesh_dir, tmp_path, APEX)
     side = (0.0, 0.0, -2e-3)
     data, attrs = solve_position(config, position, organ, MPI.COMM_SELF, [(SIDE, side)])
     plain, alone = solve_position(config, position, organ, MPI.COMM_SELF)
@@ -172,18 +178,8 @@ def test_solve_position_of_a_held_tool_records_the_pressing_load(mesh_dir, tmp_p
     """A position whose tool holds its patch (displacement control, zero) beside a
     pressing tool: its load vector is the pressing tool's alone, its contact nodes the held
     patch, which does not move (the benches' --held-tool reference)."""
-    from conftest import FORCE_CAMPAIGN
-
-    path = tmp_path / "campaign.toml"
-    mesh = mesh_dir / "cornea-coarse.msh"
-    path.write_text(FORCE_CAMPAIGN.format(name="held-tool", mesh=mesh, points=[list(SIDE)]))
-    config = CampaignConfig.from_toml(path)
+    config, position, organ = campaign_position(mesh_dir, tmp_path, SIDE)
     config = replace(config, load=replace(config.load, mode="displacement", magnitude=0.0))
-    surface = read_surface(config.problem.mesh.file, config.load.surface)
-    k = int(np.argmin(np.linalg.norm(surface.nodes - np.array(SIDE), axis=1)))
-    position = ToolPosition(-1, tuple(surface.nodes[k]), tuple(surface.normals[k]),
-                            int(surface.node_tags[k]), "point")  # fmt: skip
-    organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
     press = (0.0, 0.0, -5e-3)
     data, attrs = solve_position(config, position, organ, MPI.COMM_SELF, [(APEX, press)])
     assert attrs["status"] == "solved"
