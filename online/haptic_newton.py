@@ -213,7 +213,7 @@ class HapticNewton:
                 upto = f" to the sampled elements ({high})" if high is not None else ""
                 raise InputError(f"{name} must be an integer from {low}{upto}")
         self.iterations = int(iterations)
-        self.bounds = _readonly(np.linspace(0, S, slices + 1).astype(np.int64), np.int64)
+        self.bounds = _readonly(np.linspace(0, S, slices + 1), np.int64)
         self.counters = np.zeros(COUNTER_SIZE, np.int64)
         self.lu, self.building = np.empty((size, size)), self.linear.copy()
         self.pivots = np.zeros((2, size), np.int64)

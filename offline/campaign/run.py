@@ -279,12 +279,11 @@ def _load_and_contact(config, model: FullOrderModel, order):
     """(The load vector at load factor 1 under force control, or of the further force
     tools beside a displacement-controlled one (None otherwise), the contact patch's local
     blocks); collective over the group."""
-    if config.load.mode == "force":
+    force = config.load.mode == "force"
+    if force or (config.load.mode == "displacement" and model.config.load.tools):
         model.set_load(1.0)
-        return load_vector(model.model, order), model.patch.blocks(model.model.V)
-    if config.load.mode == "displacement" and model.config.load.tools:
-        model.set_load(1.0)
-        return load_vector(model.model, order), model.patch_blocks
+        blocks = model.patch.blocks(model.model.V) if force else model.patch_blocks
+        return load_vector(model.model, order), blocks
     return None, model.patch_blocks
 
 
