@@ -52,6 +52,7 @@ from hapticrom.offline.reduce.ecsw_model import (
     rest_tangents,
     supremizers,
 )
+from hapticrom.offline.reduce.ecsw_regions import pod
 
 
 def held_out_split(positions: list[int], count: int) -> tuple[list[int], list[int]]:
@@ -60,12 +61,6 @@ def held_out_split(positions: list[int], count: int) -> tuple[list[int], list[in
     stride = max(len(positions) // max(count, 1), 1)
     held_out = positions[stride // 2 :: stride][:count]
     return [i for i in positions if i not in held_out], held_out
-
-
-def pod(columns: np.ndarray) -> np.ndarray:
-    """Left singular vectors of the columns, each scaled to unit norm first."""
-    norms = np.linalg.norm(columns, axis=0)
-    return np.linalg.svd(columns[:, norms > 0] / norms[norms > 0], full_matrices=False)[0]
 
 
 def bump_loads(

@@ -79,15 +79,9 @@ from basis_span import (
     pod,
     training_bumps,
 )  # bench/, beside this script
-from mpi4py import MPI
 
-from hapticrom.meshes.msh import read_surface
 from hapticrom.offline.campaign.config import CampaignConfig
-from hapticrom.offline.campaign.greedy import near_supports
-from hapticrom.offline.campaign.positions import ToolPosition
-from hapticrom.offline.campaign.run import solve_position
 from hapticrom.offline.campaign.store import SnapshotStore
-from hapticrom.offline.fe.organ import load_organ
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_indicator import error_indicator
 from hapticrom.offline.reduce.ecsw_model import (
@@ -101,6 +95,8 @@ from hapticrom.offline.reduce.ecsw_model import (
     supremizers,
     training_matrix,
 )
+from hapticrom.offline.reduce.ecsw_physics import HOLD_STIFFNESS, linear_stiffness
+from hapticrom.offline.reduce.ecsw_regions import RegionSolves
 from hapticrom.online.haptic_newton import HapticNewton
 
 
@@ -217,10 +213,12 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
                 raise SystemExit(f"--state-modes {modes}: the solves about position {i} "
                                  f"converged {U_solved.shape[1]} states")  # fmt: skip
         solved_s = time.perf_counter() - t
-        holder = None  # --held-tool: the responses to a force at the holder, x, y and z
+        holder = None  # --held-tool: the responses to a force (and couple) at the holder
         if held_nodes is not None:
             forces = [bump_loads(surface, centres[1][None], d[None], radius, U.shape[0],
                                  reach=1e-9) for d in np.eye(3)]  # fmt: skip
+            if args.hold == "rigid":
+                forces.append(couple_loads(node_coordinates(mesh), held_nodes, U.shape[0]))
             holder = solve(np.hstack(forces))
         Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), blocks, free,
                                     holder)  # fmt: skip
@@ -330,7 +328,7 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_n
             model = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights,
                                       split=split, rest=rest)  # fmt: skip
         if held_nodes is not None:
-            hold(model, Phi, held_nodes)
+            hold(model, Phi, held_nodes, node_coordinates(mesh) if args.hold == "rigid" else None)
         solved = solve_paths(model, Phi, [path])
         p50, p99 = kernel_times(model, *states[-1]) if states else (None, None)
         ratios = solved["depth_ratios"][0]
@@ -351,22 +349,61 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_n
         yield row
 
 
-HOLD_STIFFNESS = 1e4  # the holder's penalty, of the model's stiffest reduced diagonal entry
 
 
-def hold(model, Phi, nodes) -> None:
+def hold(model, Phi, nodes, coordinates=None) -> None:
     """A holder that keeps the mean displacement of ``nodes`` (canonical: its patch) in
-    place, in the reduced space: the energy k/2 |mean_P Phi_P q|^2, a constant k A^T A in
-    the model's constant tangent (so in its residual, its Newton's and HapticNewton's), A
-    (3, n) the patch's mean rows, k ``HOLD_STIFFNESS`` of the largest diagonal entry of
-    the exact q-q matrix. The mean, not each node: a basis holds no states with the patch
-    exactly still (its solves hold patches about it): a penalty on each held row (without
-    the responses below) left the depth 79.5 % short at position 6 (README, stop 42). The
-    basis carries the responses to a force at the holder (``derivative_bases``' extra)
-    for its reaction."""
-    A = Phi.reshape(-1, 3, Phi.shape[1])[np.asarray(nodes)].mean(axis=0)
-    k = HOLD_STIFFNESS * float(np.abs(np.diag(model.L_uu)).max())
+    place, in the reduced space: the energy k/2 |A q|^2, a constant k A^T A in the model's
+    constant tangent (so in its residual, its Newton's and HapticNewton's), A (3, n) the
+    patch's mean rows, k ``HOLD_STIFFNESS`` times the model's linear stiffness against a
+    force spread over the patch (the runtime's ``hold_stiffness`` takes the stiffest of
+    its region's tools instead, offline/reduce/ecsw_physics.py: the same scale). With the
+    nodes' reference ``coordinates`` (``--hold rigid``) A also holds the patch's
+    least-squares rotation (``rotation_rows``, 3 more rows). The patch's rigid motion, not
+    each node: a basis holds no states with the patch exactly still (its solves hold
+    patches about it): a penalty on each held row (without the responses below) left the
+    depth 79.5 % short at position 6 (README, stop 42). The basis carries the responses to
+    a force (and couple) at the holder for its reaction. (Until stop 43 k was 1e4 of the
+    largest diagonal entry of the q-q matrix: only about 20 times the patch's own stiffness
+    on the test cornea; on the demo's held case both give the same errors, README.)
+    """
+    nodes = np.asarray(nodes)
+    rows = Phi.reshape(-1, 3, Phi.shape[1])[nodes]  # (patch, 3, n)
+    A = rows.mean(axis=0)
+    k = HOLD_STIFFNESS * float(linear_stiffness(model, A).max())
+    if coordinates is not None:
+        A = np.vstack([A, rotation_rows(coordinates[nodes], rows)])
     model.linear[: model.n, : model.n] += k * (A.T @ A)
+
+
+def rotation_rows(points, rows) -> np.ndarray:
+    """(3, n): the least-squares rotation theta of a patch (``points`` (P, 3) mm, their
+    displacement ``rows`` (P, 3, n)), u_i = t + theta x r_i about the centroid, times the
+    patch's RMS radius (mm, as the mean's rows): theta = J^-1 sum_i r_i x u_i, J = sum_i
+    |r_i|^2 I - r_i r_i^T."""
+    r = points - points.mean(axis=0)
+    J = (r**2).sum() * np.eye(3) - r.T @ r
+    moments = np.cross(r[:, :, None], rows, axis=1).sum(axis=0)  # (3, n)
+    return np.sqrt((r**2).sum(axis=1).mean()) * np.linalg.solve(J, moments)
+
+
+def couple_loads(coordinates, nodes, N) -> np.ndarray:
+    """(N, 3): couples about x, y and z on the patch ``nodes`` (canonical; their reference
+    ``coordinates``): f_i = e x r_i / sum |r_i|^2 about the patch's centroid (zero net
+    force; their moment J e / sum |r_i|^2, unit on a round patch: they only feed the
+    basis)."""
+    r = coordinates[nodes] - coordinates[nodes].mean(axis=0)
+    F = np.zeros((N, 3))
+    for axis, e in enumerate(np.eye(3)):
+        F.reshape(-1, 3, 3)[nodes, :, axis] = np.cross(e, r) / (r**2).sum()
+    return F
+
+
+def node_coordinates(mesh) -> np.ndarray:
+    """(nodes, 3): each canonical node's reference position (mm), from the elements'."""
+    X = np.zeros((int(mesh.rows.max()) // 3 + 1, 3))
+    X[mesh.rows[:, 0::3] // 3] = mesh.X
+    return X
 
 
 def indicator_row(model, bases, states, path, args, mesh, rest) -> dict:
@@ -480,10 +517,11 @@ def neighbour_states(data, near, modes) -> tuple[np.ndarray, np.ndarray]:
     return U, np.vstack([data[k]["pressure"] for k in near]).T
 
 
-class NearbySolver:
+class NearbySolver(RegionSolves):
     """Full-order solves of the campaign's load path at ``--solves-per-distance`` loadable
     surface nodes about each ``--local-solves`` distance (mm) from a point: nonlinear
-    snapshots of the region itself. The organ and its surface are read once."""
+    snapshots of the region itself (``RegionSolves``, the product's), and the bench's
+    load cases."""
 
     def __init__(self, config, args):
         further = args.pinch or args.oblique or args.second_tool or args.held_tool
@@ -493,38 +531,9 @@ class NearbySolver:
                              f"campaign's load is '{config.load.mode}', not force")  # fmt: skip
         # --pinch: the campaign's tool at the centre node presses with a pinch's force
         load = replace(config.load, magnitude=args.pinch) if args.pinch else config.load
-        self.config = replace(config, load=load)
+        super().__init__(replace(config, load=load), args.local_solves, args.solves_per_distance)
         # --held-tool: the first tool holds its patch in place, the others press
         self.held = replace(config, load=replace(config.load, mode="displacement", magnitude=0.0))
-        self.distances = args.local_solves
-        self.per_distance = args.solves_per_distance
-        self.surface = read_surface(config.problem.mesh.file, config.load.surface)
-        self.organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
-        # a tip on the clamped rim does not move: no snapshot there (as the greedy campaign)
-        self.excluded = near_supports(config, self.surface.nodes)
-
-    def nodes(self, point, forbidden=()) -> list[int]:
-        """The surface nodes to solve at: per distance d, those whose distance from ``point``
-        is within 25 % of d, the nearest to d first, then each next the farthest from those
-        chosen (spread round the point); no node twice, none by the supports, none of
-        ``forbidden`` (the held-out tools' own nodes: their solves are the reference)."""
-        distance = np.linalg.norm(self.surface.nodes - point, axis=1)
-        chosen: list[int] = []
-        for d in self.distances:
-            ring = np.flatnonzero(np.abs(distance - d) <= 0.25 * d)
-            skip = self.excluded | set(forbidden) | set(chosen)
-            ring = np.array([k for k in ring if k not in skip])
-            if len(ring) < self.per_distance:
-                raise SystemExit(f"--local-solves {d:g}: {len(ring)} free loadable surface "
-                                 f"nodes within 25 % of that distance, {self.per_distance} "
-                                 "asked")  # fmt: skip
-            picks = [int(ring[np.argmin(np.abs(distance[ring] - d))])]
-            while len(picks) < self.per_distance:
-                xyz = self.surface.nodes[ring][:, None]
-                gap = np.linalg.norm(xyz - self.surface.nodes[picks][None], axis=2).min(axis=1)
-                picks.append(int(ring[np.argmax(gap)]))
-            chosen += picks
-        return chosen
 
     def states(self, point, forbidden=()) -> tuple[np.ndarray, np.ndarray]:
         """The states and pressures (N, k), (cells, k) of the solves about ``point``, at
@@ -532,27 +541,6 @@ class NearbySolver:
         solved = [self.solve(node) for node in self.nodes(point, forbidden)]
         return (np.vstack([d["displacement"] for d in solved]).T,
                 np.vstack([d["pressure"] for d in solved]).T)  # fmt: skip
-
-    def position(self, node) -> ToolPosition:
-        s = self.surface
-        return ToolPosition(-1, tuple(s.nodes[node]), tuple(s.normals[node]),
-                            int(s.node_tags[node]), "point")  # fmt: skip
-
-    def solve(self, node, tools=(), config=None) -> dict:
-        """The datasets of the campaign's load path at surface ``node`` (with further force
-        ``tools``; ``config``: another campaign's load, ``held``); a solve that fails is
-        refused (its converged part would bias the basis or the reference silently)."""
-        position = self.position(node)
-        datasets, attrs = solve_position(config or self.config, position, self.organ,
-                                         MPI.COMM_SELF, tools)  # fmt: skip
-        if attrs["status"] != "solved":
-            tag = self.surface.node_tags[node]
-            raise SystemExit(f"the full-order solve at surface node {tag} failed: "
-                             f"{attrs['message']}")  # fmt: skip
-        return datasets
-
-    def nearest(self, point) -> int:
-        return int(np.argmin(np.linalg.norm(self.surface.nodes - point, axis=1)))
 
     def tool(self, node, fraction) -> tuple:
         """A further force tool at surface ``node``: its (point, force) pair, ``fraction``
@@ -736,6 +724,9 @@ def parse_arguments() -> argparse.Namespace:
     parser.add_argument("--held-tool", type=float, default=0.0,
                         help="--local-solves: mm, a tool this far from each held-out position "
                         "holds its patch in place while the position's tool presses")  # fmt: skip
+    parser.add_argument("--hold", choices=("mean", "rigid"), default="mean",
+                        help="--held-tool: the reduced holder keeps its patch's mean "
+                        "displacement, or its rigid motion (the mean and the rotation)")
     parser.add_argument("--second-force", type=float, default=None,
                         help="--second-tool: its force, of the campaign's (0.5)")  # fmt: skip
     parser.add_argument("--second-basis", choices=("single", "paired", "both"),

@@ -8,7 +8,8 @@ a stale cache ran a 2.7 us step where the current code takes 0.08 us, and with w
 offsets it can read past the buffer). A pip upgrade rewrites every file, so this matters
 after editing or checking out some of them: on import, the package compares a digest of
 all its sources with the one stored beside the cache and, if they differ, deletes the
-cache files of this source directory before any kernel is compiled or loaded.
+cache files of this source directory before any kernel is compiled or loaded. The shared
+layouts the kernels compile in (``COMPILED_IN``) count as sources.
 """
 
 from __future__ import annotations
@@ -19,12 +20,15 @@ from pathlib import Path
 
 STAMP = "hapticrom-sources.sha256"
 HERE = Path(__file__).resolve().parent
+# shared modules whose constants the kernels compile in (numba freezes a global's value)
+COMPILED_IN = (HERE.parent / "shared" / "material_layout.py",)
 
 
-def sources_digest(directory: Path = HERE) -> str:
-    """sha256 over the names and contents of the ``*.py`` files of ``directory``."""
+def sources_digest(directory: Path = HERE, compiled_in: tuple[Path, ...] = COMPILED_IN) -> str:
+    """sha256 over the names and contents of the ``*.py`` files of ``directory`` and of
+    the ``compiled_in`` files."""
     digest = hashlib.sha256()
-    for path in sorted(directory.glob("*.py")):
+    for path in [*sorted(directory.glob("*.py")), *compiled_in]:
         digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
     return digest.hexdigest()
 

@@ -10,12 +10,13 @@ a mixed (pressure) formulation can take ``rest`` and ``theta`` apart:
 second derivatives, ``params[KAPPA]`` the modulus.
 
 A law and its parameters travel as one float64 vector of ``PARAMETER_SIZE`` entries,
-packed by :func:`law_parameters` (which refuses bad values); the offsets are the
-constants below. Derivatives are with respect to F (3x3, row-major): the first Piola
-stress ``P[i, j] = dPsi/dF[i, j]`` and the tangent ``A[3*i + j, 3*k + l] =
-d2Psi/dF[i, j] dF[k, l]`` (9x9, symmetric). All written analytically from the invariants
-(``dI1/dF = 2 F``, ``dJ/dF = J F^-T``, ``d(F^-T)[i, j]/dF[k, l] = -F^-1[j, k] F^-1[l, i]``,
-and for an isochoric invariant ``Ib = J^p I``: ``dIb = J^p (dI + p I F^-T)``).
+packed by :func:`law_parameters` (which refuses bad values); the offsets are
+:mod:`hapticrom.shared.material_layout`'s. Derivatives are with respect to F (3x3,
+row-major): the first Piola stress ``P[i, j] = dPsi/dF[i, j]`` and the tangent
+``A[3*i + j, 3*k + l] = d2Psi/dF[i, j] dF[k, l]`` (9x9, symmetric). All written
+analytically from the invariants (``dI1/dF = 2 F``, ``dJ/dF = J F^-T``,
+``d(F^-T)[i, j]/dF[k, l] = -F^-1[j, k] F^-1[l, i]``, and for an isochoric invariant
+``Ib = J^p I``: ``dIb = J^p (dI + p I F^-T)``).
 
 Every kernel has an explicit signature (compiled or loaded from numba's cache at import),
 releases the GIL, allocates nothing (small fixed-size tuples live in registers, a
@@ -35,24 +36,29 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from hapticrom.shared.errors import InputError
+from hapticrom.shared.material_layout import (  # the packed row's layout, named once
+    C1,
+    C2,
+    K1,
+    K2,
+    K3,
+    K4,
+    KAPPA,
+    LAW,
+    LAW_HGO,
+    LAW_IDS,
+    LAW_NEO_HOOKEAN,
+    LAW_SVK,
+    M0,
+    MU,
+    N0,
+    PARAMETER_SIZE,
+    TENSION_ONLY,
+    UNIT_TOLERANCE,
+)
 
-LAW_SVK, LAW_NEO_HOOKEAN, LAW_HGO = 0, 1, 2
-LAW_IDS = {"svk": LAW_SVK, "neo-hookean": LAW_NEO_HOOKEAN, "hgo": LAW_HGO}
 ALIASES = {"neohookean": "neo-hookean", "neo_hookean": "neo-hookean"}
 ALIASES["saint-venant-kirchhoff"] = "svk"
-
-# -- the packed parameters: offsets into the float64 vector ----------------------------------
-LAW = 0  # the law's id (LAW_SVK, LAW_NEO_HOOKEAN, LAW_HGO) as a float
-KAPPA = 1  # modulus of the volumetric term kappa/2 theta^2 (MPa): lambda, or 2/D for hgo
-MU = 2  # svk, neo-hookean: the shear modulus mu (MPa)
-C1 = 2  # hgo: C1 (MPa) of C1/2 (I1b - 3)
-C2 = 3  # hgo: C2 (MPa) of C2/2 (I2b - 3)
-K1, K2 = 4, 5  # hgo: stiffness (MPa) and exponent (-) of the m0 family
-K3, K4 = 6, 7  # hgo: stiffness (MPa) and exponent (-) of the n0 family
-M0 = 8  # hgo: (3) unit direction of the first fibre family (reference configuration)
-N0 = 11  # hgo: (3) unit direction of the second fibre family
-TENSION_ONLY = 14  # hgo: 1.0 if a fibre family carries nothing while not stretched (I4b <= 1)
-PARAMETER_SIZE = 15
 
 # What a kernel evaluates, as weights (of rest, of kappa, of theta alone): the whole energy,
 # its rest part, or theta. Floats, not an int switch: one compiled law serves all three.
@@ -61,7 +67,6 @@ _WHOLE, _REST, _THETA = (1.0, 1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
 # The hgo defaults: those of hapticrom.offline.fe.materials.HolzapfelGasser (a test checks).
 HGO_DEFAULTS = {"C1": 0.1, "D": 1e-5, "C2": 0.0, "k1": 0.234, "k2": 29.917}
 HGO_DEFAULTS.update(k3=0.234, k4=29.917)
-UNIT_TOLERANCE = 1e-6  # how far |m0|, |n0| may be from 1
 
 
 # -- packing (Python) --------------------------------------------------------------------------

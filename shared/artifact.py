@@ -38,8 +38,17 @@ from hapticrom.shared.checksum import array_digest
 from hapticrom.shared.envelope import MAX_BYTES, USERBLOCK, read_verified, seal
 from hapticrom.shared.errors import ArtifactError, HapticromError
 from hapticrom.shared.files import write_checksummed, write_hdf5_atomically
+from hapticrom.shared.material_layout import PARAMETER_SIZE
 
-__all__ = ["SCHEMA", "ROOT_ATTRS", "Artifact", "ArtifactError", "read_artifact", "write_artifact"]
+__all__ = [
+    "SCHEMA",
+    "ROOT_ATTRS",
+    "Artifact",
+    "ArtifactError",
+    "read_artifact",
+    "with_group",
+    "write_artifact",
+]
 
 FORMAT = "hapticrom"
 # 1.1: the anm group; 1.2: the cutting group; 1.3: its pressure coupling;
@@ -49,8 +58,9 @@ FORMAT = "hapticrom"
 # 2.2: the tool's linear surface field at the loadable vertices (contact_fields);
 # 2.3: the depth grid to the deepest sample, each sample's solved depth (samples 2.2); the
 # tool's linear stiffness at the loadable vertices (contact_fields 1.1);
-# 2.4: and at the midpoints of the loadable triangles' edges (contact_fields 1.2).
-FORMAT_VERSION = (2, 4)
+# 2.4: and at the midpoints of the loadable triangles' edges (contact_fields 1.2);
+# 2.5: the hyper-reduced physics of regions of the surface (hyperreduced).
+FORMAT_VERSION = (2, 5)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -287,6 +297,44 @@ SCHEMA: tuple[Group, ...] = (
         required=False,
     ),
     Group(
+        "hyperreduced",
+        "ecsw-physics",
+        (1, 0),
+        _fields(
+            ("centres", "f", ("Hr", 3), "mm", "the centre of each region"),
+            ("radii", "f", ("Hr",), "mm", "how far from its centre a region's tools may be",
+             "positive"),
+            ("element_offsets", "i", ("Hr1",), "1",
+             "region r's sampled elements: rows offsets[r]:[r+1]", "nonnegative"),
+            ("element_nodes", "f", ("He", "Hk", 3), "mm",
+             "the sampled elements' reference nodes (Basix order)"),
+            ("weights", "f", ("He",), "1", "ECSW's weight of each sampled element", "positive"),
+            ("basis_rows", "f", ("He", "3Hk", "Hq"), "1",
+             "the region's displacement basis at each element's nodes"),
+            ("pressure_rows", "f", ("He", "Hp"), "1",
+             "the region's pressure basis at each element's cell"),
+            ("parameters", "f", ("He", PARAMETER_SIZE), "packed",
+             "each element's law and parameters (shared/material_layout.py)"),
+            ("constant_tangent", "f", ("Hr", "Hs", "Hs"), "N/mm",
+             "each region's constant part of the reduced mixed tangent", "symmetric"),
+            ("surface_basis", "f", ("Hr", "3V", "Hq"), "1",
+             "each region's displacement basis at the surface vertices"),
+            ("load_offsets", "i", ("Hr1",), "1",
+             "region r's load vertices: rows offsets[r]:[r+1]", "nonnegative"),
+            ("load_vertices", "i", ("Hl",), "1", "a surface vertex where a tool may press",
+             "index:V"),
+            ("tool_loads", "f", ("Hl", 3, "Hq"), "1",
+             "the reduced load of a unit force (N) along x, y, z of the tool centred there"),
+        ),
+        required=False,
+        attrs=(
+            Attr("cell", "str", "the elements' cell", True, ("choice:hexahedron,tetrahedron",)),
+            Attr("hold_stiffness", "float", "a holder's penalty of its patch's rigid motion "
+                 "(N/mm)", True, ("positive",)),  # fmt: skip
+            Attr("tolerance", "float", "ECSW's tolerance", checks=("positive",)),
+        ),
+    ),
+    Group(
         "global",
         "global-basis",
         (1, 0),
@@ -338,6 +386,18 @@ def write_artifact(path: str | Path, content: dict[str, dict[str, Any]], root_at
         )
     except OSError as exc:
         raise HapticromError(f"cannot write the artifact {path}: {exc.strerror or exc}") from None
+
+
+def with_group(artifact: Artifact, name: str, group: dict) -> tuple[dict, dict]:
+    """(content, root attributes) for :func:`write_artifact`: ``artifact``'s groups with
+    ``group`` (datasets and "attrs") as ``name`` (replacing one of that name)."""
+    if name not in {g.name for g in SCHEMA}:
+        raise ArtifactError(f"the schema has no group {name}")
+    content = {g: {**arrays, "attrs": dict(artifact.group_attrs.get(g, {}))}
+               for g, arrays in artifact.groups.items()}  # fmt: skip
+    content[name] = group
+    root = {k: v for k, v in artifact.attrs.items() if k not in ("format", "format_version")}
+    return content, root
 
 
 def _write_groups(f: h5py.File, content: dict, root_attrs: dict) -> None:

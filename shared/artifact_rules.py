@@ -30,6 +30,7 @@ from numpy.polynomial import polynomial as poly
 from hapticrom.shared.errors import ArtifactError
 from hapticrom.shared.geometry import triangle_edges
 from hapticrom.shared.lattice import lattice_corners, lattice_subdivisions
+from hapticrom.shared.material_layout import packed_problem
 
 # Bounds on attributes (the writer's are a few hundred bytes; a JSON campaign a few kB).
 MAX_ATTRIBUTE_ITEMS = 1 << 14
@@ -607,6 +608,67 @@ def _anm_against_curves(artifact) -> None:
             )
 
 
+# The hyper-reduced physics (format 2.5). Its bases have orthonormal columns over the organ's
+# DOFs, so no entry exceeds 1; a unit force's reduced load is a sum of its nodal loads (P2
+# facets give corners negative shares) times such entries: a few units at most.
+ELEMENT_NODES = {"hexahedron": 8, "tetrahedron": 10}  # the runtime's elements (Q1, P2)
+BASIS_BOUND = 1.0 + 1e-6
+MAX_TOOL_LOAD = 10.0  # per N
+MAX_WEIGHT = 1e6  # an ECSW weight: elements one sampled element stands for
+MAX_TANGENT = 1e15  # N/mm: the constant tangent with a holder's penalty (1e4 x its stiffest)
+
+
+def _hyperreduced(artifact) -> None:
+    """``hyperreduced``: offsets that split the elements and load vertices into the
+    regions (each at least one of each), n + n_p the tangent's size, the cell's node count,
+    each element's packed law, each region's load vertices distinct and loadable, and
+    bounds on every value (above)."""
+    if "hyperreduced" not in artifact.groups:
+        return
+    h, sym = artifact["hyperreduced"], artifact.symbols
+    regions = sym["Hr"]
+    if regions < 1:
+        raise _fail(artifact, "hyperreduced/centres: the group holds no region")
+    for name, total in (("element_offsets", sym["He"]), ("load_offsets", sym["Hl"])):
+        o = h[name].astype(np.int64)  # unsigned offsets would wrap in np.diff
+        if len(o) != regions + 1 or o[0] != 0 or o[-1] != total or np.any(np.diff(o) < 1):
+            raise _fail(artifact, f"hyperreduced/{name} must rise from 0 to {total} in "
+                                  f"{regions} steps of at least 1")  # fmt: skip
+    if sym["Hs"] != sym["Hq"] + sym["Hp"]:
+        raise _fail(artifact, "hyperreduced/constant_tangent is not of n + n_p (basis_rows' "
+                              "and pressure_rows' modes)")  # fmt: skip
+    cell = artifact.group_attrs["hyperreduced"]["cell"]
+    if sym["Hk"] != ELEMENT_NODES[cell]:
+        raise _fail(artifact, f"hyperreduced/element_nodes has {sym['Hk']} nodes an element, "
+                              f"a {cell} {ELEMENT_NODES[cell]}")  # fmt: skip
+    problem = packed_problem(h["parameters"])
+    if problem:
+        raise _fail(artifact, f"hyperreduced/parameters {problem}")
+    _hyperreduced_loads(artifact, h)
+    bounds = (("centres", MAX_LENGTH), ("radii", MAX_LENGTH), ("element_nodes", MAX_LENGTH),
+              ("weights", MAX_WEIGHT), ("basis_rows", BASIS_BOUND),
+              ("pressure_rows", BASIS_BOUND), ("surface_basis", BASIS_BOUND),
+              ("tool_loads", MAX_TOOL_LOAD), ("constant_tangent", MAX_TANGENT))  # fmt: skip
+    for name, bound in bounds:
+        if np.max(np.abs(h[name]), initial=0.0) > bound:
+            raise _fail(artifact, f"hyperreduced/{name} has values beyond +-{bound:g}")
+    if artifact.group_attrs["hyperreduced"]["hold_stiffness"] > MAX_TANGENT:
+        raise _fail(artifact, f"attribute hold_stiffness of hyperreduced is over {MAX_TANGENT:g}")
+
+
+def _hyperreduced_loads(artifact, h) -> None:
+    s = artifact["surface"]
+    loadable = np.zeros(len(s["vertices"]), dtype=bool)
+    loadable[s["triangles"][s["groups"] == 1].ravel()] = True
+    o, vertices = h["load_offsets"], h["load_vertices"]
+    if not loadable[vertices].all():
+        raise _fail(artifact, "hyperreduced/load_vertices has a vertex of no loadable triangle")
+    for r in range(len(o) - 1):
+        rows = vertices[o[r] : o[r + 1]]
+        if len(np.unique(rows)) != len(rows):
+            raise _fail(artifact, f"hyperreduced/load_vertices repeats a vertex in region {r}")
+
+
 CROSS_RULES = (
     _depth_grid,
     _solved_depth,
@@ -616,6 +678,7 @@ CROSS_RULES = (
     _tool_stiffness,
     _surface,
     _contact_fields,
+    _hyperreduced,
     _anm_sections,
     _anm_against_curves,
 )

@@ -1,10 +1,12 @@
 """The offline commands (``mesh``, ``solve``, ``campaign``, ``reduce``, ``train``, ``anm``,
-``accuracy``): their parsers and what they do. They need the ``offline`` extra and run
+``accuracy``, ``physics``): their parsers and what they do. They need the ``offline`` extra and run
 under ``mpirun -n N``; all but ``mesh`` take PETSc options at the end of the line."""
 
 from __future__ import annotations
 
+import argparse
 import logging
+import math
 from pathlib import Path
 
 from hapticrom.cli.args import float_in, int_in, model_argument, new_command, number_option
@@ -28,6 +30,7 @@ HELP = {
     "train": "campaign + reduce in one go [offline]",
     "anm": "POD-ANM of one problem against full Newton: curves, tables [offline]",
     "accuracy": "the reduced model against full-order solves at held-out positions [offline]",
+    "physics": "hyper-reduced physics of regions of a model (two tools, holders) [offline]",
 }
 
 
@@ -490,7 +493,89 @@ def add_accuracy(sub) -> None:
     )
 
 
+# -- physics ---------------------------------------------------------------------------------
+def centre_point(text: str) -> tuple[float, float, float]:
+    """``--at X,Y,Z``: three finite numbers (mm)."""
+    parts = text.split(",")
+    try:
+        values = tuple(float(v) for v in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) and abs(v) <= 1e4 for v in values):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm (three finite numbers), got "
+                                         f"{text!r}")  # fmt: skip
+    return values
+
+
+def distances(text: str) -> tuple[float, ...]:
+    """``--solves MM,MM``: positive distances (mm)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if not values or not all(math.isfinite(v) and 0 < v <= 1e3 for v in values):
+        raise argparse.ArgumentTypeError(f"expected positive distances in mm, got {text!r}")
+    return values
+
+
+@offline_command()
+def cmd_physics(args, petsc) -> int:
+    """Regions of hyper-reduced physics built from a solved campaign into a model."""
+    from mpi4py import MPI
+
+    from hapticrom.offline.campaign.store import SnapshotStore
+
+    if MPI.COMM_WORLD.size > 1:
+        raise HapticromError("hapticrom physics runs on one rank (its region solves are "
+                             "serial); run it without mpirun")  # fmt: skip
+    store = SnapshotStore(args.campaign_dir)
+    store.manifest()  # a campaign directory, intact manifest
+    out = made_parent(check_out_file(args.out, f"physics --out {args.out}", make_parents=True))
+    if out.resolve() == Path(args.model).resolve():
+        raise HapticromError(f"physics --out {args.out} is the model itself: write a new file")
+    from hapticrom.offline.reduce.ecsw_regions import RegionRecipe, physics_from_campaign
+
+    recipe = RegionRecipe(distances=args.solves, per_distance=args.solves_per_distance,
+                          state_modes=args.state_modes, pressure_modes=args.pressure_modes,
+                          tolerance=args.tolerance, radius=args.radius)  # fmt: skip
+    petsc.start()
+    regions = physics_from_campaign(args.model, store, args.at, recipe, out)
+    log.info(f"wrote {out}: {len(regions)} region(s) of hyper-reduced physics")
+    return 0
+
+
+def add_physics(sub) -> None:
+    """``hapticrom physics MODEL CAMPAIGN_DIR --at X,Y,Z --out FILE``."""
+    p = new_command(sub, "physics", cmd_physics, HELP["physics"], description=(
+        "Build regions of hyper-reduced physics (issue 18: the reduced mixed model solved "
+        "online on the few elements ECSW samples, for two tools, holders and any load) "
+        "about points of a model's trained surface, and write them with the model to a "
+        "new file (artifact group hyperreduced). Each region takes full-order solves of "
+        "the campaign's load path about its centre (about a minute each on the demo "
+        "cornea). Load it with hapticrom.online.load(OUT).physics(region)."))  # fmt: skip
+    model_argument(p)
+    p.add_argument("campaign_dir", help="the campaign directory the model was reduced from")
+    p.add_argument("--at", type=centre_point, action="append", required=True,
+                   metavar="X,Y,Z", help="a region's centre (mm); repeat for more regions "
+                   "(a negative first coordinate: --at=-1.2,0.5,0.1)")
+    p.add_argument("--out", required=True, metavar="FILE", help="the model with its physics")
+    number_option(p, "--radius", float_in(1e-3, 1e3, "mm"), 1.0, "MM",
+                  "how far from its centre a region's tools may press (default 1 mm)")
+    number_option(p, "--tolerance", float_in(1e-6, 0.5), 0.004, "T",
+                  "ECSW's tolerance (default 0.004: the two-tool target, README)")
+    p.add_argument("--solves", type=distances, default=(0.25, 0.5), metavar="MM,MM",
+                   help="distances of a region's full-order solves from its centre "
+                   "(default 0.25,0.5)")  # fmt: skip
+    number_option(p, "--solves-per-distance", int_in(1, 64), 3, "N",
+                  "full-order solves at each distance (default 3)")
+    number_option(p, "--state-modes", int_in(1, 1000), 30, "N",
+                  "displacement modes of the solves' states (default 30)")
+    number_option(p, "--pressure-modes", int_in(1, 1000), 20, "N",
+                  "pressure modes (default 20; each adds a supremizer mode)")
+
+
 def add_offline_commands(sub) -> None:
     """Every offline command, in the order of the pipeline."""
-    for add in (add_mesh, add_solve, add_campaign_reduce_train, add_anm, add_accuracy):
+    for add in (add_mesh, add_solve, add_campaign_reduce_train, add_anm, add_accuracy,
+                add_physics):  # fmt: skip
         add(sub)

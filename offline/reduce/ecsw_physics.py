@@ -1,0 +1,156 @@
+"""The artifact's ``hyperreduced`` group (format 2.5): regions of hyper-reduced physics that
+the runtime steps online (``online/physics.py``), written from the trainer's
+:class:`~hapticrom.offline.reduce.ecsw_model.HyperReducedModel` of each region.
+
+A region is what ``bench/ecsw_tradeoff.py`` measures at one held-out position: a reduced mixed
+model on bases Phi (N, n), Psi (cells, n_p) built about a centre, its internal forces summed
+over ECSW's sampled elements. The runtime needs, per region: the sampled elements' reference
+nodes, weights, basis rows and packed laws (its sums, ``online/hyperreduced.py``); the constant
+tangent; the basis at the surface vertices (what it draws, and where a holder grips); and the
+reduced load of a unit force of the tool centred at each loadable vertex within the region's
+radius (``tool_loads``: Phi^T g / W, g the campaign's force tool's load, exactly as the full
+order spreads it, so a press at a vertex is the full order's load projected).
+
+Steps, as a reductor's: :func:`region_arrays` (one region's arrays from its model),
+:func:`tool_loads` (the loads at the region's vertices), :func:`physics_group` (the regions
+stacked into the group's content), :func:`add_physics` (the group written into an artifact).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from hapticrom.shared.artifact import read_artifact, with_group, write_artifact
+from hapticrom.shared.errors import InputError
+
+HOLD_STIFFNESS = 1e4  # a holder's penalty, of the stiffest tool's linear stiffness
+
+
+@dataclass(frozen=True)
+class PhysicsRegion:
+    """One region's arrays, as the group stores them (names as ``ARTIFACT.md``'s)."""
+
+    centre: np.ndarray  # (3,) mm
+    radius: float  # mm
+    element_nodes: np.ndarray  # (S, nodes, 3) mm
+    weights: np.ndarray  # (S,)
+    basis_rows: np.ndarray  # (S, 3 nodes, n)
+    pressure_rows: np.ndarray  # (S, n_p)
+    parameters: np.ndarray  # (S, PARAMETER_SIZE)
+    constant_tangent: np.ndarray  # (n + n_p, n + n_p)
+    surface_basis: np.ndarray  # (3V, n)
+    load_vertices: np.ndarray  # (L,) surface vertex indices
+    tool_loads: np.ndarray  # (L, 3, n) per N
+    hold_stiffness: float  # N/mm
+
+
+def region_arrays(mesh, model, Phi, surface, centre, radius, loads) -> PhysicsRegion:
+    """A region about ``centre`` (mm) of tools within ``radius`` (mm): ``model`` (a
+    HyperReducedModel on ``mesh``'s elements and the basis ``Phi`` (N, n)), ``surface`` the
+    artifact's surface group (vertices, triangles, nodes, groups), ``loads`` a
+    ``tool_stiffness.ToolLoads`` (the campaign's force tool)."""
+    centre = np.asarray(centre, dtype=float)
+    s = model.elements
+    dN, dV, Phi_e, Psi_e, params, weights = model.sample
+    vertices = region_vertices(surface, centre, radius)
+    tool_loads_ = tool_loads(Phi, surface["vertices"][vertices], loads)
+    return PhysicsRegion(
+        centre=centre,
+        radius=float(radius),
+        element_nodes=np.ascontiguousarray(mesh.X[s]),
+        weights=np.array(weights),
+        basis_rows=np.array(Phi_e),
+        pressure_rows=np.array(Psi_e),
+        parameters=np.array(params),
+        constant_tangent=0.5 * (model.linear + model.linear.T),  # symmetric up to rounding
+        surface_basis=surface_rows(Phi, surface["nodes"]),
+        load_vertices=vertices,
+        tool_loads=tool_loads_,
+        hold_stiffness=hold_stiffness(model, tool_loads_),
+    )
+
+
+def linear_stiffness(model, loads) -> np.ndarray:
+    """(k,) N/mm: 1 / (t^T u) for each reduced load t of ``loads`` (k, n) per N, u the
+    model's exact linear response to it (its mixed matrices over every element, the
+    pressure condensed by the solve): the tool's linear stiffness, where t is a tool's."""
+    n = model.n
+    K = np.block([[model.L_uu, model.L_up], [model.L_up.T, -model.M]])
+    rhs = np.vstack([np.asarray(loads).T, np.zeros((model.n_p, len(loads)))])
+    compliance = np.einsum("nk,nk->k", rhs[:n], np.linalg.solve(K, rhs)[:n])
+    return 1.0 / compliance
+
+
+def hold_stiffness(model, loads) -> float:
+    """A holder's penalty (N/mm): ``HOLD_STIFFNESS`` times the stiffest linear response
+    of a tool of the region (``loads`` (L, 3, n), each direction), so that a held patch
+    moves about 1e-4 of what a free one would under the same force."""
+    return HOLD_STIFFNESS * float(linear_stiffness(model, loads.reshape(-1, loads.shape[-1])).max())
+
+
+def region_vertices(surface, centre, radius) -> np.ndarray:
+    """The vertices of loadable triangles within ``radius`` of ``centre``: where the
+    region's tools may press (refused if none)."""
+    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    near = np.linalg.norm(surface["vertices"][loadable] - centre, axis=1) <= radius
+    if not near.any():
+        raise InputError(f"no loadable surface vertex within {radius} mm of {centre.tolist()}")
+    return loadable[near].astype(np.int64)
+
+
+def surface_rows(Phi, nodes) -> np.ndarray:
+    """(3V, n): the basis at the surface vertices (canonical ``nodes``), DOF 3 v + c."""
+    n = Phi.shape[1]
+    return np.ascontiguousarray(Phi.reshape(-1, 3, n)[np.asarray(nodes)].reshape(-1, n))
+
+
+def tool_loads(Phi, points, loads) -> np.ndarray:
+    """(L, 3, n): Phi^T g / W of a unit force along x, y and z of the tool centred at each
+    of ``points`` (``loads.at``: the campaign's traction F w / W, w = (1 - r^2/R^2)^2)."""
+    out = np.empty((len(points), 3, Phi.shape[1]))
+    for k, point in enumerate(points):
+        for axis, push in enumerate(np.eye(3)):
+            g, W = loads.at(point, push)
+            out[k, axis] = Phi.T @ g / W
+    return out
+
+
+def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | None) -> dict:
+    """The group's content (datasets and attrs) of ``regions`` (same n, n_p and element
+    kind; the penalty the stiffest of theirs)."""
+    if not regions:
+        raise InputError("no region to write")
+    offsets = [np.cumsum([0] + [len(getattr(r, name)) for r in regions])
+               for name in ("weights", "load_vertices")]  # fmt: skip
+
+    def stack(name):
+        return np.concatenate([getattr(r, name) for r in regions])
+
+    attrs = {"cell": cell, "hold_stiffness": max(r.hold_stiffness for r in regions)}
+    if tolerance is not None:
+        attrs["tolerance"] = float(tolerance)
+    return {
+        "centres": np.array([r.centre for r in regions]),
+        "radii": np.array([r.radius for r in regions]),
+        "element_offsets": offsets[0].astype(np.int64),
+        "load_offsets": offsets[1].astype(np.int64),
+        **{name: stack(name) for name in ("element_nodes", "weights", "basis_rows",
+                                          "pressure_rows", "parameters", "load_vertices",
+                                          "tool_loads")},  # fmt: skip
+        "constant_tangent": np.array([r.constant_tangent for r in regions]),
+        "surface_basis": np.array([r.surface_basis for r in regions]),
+        "attrs": attrs,
+    }
+
+
+def add_physics(artifact_path, out, regions, cell, tolerance=None) -> Path:
+    """Write ``artifact_path``'s artifact with the ``hyperreduced`` group of ``regions`` to
+    ``out`` (atomically: the reader checks it before it appears; the source untouched)."""
+    artifact = read_artifact(artifact_path)
+    group = physics_group(regions, cell, tolerance)
+    content, root_attrs = with_group(artifact, "hyperreduced", group)
+    write_artifact(out, content, root_attrs)
+    return Path(out)

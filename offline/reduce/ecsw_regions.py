@@ -1,0 +1,201 @@
+"""Regions of hyper-reduced physics built from a solved campaign (issue 18): what
+``hapticrom physics`` writes into an artifact's ``hyperreduced`` group.
+
+A region about a centre is the recipe ``bench/ecsw_tradeoff.py`` measured at held-out
+positions (README, stops 37-42): full-order solves of the campaign's load path at loadable
+surface nodes about the centre (``RegionSolves``: by default three about 0.25 mm and three
+about 0.5 mm away, so that every contact within the region has nonlinear snapshots close
+by), the POD of their states and pressures, supremizers (the mixed basis' inf-sup
+stability), ECSW trained on the solves' own states, then the region's arrays
+(:func:`~hapticrom.offline.reduce.ecsw_physics.region_arrays`). Steps, as a reductor's:
+:func:`region_snapshots`, :func:`region_bases`, :func:`region_model`; :func:`build_regions`
+runs them for each centre. Serial (one rank), as the bench.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from mpi4py import MPI
+
+from hapticrom.meshes.msh import read_surface
+from hapticrom.offline.campaign.greedy import near_supports
+from hapticrom.offline.campaign.positions import ToolPosition
+from hapticrom.offline.campaign.run import solve_position
+from hapticrom.offline.fe.organ import load_organ
+from hapticrom.offline.reduce.ecsw import ecsw
+from hapticrom.offline.reduce.ecsw_model import (
+    HyperReducedModel,
+    rest_operators,
+    supremizers,
+    training_matrix,
+)
+from hapticrom.offline.reduce.ecsw_physics import PhysicsRegion, region_arrays, region_vertices
+from hapticrom.shared.errors import InputError, SolverError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RegionRecipe:
+    """How a region is built: the solves' distances (mm) and count at each, the modes kept
+    (displacement states, pressures; supremizers add one displacement mode a pressure
+    mode), ECSW's tolerance, and the radius (mm) about the centre where tools may press.
+    The defaults are the bench's single-tool figures at ECSW 0.004 (README, stop 42)."""
+
+    distances: tuple[float, ...] = (0.25, 0.5)
+    per_distance: int = 3
+    state_modes: int = 30
+    pressure_modes: int = 20
+    tolerance: float = 0.004
+    radius: float = 1.0
+
+    def __post_init__(self):
+        if not self.distances or min(self.distances) <= 0:
+            raise InputError("a region's solves need positive distances (mm)")
+        counts = (self.per_distance, self.state_modes, self.pressure_modes)
+        if min(counts) < 1:
+            raise InputError("a region needs at least one solve a distance, state mode and "
+                             "pressure mode")  # fmt: skip
+        if not (0 < self.tolerance < 1 and self.radius > 0):
+            raise InputError("ECSW's tolerance must lie in (0, 1) and the radius be positive")
+
+
+class RegionSolves:
+    """Full-order solves of a campaign's load path at loadable surface nodes about a point
+    (the organ and its surface read once). Subclassed by ``bench/ecsw_tradeoff.py``."""
+
+    def __init__(self, config, distances, per_distance: int):
+        self.config = config
+        self.distances, self.per_distance = tuple(distances), int(per_distance)
+        self.surface = read_surface(config.problem.mesh.file, config.load.surface)
+        self.organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+        # a tip on the clamped rim does not move: no snapshot there (as the greedy campaign)
+        self.excluded = near_supports(config, self.surface.nodes)
+
+    def nodes(self, point, forbidden=()) -> list[int]:
+        """The surface nodes to solve at: per distance d, those whose distance from ``point``
+        is within 25 % of d, the nearest to d first, then each next the farthest from those
+        chosen (spread round the point); no node twice, none by the supports, none of
+        ``forbidden``."""
+        distance = np.linalg.norm(self.surface.nodes - point, axis=1)
+        chosen: list[int] = []
+        for d in self.distances:
+            ring = np.flatnonzero(np.abs(distance - d) <= 0.25 * d)
+            skip = self.excluded | set(forbidden) | set(chosen)
+            ring = np.array([k for k in ring if k not in skip])
+            if len(ring) < self.per_distance:
+                raise InputError(f"{len(ring)} free loadable surface nodes lie within 25 % of "
+                                 f"{d:g} mm of {np.round(point, 4).tolist()}, "
+                                 f"{self.per_distance} needed")  # fmt: skip
+            picks = [int(ring[np.argmin(np.abs(distance[ring] - d))])]
+            while len(picks) < self.per_distance:
+                xyz = self.surface.nodes[ring][:, None]
+                gap = np.linalg.norm(xyz - self.surface.nodes[picks][None], axis=2).min(axis=1)
+                picks.append(int(ring[np.argmax(gap)]))
+            chosen += picks
+        return chosen
+
+    def position(self, node) -> ToolPosition:
+        s = self.surface
+        return ToolPosition(-1, tuple(s.nodes[node]), tuple(s.normals[node]),
+                            int(s.node_tags[node]), "point")  # fmt: skip
+
+    def solve(self, node, tools=(), config=None) -> dict:
+        """The datasets of the campaign's load path at surface ``node`` (with further force
+        ``tools``; ``config``: another load); a failed solve is refused (its converged part
+        would bias the basis silently)."""
+        datasets, attrs = solve_position(config or self.config, self.position(node), self.organ,
+                                         MPI.COMM_SELF, tools)  # fmt: skip
+        if attrs["status"] != "solved":
+            raise SolverError(f"the full-order solve at surface node "
+                              f"{self.surface.node_tags[node]} failed: {attrs['message']}")
+        return datasets
+
+    def nearest(self, point) -> int:
+        return int(np.argmin(np.linalg.norm(self.surface.nodes - point, axis=1)))
+
+
+def pod(columns: np.ndarray) -> np.ndarray:
+    """Left singular vectors of the columns, each scaled to unit norm first."""
+    norms = np.linalg.norm(columns, axis=0)
+    return np.linalg.svd(columns[:, norms > 0] / norms[norms > 0], full_matrices=False)[0]
+
+
+def region_snapshots(solves: RegionSolves, centre) -> tuple[np.ndarray, np.ndarray]:
+    """(states (N, k), pressures (cells, k)) of the solves about ``centre``."""
+    solved = [solves.solve(node) for node in solves.nodes(centre)]
+    return (np.vstack([d["displacement"] for d in solved]).T,
+            np.vstack([d["pressure"] for d in solved]).T)  # fmt: skip
+
+
+def region_bases(operators, U, P, recipe: RegionRecipe) -> tuple[np.ndarray, np.ndarray]:
+    """(Phi, Psi): ``state_modes`` of the states and the supremizers of ``pressure_modes``
+    of the pressures, orthonormalised; the pressure modes."""
+    free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
+    if U.shape[1] < recipe.state_modes or P.shape[1] < recipe.pressure_modes:
+        raise InputError(f"{U.shape[1]} states for {recipe.state_modes} state and "
+                         f"{recipe.pressure_modes} pressure modes")  # fmt: skip
+    Psi = pod(P)[:, : recipe.pressure_modes]
+    parts = [pod(U)[:, : recipe.state_modes], supremizers(operators, Psi, free)]
+    return np.linalg.qr(np.hstack(parts))[0], Psi
+
+
+def region_model(mesh, rest, Phi, Psi, U, P, tolerance) -> HyperReducedModel:
+    """ECSW at ``tolerance`` trained on the states (U, P) reduced, and its model."""
+    states = [(Phi.T @ u, Psi.T @ p) for u, p in zip(U.T, P.T, strict=True)]
+    sampling = ecsw(training_matrix(mesh, Phi, Psi, states, rest=rest)[0], tolerance=tolerance)
+    return HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights, rest=rest)
+
+
+def build_regions(config, mesh, rest, surface, loads, centres, recipe: RegionRecipe):
+    """The :class:`PhysicsRegion` of each of ``centres`` (mm), logged as it goes."""
+    solves = RegionSolves(config, recipe.distances, recipe.per_distance)
+    operators = rest_operators(mesh, rest)
+    regions: list[PhysicsRegion] = []
+    for k, centre in enumerate(np.asarray(centres, dtype=float)):
+        t0 = time.perf_counter()
+        U, P = region_snapshots(solves, centre)
+        Phi, Psi = region_bases(operators, U, P, recipe)
+        model = region_model(mesh, rest, Phi, Psi, U, P, recipe.tolerance)
+        regions.append(region_arrays(mesh, model, Phi, surface, centre, recipe.radius, loads))
+        log.info("region %d of %d at %s mm: %d states, %d + %d modes, %d of %d elements "
+                 "(%.0f s)", k + 1, len(centres), np.round(centre, 3).tolist(), U.shape[1],
+                 Phi.shape[1], Psi.shape[1], model.sampled_elements, len(mesh.X),
+                 time.perf_counter() - t0)  # fmt: skip
+    return regions
+
+
+def physics_from_campaign(model_path, store, centres, recipe: RegionRecipe, out) -> list:
+    """The regions about ``centres`` built from the solved campaign in ``store`` (a
+    SnapshotStore) and written with ``model_path``'s artifact (which must have been
+    reduced from it) to ``out``. The campaign must be force-controlled: its tool's load
+    is what the regions' tools press with."""
+    from hapticrom.offline.reduce.ecsw_model import mesh_elements, rest_tangents
+    from hapticrom.offline.reduce.ecsw_physics import add_physics
+    from hapticrom.offline.reduce.inputs import campaign_config
+    from hapticrom.offline.reduce.tool_stiffness import ToolLoads
+    from hapticrom.shared.artifact import read_artifact
+
+    manifest = store.manifest()
+    config = campaign_config(store, manifest, None)
+    artifact = read_artifact(model_path)
+    if artifact.group_attrs["model"]["campaign_hash"] != manifest["campaign_hash"]:
+        raise InputError(f"{model_path} was not reduced from the campaign in {store.root} "
+                         "(their campaign hashes differ)")  # fmt: skip
+    if config.load.mode != "force":
+        raise InputError(f"hapticrom physics needs a force-controlled campaign (its tool "
+                         f"presses the regions' tools do); {store.root}'s load is "
+                         f"'{config.load.mode}'")  # fmt: skip
+    centres = np.asarray(centres, dtype=float).reshape(-1, 3)
+    for centre in centres:  # before any solve: each region has loadable surface
+        region_vertices(artifact["surface"], centre, recipe.radius)
+    mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
+    rest = rest_tangents(mesh)
+    regions = build_regions(config, mesh, rest, artifact["surface"], ToolLoads(config),
+                            centres, recipe)  # fmt: skip
+    add_physics(model_path, out, regions, mesh.reference.cell, recipe.tolerance)
+    return regions

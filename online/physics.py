@@ -1,0 +1,263 @@
+"""Physics solved online: a region of an artifact's ``hyperreduced`` group (format 2.5)
+stepped by :class:`~hapticrom.online.haptic_newton.HapticNewton` under any number of
+pressing tools and holders (issue 18).
+
+    physics = model.physics(region=0, holders=[grip_point])   # a ReducedModel's
+    physics.press(0, point, force)      # tool 0 pushes with force (N) at a surface point (mm)
+    physics.press(1, point2, force2)    # and tool 1 beside it
+    physics.step()                      # one physics step (a modified Newton iteration)
+    physics.surface_displacement(out)   # (V, 3) mm, to draw
+    physics.holder_force(0)             # (3,) N: what the holder holds the tissue with
+
+A pressing tool's load is the campaign's force tool's (its dead load spread over a disk of
+``contact_radius``), stored per unit force at the region's loadable vertices and blended
+linearly over the surface triangle nearest the point; a holder keeps the rigid motion (the
+mean displacement and the least-squares rotation) of the surface vertices within
+``contact_radius`` of its point (at least the three nearest), by a penalty in the constant
+tangent (fixed for the physics' life: a holder that grips elsewhere is a new physics). The
+state lags equilibrium by what one iteration a step leaves and settles on it while the loads
+hold (``HapticNewton``).
+
+What is checked where: the artifact's values by its reader (``ARTIFACT.md``); here, once, the
+region's element geometry (every quadrature point's Jacobian of one sign an element, not
+degenerate; else ArtifactError) and the caller's input (InputError naming it). A refused
+``press`` or ``step`` changes nothing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from hapticrom.online import element_kernels as ek
+from hapticrom.online.haptic_newton import HapticNewton
+from hapticrom.online.kernels import closest_on_triangle
+from hapticrom.shared.artifact_rules import MAX_FORCE, MAX_LENGTH
+from hapticrom.shared.errors import ArtifactError, InputError
+
+GROUP = "hyperreduced"
+MIN_JACOBIAN = 1e-12  # |det J| below this fraction of an element's largest: degenerate
+MAX_ITERATIONS = 100  # modified Newton iterations a step: a step's cost is bounded
+
+
+def element_geometry(X: np.ndarray, cell: str, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(dN, dV) of the elements X (E, nodes, 3) mm (rows ``first`` on of the group's):
+    ``element_kernels.element_geometry``'s, after refusing an element whose Jacobian
+    changes sign or nearly vanishes at a quadrature point (a tangled or degenerate element:
+    its |det J| would pass as volume)."""
+    ref = ek.reference_element(cell)
+    J = np.einsum("eni,qnj->eqij", X, ref.gradients)
+    det = np.linalg.det(J)
+    scale = np.abs(det).max(axis=1, keepdims=True)
+    bad = ~(np.abs(det) > MIN_JACOBIAN * scale).all(axis=1)
+    bad |= ~((det > 0).all(axis=1) | (det < 0).all(axis=1))
+    if bad.any():
+        raise ArtifactError(f"{GROUP}/element_nodes: element {first + int(np.argmax(bad))} is "
+                            "tangled or degenerate (its Jacobian vanishes or changes "
+                            "sign)")  # fmt: skip
+    dN = np.empty((len(X), len(ref.weights), X.shape[1], 3))
+    dV = np.empty((len(X), len(ref.weights)))
+    ek.element_geometry(np.ascontiguousarray(X), ref.gradients, ref.weights, dN, dV)
+    return dN, dV
+
+
+def holder_rows(surface_basis, vertices, point, radius) -> np.ndarray:
+    """(6, n): the mean displacement and the least-squares rotation (times the patch's RMS
+    radius, mm) of the surface vertices within ``radius`` of ``point`` (at least the three
+    nearest), in the basis."""
+    distance = np.linalg.norm(vertices - point, axis=1)
+    near = np.flatnonzero(distance <= radius)
+    if len(near) < 3:  # a coarse mesh: the three nearest (a rotation needs a triangle)
+        near = np.argsort(distance)[:3]
+    n = surface_basis.shape[1]
+    rows = surface_basis.reshape(-1, 3, n)[near]  # (patch, 3, n)
+    r = vertices[near] - vertices[near].mean(axis=0)
+    J = (r**2).sum() * np.eye(3) - r.T @ r
+    if np.linalg.cond(J) > 1e8:
+        raise InputError(f"the holder at {np.round(point, 4).tolist()} mm grips vertices in "
+                         "a line: its rotation is not defined")  # fmt: skip
+    moments = np.cross(r[:, :, None], rows, axis=1).sum(axis=0)
+    rotation = np.sqrt((r**2).sum(axis=1).mean()) * np.linalg.solve(J, moments)
+    return np.vstack([rows.mean(axis=0), rotation])
+
+
+@njit("Tuple((int64, float64))(float64[::1], float64[:, ::1], int64[:, ::1], float64[::1])",
+      cache=True, nogil=True)  # fmt: skip
+def _nearest_triangle(p, vertices, triangles, w):
+    """(the triangle nearest p, distance^2); its barycentric weights into w (3,)."""
+    best, t_best = np.inf, -1
+    for t in range(triangles.shape[0]):
+        a, b, c = vertices[triangles[t, 0]], vertices[triangles[t, 1]], vertices[triangles[t, 2]]
+        u, v, s, d2 = closest_on_triangle(p, a, b, c)
+        if d2 < best:
+            best, t_best = d2, t
+            w[0], w[1], w[2] = u, v, s
+    return t_best, best
+
+
+def _vector(name: str, value, bound: float = MAX_LENGTH) -> np.ndarray:
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        a = np.full(0, np.nan)
+    if a.shape != (3,) or not np.isfinite(a).all() or np.abs(a).max() > bound:
+        raise InputError(f"{name} must be 3 finite numbers within +-{bound:g}, got {value!r}")
+    return a
+
+
+def _index(name: str, value, count: int) -> int:
+    integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    if not integer or not 0 <= value < count:
+        raise InputError(f"{name} must be an integer from 0 to {count - 1}, got {value!r}")
+    return int(value)
+
+
+def _count(name: str, value, high: int | None) -> None:
+    integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    if not integer or value < 1 or (high is not None and value > high):
+        upto = f" to {high}" if high is not None else ""
+        raise InputError(f"{name} must be an integer from 1{upto}, got {value!r}")
+
+
+def _tool_id(tool) -> int:
+    if not isinstance(tool, int | np.integer) or isinstance(tool, bool):
+        raise InputError(f"a tool id must be an integer, got {tool!r}")
+    return int(tool)
+
+
+class HyperReducedPhysics:
+    """Region ``region`` of ``model``'s hyper-reduced physics with ``holders`` (points, mm)
+    gripping the surface; ``iterations`` and ``slices`` as ``HapticNewton``'s."""
+
+    def __init__(self, model, region: int = 0, holders=(), iterations: int = 1,
+                 slices: int = 20):  # fmt: skip
+        if GROUP not in model.artifact.groups:
+            raise InputError(f"{model.artifact.path} has no hyper-reduced physics (group "
+                             f"{GROUP}, artifact format 2.5)")  # fmt: skip
+        h, attrs = model.artifact[GROUP], model.artifact.group_attrs[GROUP]
+        region = self.region = _index("region", region, len(h["centres"]))
+        _count("iterations", iterations, MAX_ITERATIONS)
+        _count("slices", slices, None)
+        self.centre, self.radius = h["centres"][region], float(h["radii"][region])
+        self.contact_radius = float(model.artifact.group_attrs["model"]["contact_radius"])
+        self.vertices = np.ascontiguousarray(model.artifact["surface"]["vertices"], np.float64)
+        first, last = (int(v) for v in h["element_offsets"][region : region + 2])
+        dN, dV = element_geometry(np.asarray(h["element_nodes"][first:last], np.float64),
+                                  attrs["cell"], first)  # fmt: skip
+        e = slice(first, last)
+        sample = (dN, dV, h["basis_rows"][e], h["pressure_rows"][e], h["parameters"][e],
+                  h["weights"][e])  # fmt: skip
+        self.surface_basis = np.ascontiguousarray(h["surface_basis"][region], np.float64)
+        n = self.surface_basis.shape[1]
+        linear = np.array(h["constant_tangent"][region], np.float64)
+        self.hold_stiffness = float(attrs["hold_stiffness"])
+        if isinstance(holders, str) or not hasattr(holders, "__iter__"):
+            raise InputError(f"holders must be a list of points (mm), got {holders!r}")
+        self.holders = [self._holder(p) for p in holders]
+        for A in self.holders:
+            linear[:n, :n] += self.hold_stiffness * (A.T @ A)
+        # slices: at most one element a part (a small region has fewer elements than 20)
+        self.newton = self._newton(sample, linear, iterations, min(slices, last - first))
+        self._loads_of(model, h, region)
+        self.q, self.pi = np.zeros(n), np.zeros(linear.shape[0] - n)
+        self.load = np.zeros(n)  # the pressing tools' reduced loads, summed
+        self.pressing: dict[int, np.ndarray] = {}  # tool id -> its reduced load (n,)
+        self._weights = np.zeros(3)  # the blend of the last tool's triangle corners
+
+    def _newton(self, sample, linear, iterations, slices) -> HapticNewton:
+        """HapticNewton on the region; a rest tangent that does not factorise is the file's
+        (ArtifactError) or, with holders, theirs (InputError naming them)."""
+        try:
+            return HapticNewton(sample, linear, iterations, slices)
+        except InputError as exc:
+            if "singular" not in str(exc):
+                raise
+            if self.holders:
+                raise InputError(f"region {self.region}'s tangent with the holders is singular "
+                                 "(holders too close to each other or to a support?)") from None
+            raise ArtifactError(f"{GROUP}/constant_tangent: region {self.region}'s tangent at "
+                                "rest is singular") from None
+
+    def _holder(self, point) -> np.ndarray:
+        point = _vector("a holder's point", point)
+        self._check_within("a holder", point)
+        gap = float(np.linalg.norm(self.vertices - point, axis=1).min())
+        if gap > self.contact_radius:
+            raise InputError(f"a holder at {np.round(point, 4).tolist()} mm is {gap:.3g} mm "
+                             f"from the surface's nearest vertex (more than the tool's "
+                             f"radius {self.contact_radius} mm)")  # fmt: skip
+        return holder_rows(self.surface_basis, self.vertices, point, self.contact_radius)
+
+    def _loads_of(self, model, h, region) -> None:
+        """The region's load vertices, their unit loads, and its triangles: the loadable
+        triangles whose three corners are load vertices (corners as load rows)."""
+        rows = slice(*h["load_offsets"][region : region + 2])
+        vertices = h["load_vertices"][rows]
+        self.tool_loads = np.ascontiguousarray(h["tool_loads"][rows], np.float64)  # (L, 3, n)
+        local = np.full(len(self.vertices), -1, np.int64)
+        local[vertices] = np.arange(len(vertices))
+        surface = model.artifact["surface"]
+        triangles = local[surface["triangles"][surface["groups"] == 1]]
+        self.triangles = np.ascontiguousarray(triangles[(triangles >= 0).all(axis=1)])
+        if not len(self.triangles):
+            raise ArtifactError(f"{GROUP}/load_vertices: region {region} holds no whole "
+                                "loadable triangle")  # fmt: skip
+        self.load_points = np.ascontiguousarray(self.vertices[vertices])
+
+    def _check_within(self, what: str, point) -> None:
+        if np.linalg.norm(point - self.centre) > self.radius:
+            raise InputError(f"{what} at {np.round(point, 4).tolist()} mm is outside the region "
+                             f"({self.radius} mm about {np.round(self.centre, 4).tolist()})")
+
+    def tool_load(self, point, force) -> np.ndarray:
+        """(n,) the reduced load of ``force`` (N) of a tool at the surface ``point`` (mm):
+        the stored unit loads of the nearest region triangle's corners, blended."""
+        point = _vector("a tool's point", point)
+        force = _vector("a tool's force (N)", force, MAX_FORCE)
+        self._check_within("a tool", point)
+        w = self._weights
+        t, d2 = _nearest_triangle(point, self.load_points, self.triangles, w)
+        if d2 > self.contact_radius**2:
+            raise InputError(f"a tool at {np.round(point, 4).tolist()} mm is "
+                             f"{np.sqrt(d2):.3g} mm off the region's loadable surface")  # fmt: skip
+        corners = self.tool_loads[self.triangles[t]]  # (3 corners, 3 axes, n)
+        return np.einsum("c,a,can->n", w, force, corners)
+
+    def press(self, tool: int, point, force) -> None:
+        """Tool ``tool`` (any int id) presses with ``force`` (N) at ``point`` (mm) from
+        the next step on (replacing its last press)."""
+        tool = _tool_id(tool)
+        self.pressing[tool] = self.tool_load(point, force)
+        self._sum_loads()
+
+    def release(self, tool: int) -> None:
+        """Tool ``tool`` no longer presses (nothing if it did not)."""
+        if self.pressing.pop(_tool_id(tool), None) is not None:
+            self._sum_loads()
+
+    def _sum_loads(self) -> None:
+        """The load summed again over the tools (a running sum would keep the rounding of
+        a large force after its tool is released)."""
+        self.load[:] = 0.0
+        for load in self.pressing.values():
+            self.load += load
+
+    def step(self) -> bool:
+        """One physics step under the tools' loads; False if refused (nothing changed)."""
+        return self.newton.step(self.q, self.pi, self.load)
+
+    def surface_displacement(self, out: np.ndarray) -> np.ndarray:
+        """Fill ``out`` (V, 3) float64 C-contiguous with the surface's displacement (mm)."""
+        shape = self.vertices.shape
+        if not isinstance(out, np.ndarray) or out.shape != shape or out.dtype != np.float64 \
+                or not out.flags.c_contiguous or not out.flags.writeable:  # fmt: skip
+            raise InputError(f"out must be a writeable C-contiguous float64 array of shape "
+                             f"{shape}")  # fmt: skip
+        np.dot(self.surface_basis, self.q, out=out.reshape(-1))
+        return out
+
+    def holder_force(self, holder: int) -> np.ndarray:
+        """(3,) N: the force holder ``holder`` exerts on the tissue (its penalty's, minus
+        the stiffness times the patch's mean displacement)."""
+        holder = _index("holder", holder, len(self.holders))
+        return -self.hold_stiffness * (self.holders[holder][:3] @ self.q)

@@ -1,0 +1,95 @@
+"""``hapticrom physics``: regions of hyper-reduced physics built from a solved campaign and
+written with its model, end to end on the coarse cornea (conftest's ``force_campaign``).
+
+The coarse cornea's nodes lie about 1 mm apart, too far for a region's snapshots to carry
+an untrained contact (README, stop 37: within about 0.3 mm on the demo cornea; here 20 %
+off at the centre of a ring of solves 0.95 mm away). So the accuracy checked here is at a
+node the region solved about (the held-out campaign's first position): the file's
+region, loaded and pressed as that solve, reproduces it. The demo's held-out figures are in
+the README.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_cli import run_cli
+
+pytestmark = pytest.mark.serial
+
+OPTIONS = ["--radius", "1.6", "--solves", "0.95", "--solves-per-distance", "4",
+           "--state-modes", "12", "--pressure-modes", "6", "--tolerance", "1e-3"]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def physics_file(force_campaign, force_artifact, tmp_path_factory):
+    out = tmp_path_factory.mktemp("physics-command") / "physics.h5"
+    proc = run_cli("physics", force_artifact, force_campaign[1].root, "--at", "0,0,0",
+                   "--out", out, *OPTIONS)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "1 region(s)" in proc.stderr + proc.stdout
+    return out
+
+
+def test_a_region_reproduces_a_solve_it_was_built_from(force_campaign, physics_file):
+    import hapticrom.offline  # noqa: F401 - h5py and MPI first
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.online.model import load
+
+    config, _, held_out = force_campaign
+    data, attrs = held_out.read_position(0)
+    point = np.asarray(attrs["point"], float)
+    solves = RegionSolves(config, (0.95,), 4)
+    nodes = solves.surface.nodes[solves.nodes(np.zeros(3))]
+    assert np.linalg.norm(nodes - point, axis=1).min() < 1e-9  # one of the region's solves
+    model = load(physics_file, isolate=False)
+    physics = model.physics(slices=1)
+    f, factors = data["load_vector"], data["load_factor"]
+    force = f.reshape(-1, 3).sum(axis=0)
+    for factor in np.linspace(0.0, factors[-1], 41)[1:]:
+        physics.press(0, point, factor * force)
+        assert physics.step()
+    for _ in range(40):
+        assert physics.step()
+    out = np.zeros_like(physics.vertices)
+    physics.surface_displacement(out)
+    full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+    assert np.linalg.norm(out - full) <= 1e-2 * np.linalg.norm(full)  # 0.42 % when written
+    depth = physics.tool_load(point, force) @ physics.q / np.linalg.norm(force)
+    assert abs(depth / (f @ data["displacement"][-1] / np.linalg.norm(force)) - 1) <= 1e-2
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--at", "0,0"], "X,Y,Z"),
+        (["--at", "0,0,nan"], "X,Y,Z"),
+        (["--at", "0,0,0", "--solves", "0,1"], "positive distances"),
+        (["--at", "0,0,0", "--tolerance", "2"], "tolerance"),
+        (["--at", "0,0,0", "--solves", "0.25"], "free loadable surface nodes"),
+        (["--at", "0,0,40"], "no loadable surface vertex"),
+        (["--at=-40,0,0"], "no loadable surface vertex"),  # a negative first coordinate
+    ],
+)
+def test_bad_input_gives_one_clear_line(force_campaign, force_artifact, tmp_path, extra, message):
+    out = tmp_path / "physics.h5"
+    proc = run_cli("physics", force_artifact, force_campaign[1].root, "--out", out, *extra)
+    assert proc.returncode == 2 or proc.returncode == 1, proc.stderr
+    assert message in proc.stderr, proc.stderr
+    assert not out.exists()
+
+
+def test_a_model_of_another_campaign_is_refused(small_artifact, force_campaign, tmp_path):
+    out = tmp_path / "physics.h5"
+    proc = run_cli("physics", small_artifact, force_campaign[1].root, "--at", "0,0,0",
+                   "--out", out)  # fmt: skip
+    assert proc.returncode != 0 and "was not reduced from the campaign" in proc.stderr
+    assert not out.exists()
+
+
+def test_the_model_itself_is_not_overwritten(force_campaign, force_artifact):
+    before = force_artifact.read_bytes()
+    proc = run_cli("physics", force_artifact, force_campaign[1].root, "--at", "0,0,0",
+                   "--out", force_artifact)  # fmt: skip
+    assert proc.returncode != 0 and "is the model itself" in proc.stderr
+    assert force_artifact.read_bytes() == before
