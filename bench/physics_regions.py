@@ -1,0 +1,100 @@
+"""The product path of issue 18 on a trained campaign: ``hapticrom physics`` at campaign
+positions, each region pressed at its centre with that position's stored load path as
+haptic steps, against the stored full-order solve (not among the region's own solves).
+
+    python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
+        [--out out/physics.h5] [--frames 100] [--skip-build] [-- hapticrom physics options]
+
+Per region: the sampled elements, the modes, the depth error (the tool's load-weighted
+mean displacement along its force, as the campaign's) and the surface field's relative L2
+error at the last load, after ``--frames`` steps of the ramp and as many held; the time of
+each ``physics.step()`` (p50, p99, max). Writes OUT with suffix .json. Serial; run alone
+for the times. Units: mm, N.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import h5py  # noqa: F401  (before dolfinx: see the README)
+import numpy as np
+
+from hapticrom.offline.campaign.store import SnapshotStore
+from hapticrom.online.model import load
+
+
+def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model")
+    parser.add_argument("campaign")
+    parser.add_argument("--positions", default="6,18,30")
+    parser.add_argument("--out", default="out/physics.h5")
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--skip-build", action="store_true", help="OUT exists: only step it")
+    args, extra = parser.parse_known_args()
+    try:
+        args.positions = [int(v) for v in args.positions.split(",")]
+    except ValueError:
+        parser.error("--positions: comma-separated campaign position indices")
+    if args.frames < 1:
+        parser.error("--frames must be at least 1")
+    return args, [v for v in extra if v != "--"]
+
+
+def pressed(physics, point, force, factors, frames) -> np.ndarray:
+    """The region ramped to the last factor of ``force`` in ``frames`` steps, then held as
+    long: each step's time (ms)."""
+    times = []
+    for factor in list(np.linspace(0.0, factors[-1], frames + 1)[1:]) + [factors[-1]] * frames:
+        physics.press(0, point, factor * force)
+        t0 = time.perf_counter_ns()
+        if not physics.step():
+            raise SystemExit("a physics step was refused")
+        times.append(time.perf_counter_ns() - t0)
+    return np.array(times[1:]) / 1e6
+
+
+def main() -> None:
+    args, options = parse_arguments()
+    store = SnapshotStore(args.campaign)
+    points = [np.asarray(store.read_position(i)[1]["point"], float) for i in args.positions]
+    if not args.skip_build:
+        from hapticrom.cli import main as hapticrom
+
+        at = ["--at=" + ",".join(f"{v:.9g}" for v in p) for p in points]
+        t = time.perf_counter()
+        if hapticrom(["physics", args.model, args.campaign, *at, "--out", args.out, *options]):
+            raise SystemExit("hapticrom physics failed")
+        print(f"hapticrom physics: {time.perf_counter() - t:.0f} s", flush=True)
+    model = load(args.out, isolate=False)
+    nodes = model.artifact["surface"]["nodes"]
+    rows = []
+    for region, (i, point) in enumerate(zip(args.positions, points, strict=True)):
+        data = store.read_position(i)[0]
+        f, factors = data["load_vector"], data["load_factor"]
+        force = f.reshape(-1, 3).sum(axis=0)
+        physics = model.physics(region=region)
+        ms = pressed(physics, point, force, factors, args.frames)
+        u = np.zeros_like(physics.vertices)
+        physics.surface_displacement(u)
+        full = data["displacement"][-1]
+        depth = physics.tool_load(point, force) @ physics.q / (f @ full)
+        field = full.reshape(-1, 3)[nodes]
+        row = {"position": i, "elements": len(physics.newton.sample[0]), "modes": physics.q.size,
+               "pressure_modes": physics.pi.size, "depth_error": float(depth - 1),
+               "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
+               "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
+               "max_ms": float(ms.max())}  # fmt: skip
+        print(f"position {i:3d}: {row['elements']} elements, {row['modes']} + "
+              f"{row['pressure_modes']} modes, depth {100 * row['depth_error']:+.2f} %, field "
+              f"{100 * row['field_error']:.2f} %, step p50/p99/max {row['p50_ms']:.2f}/"
+              f"{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms", flush=True)  # fmt: skip
+        rows.append(row)
+    Path(args.out).with_suffix(".json").write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
