@@ -349,8 +349,6 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_n
         yield row
 
 
-
-
 def hold(model, Phi, nodes, coordinates=None) -> None:
     """A holder that keeps the mean displacement of ``nodes`` (canonical: its patch) in
     place, in the reduced space: the energy k/2 |A q|^2, a constant k A^T A in the model's
@@ -542,21 +540,6 @@ class NearbySolver(RegionSolves):
         return (np.vstack([d["displacement"] for d in solved]).T,
                 np.vstack([d["pressure"] for d in solved]).T)  # fmt: skip
 
-    def tool(self, node, fraction) -> tuple:
-        """A further force tool at surface ``node``: its (point, force) pair, ``fraction``
-        of the campaign's force along the campaign's direction there."""
-        position = self.position(node)
-        force = fraction * self.config.load.magnitude * self.config.load.unit_direction(position)
-        return position.point, tuple(float(v) for v in force)
-
-    def second_tool(self, point, distance, fraction) -> tuple[int, tuple]:
-        """A second tool ``distance`` mm from ``point`` (the free loadable node nearest to
-        that distance, not ``point``'s own): its node and its ``tool``."""
-        gap = np.abs(np.linalg.norm(self.surface.nodes - point, axis=1) - distance)
-        gap[list(self.excluded) + [self.nearest(point)]] = np.inf
-        node = int(np.argmin(gap))
-        return node, self.tool(node, fraction)
-
     def case_tools(self, node, args, k=None) -> list[tuple]:
         """The further tools of a pinch or an oblique press at surface ``node`` (the
         campaign's tool on it is the first force): ``--pinch``, the eight nearest free
@@ -724,9 +707,13 @@ def parse_arguments() -> argparse.Namespace:
     parser.add_argument("--held-tool", type=float, default=0.0,
                         help="--local-solves: mm, a tool this far from each held-out position "
                         "holds its patch in place while the position's tool presses")  # fmt: skip
-    parser.add_argument("--hold", choices=("mean", "rigid"), default="mean",
-                        help="--held-tool: the reduced holder keeps its patch's mean "
-                        "displacement, or its rigid motion (the mean and the rotation)")
+    parser.add_argument(
+        "--hold",
+        choices=("mean", "rigid"),
+        default="mean",
+        help="--held-tool: the reduced holder keeps its patch's mean "
+        "displacement, or its rigid motion (the mean and the rotation)",
+    )
     parser.add_argument("--second-force", type=float, default=None,
                         help="--second-tool: its force, of the campaign's (0.5)")  # fmt: skip
     parser.add_argument("--second-basis", choices=("single", "paired", "both"),

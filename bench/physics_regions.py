@@ -3,7 +3,12 @@ positions, each region pressed at its centre with that position's stored load pa
 haptic steps, against the stored full-order solve (not among the region's own solves).
 
     python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
-        [--out out/physics.h5] [--frames 100] [--skip-build] [-- hapticrom physics options]
+        [--pair MM [--second-force 0.5]] [--out out/physics.h5] [--frames 100]
+        [--skip-build] [-- hapticrom physics options]
+
+``--pair MM``: two tools, the position's and a second at the free loadable node nearest MM
+away pressing with ``--second-force`` of the campaign's force, each region a ``--pair``
+region of the two sites, the reference a full-order solve under both (solved here).
 
 Per region: the sampled elements, the modes, the depth error (the tool's load-weighted
 mean displacement along its force, as the campaign's) and the surface field's relative L2
@@ -34,6 +39,8 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--out", default="out/physics.h5")
     parser.add_argument("--frames", type=int, default=100)
     parser.add_argument("--skip-build", action="store_true", help="OUT exists: only step it")
+    parser.add_argument("--pair", type=float, default=0.0, help="mm: a second tool this far")
+    parser.add_argument("--second-force", type=float, default=0.5)
     args, extra = parser.parse_known_args()
     try:
         args.positions = [int(v) for v in args.positions.split(",")]
@@ -44,12 +51,13 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     return args, [v for v in extra if v != "--"]
 
 
-def pressed(physics, point, force, factors, frames) -> np.ndarray:
-    """The region ramped to the last factor of ``force`` in ``frames`` steps, then held as
-    long: each step's time (ms)."""
+def pressed(physics, tools, factors, frames) -> np.ndarray:
+    """The region ramped to the last factor of each tool's force (``tools``: (point,
+    force) pairs) in ``frames`` steps, then held as long: each step's time (ms)."""
     times = []
     for factor in list(np.linspace(0.0, factors[-1], frames + 1)[1:]) + [factors[-1]] * frames:
-        physics.press(0, point, factor * force)
+        for k, (point, force) in enumerate(tools):
+            physics.press(k, point, factor * np.asarray(force))
         t0 = time.perf_counter_ns()
         if not physics.step():
             raise SystemExit("a physics step was refused")
@@ -57,14 +65,42 @@ def pressed(physics, point, force, factors, frames) -> np.ndarray:
     return np.array(times[1:]) / 1e6
 
 
+def two_tools(store, point, args) -> tuple:
+    """([(point, force)] of the campaign's tool at ``point`` and the second, the full
+    order's datasets under both, the first tool's own load vector)."""
+    from mpi4py import MPI
+
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.offline.reduce.inputs import campaign_config
+    from hapticrom.offline.reduce.tool_stiffness import ToolLoads
+
+    config = campaign_config(store, store.manifest(), None)
+    solves = RegionSolves(config, (), 1)
+    node = solves.nearest(point)
+    second_node, second = solves.second_tool(point, args.pair, args.second_force)
+    first = solves.tool(node, 1.0)
+    t = time.perf_counter()
+    data = solves.solve(node, tools=[second])
+    print(f"  the full order under two tools at {np.round(first[0], 3).tolist()} and "
+          f"{np.round(second[0], 3).tolist()} mm ({time.perf_counter() - t:.0f} s, "
+          f"rank {MPI.COMM_WORLD.rank})", flush=True)  # fmt: skip
+    g, W = ToolLoads(config).at(first[0], first[1])  # the first tool's load: its depth's
+    return [first, second], data, g / W
+
+
 def main() -> None:
     args, options = parse_arguments()
     store = SnapshotStore(args.campaign)
     points = [np.asarray(store.read_position(i)[1]["point"], float) for i in args.positions]
+    cases = [two_tools(store, point, args) if args.pair else None for point in points]
     if not args.skip_build:
         from hapticrom.cli import main as hapticrom
 
         at = ["--at=" + ",".join(f"{v:.9g}" for v in p) for p in points]
+        if args.pair:
+            at = ["--pair=" + ",".join(f"{v:.9g}" for v in (*p, *case[0][1][0]))
+                  for p, case in zip(points, cases, strict=True)]  # fmt: skip
+            options = ["--second-force", str(args.second_force), *options]
         t = time.perf_counter()
         if hapticrom(["physics", args.model, args.campaign, *at, "--out", args.out, *options]):
             raise SystemExit("hapticrom physics failed")
@@ -72,12 +108,18 @@ def main() -> None:
     model = load(args.out, isolate=False)
     nodes = model.artifact["surface"]["nodes"]
     rows = []
-    for region, (i, point) in enumerate(zip(args.positions, points, strict=True)):
-        data = store.read_position(i)[0]
+    for region, (i, point, case) in enumerate(zip(args.positions, points, cases, strict=True)):
+        data = store.read_position(i)[0] if case is None else case[1]
         f, factors = data["load_vector"], data["load_factor"]
-        force = f.reshape(-1, 3).sum(axis=0)
+        if case is None:
+            force = f.reshape(-1, 3).sum(axis=0)
+            tools = [(point, force)]
+        else:
+            tools = case[0]
+            force = np.asarray(tools[0][1])
+            f = case[2]  # the first tool's own load vector: its depth, as the campaign's
         physics = model.physics(region=region)
-        ms = pressed(physics, point, force, factors, args.frames)
+        ms = pressed(physics, tools, factors, args.frames)
         u = np.zeros_like(physics.vertices)
         physics.surface_displacement(u)
         full = data["displacement"][-1]

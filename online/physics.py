@@ -173,10 +173,13 @@ class HyperReducedPhysics:
             if "singular" not in str(exc):
                 raise
             if self.holders:
-                raise InputError(f"region {self.region}'s tangent with the holders is singular "
-                                 "(holders too close to each other or to a support?)") from None
-            raise ArtifactError(f"{GROUP}/constant_tangent: region {self.region}'s tangent at "
-                                "rest is singular") from None
+                raise InputError(
+                    f"region {self.region}'s tangent with the holders is singular "
+                    "(holders too close to each other or to a support?)"
+                ) from None
+            raise ArtifactError(
+                f"{GROUP}/constant_tangent: region {self.region}'s tangent at rest is singular"
+            ) from None
 
     def _holder(self, point) -> np.ndarray:
         point = _vector("a holder's point", point)
@@ -206,8 +209,10 @@ class HyperReducedPhysics:
 
     def _check_within(self, what: str, point) -> None:
         if np.linalg.norm(point - self.centre) > self.radius:
-            raise InputError(f"{what} at {np.round(point, 4).tolist()} mm is outside the region "
-                             f"({self.radius} mm about {np.round(self.centre, 4).tolist()})")
+            raise InputError(
+                f"{what} at {np.round(point, 4).tolist()} mm is outside the region "
+                f"({self.radius} mm about {np.round(self.centre, 4).tolist()})"
+            )
 
     def tool_load(self, point, force) -> np.ndarray:
         """(n,) the reduced load of ``force`` (N) of a tool at the surface ``point`` (mm):

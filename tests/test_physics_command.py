@@ -93,3 +93,43 @@ def test_the_model_itself_is_not_overwritten(force_campaign, force_artifact):
                    "--out", force_artifact)  # fmt: skip
     assert proc.returncode != 0 and "is the model itself" in proc.stderr
     assert force_artifact.read_bytes() == before
+
+
+def test_a_pair_region_reproduces_a_two_tool_solve_it_was_built_from(
+    force_campaign, force_artifact, tmp_path
+):
+    """``--pair``: a region for two tools; its centre their midpoint, its radius beyond
+    each; pressed as one of its own pairs (recomputed here with RegionSolves), it
+    reproduces that pair's full-order solve."""
+    import hapticrom.offline  # noqa: F401 - h5py and MPI first
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.online.model import load
+
+    config = force_campaign[0]
+    sites = np.array([[0.0, 0.0, 0.0], [-1.9, 0.0, 0.0]])
+    out = tmp_path / "pair.h5"
+    proc = run_cli("physics", force_artifact, force_campaign[1].root, "--out", out,
+                   "--pair=" + ",".join(str(v) for v in sites.ravel()), *OPTIONS,
+                   "--solves-per-distance", "3")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    model = load(out, isolate=False)
+    h = model.artifact["hyperreduced"]
+    assert np.allclose(h["centres"][0], sites.mean(axis=0))
+    assert np.isclose(h["radii"][0], 1.6 + 0.95)
+    solves = RegionSolves(config, (0.95,), 3)
+    first = solves.nodes(sites[0])[0]
+    second = solves.nodes(sites[1], forbidden=solves.nodes(sites[0]))[0]
+    tools = [solves.tool(first, 1.0), solves.tool(second, 0.5)]
+    data = solves.solve(first, tools=tools[1:])
+    physics = model.physics(slices=1)
+    factors = data["load_factor"]
+    for factor in np.linspace(0.0, factors[-1], 41)[1:]:
+        for k, (point, force) in enumerate(tools):
+            physics.press(k, point, factor * np.asarray(force))
+        assert physics.step()
+    for _ in range(40):
+        assert physics.step()
+    u = np.zeros_like(physics.vertices)
+    physics.surface_displacement(u)
+    full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+    assert np.linalg.norm(u - full) <= 1e-2 * np.linalg.norm(full)

@@ -137,9 +137,18 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
         "radii": np.array([r.radius for r in regions]),
         "element_offsets": offsets[0].astype(np.int64),
         "load_offsets": offsets[1].astype(np.int64),
-        **{name: stack(name) for name in ("element_nodes", "weights", "basis_rows",
-                                          "pressure_rows", "parameters", "load_vertices",
-                                          "tool_loads")},  # fmt: skip
+        **{
+            name: stack(name)
+            for name in (
+                "element_nodes",
+                "weights",
+                "basis_rows",
+                "pressure_rows",
+                "parameters",
+                "load_vertices",
+                "tool_loads",
+            )
+        },  # fmt: skip
         "constant_tangent": np.array([r.constant_tangent for r in regions]),
         "surface_basis": np.array([r.surface_basis for r in regions]),
         "attrs": attrs,

@@ -507,6 +507,17 @@ def centre_point(text: str) -> tuple[float, float, float]:
     return values
 
 
+def pair_points(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """``--pair X1,Y1,Z1,X2,Y2,Z2``: two sites (mm)."""
+    parts = text.split(",")
+    if len(parts) != 6:
+        raise argparse.ArgumentTypeError(f"expected X1,Y1,Z1,X2,Y2,Z2 in mm, got {text!r}")
+    first, second = centre_point(",".join(parts[:3])), centre_point(",".join(parts[3:]))
+    if first == second:
+        raise argparse.ArgumentTypeError(f"a pair's two sites must differ, got {text!r}")
+    return first, second
+
+
 def distances(text: str) -> tuple[float, ...]:
     """``--solves MM,MM``: positive distances (mm)."""
     try:
@@ -535,11 +546,15 @@ def cmd_physics(args, petsc) -> int:
         raise HapticromError(f"physics --out {args.out} is the model itself: write a new file")
     from hapticrom.offline.reduce.ecsw_regions import RegionRecipe, physics_from_campaign
 
+    sites = (args.at or []) + (args.pair or [])
+    if not sites:
+        raise HapticromError("physics: give a region with --at=X,Y,Z or --pair=X1,Y1,Z1,X2,Y2,Z2")
     recipe = RegionRecipe(distances=args.solves, per_distance=args.solves_per_distance,
                           state_modes=args.state_modes, pressure_modes=args.pressure_modes,
-                          tolerance=args.tolerance, radius=args.radius)  # fmt: skip
+                          tolerance=args.tolerance, radius=args.radius,
+                          second_force=args.second_force)  # fmt: skip
     petsc.start()
-    regions = physics_from_campaign(args.model, store, args.at, recipe, out)
+    regions = physics_from_campaign(args.model, store, sites, recipe, out)
     log.info(f"wrote {out}: {len(regions)} region(s) of hyper-reduced physics")
     return 0
 
@@ -555,23 +570,74 @@ def add_physics(sub) -> None:
         "cornea). Load it with hapticrom.online.load(OUT).physics(region)."))  # fmt: skip
     model_argument(p)
     p.add_argument("campaign_dir", help="the campaign directory the model was reduced from")
-    p.add_argument("--at", type=centre_point, action="append", required=True,
-                   metavar="X,Y,Z", help="a region's centre (mm); repeat for more regions "
-                   "(a negative first coordinate: --at=-1.2,0.5,0.1)")
+    p.add_argument(
+        "--at",
+        type=centre_point,
+        action="append",
+        metavar="X,Y,Z",
+        help="a region's centre (mm), its solves single presses about it; repeat "
+        "for more regions (a negative first coordinate: --at=-1.2,0.5,0.1)",
+    )
+    p.add_argument(
+        "--pair",
+        type=pair_points,
+        action="append",
+        metavar="X1,Y1,Z1,X2,Y2,Z2",
+        help="a region for two tools at these sites (mm), its solves pairs of "
+        "presses about them; after the --at regions",
+    )
+    number_option(
+        p,
+        "--second-force",
+        float_in(0.0, 10.0),
+        0.5,
+        "F",
+        "a --pair region's second tool in its solves, of the campaign's force (default 0.5)",
+    )
     p.add_argument("--out", required=True, metavar="FILE", help="the model with its physics")
-    number_option(p, "--radius", float_in(1e-3, 1e3, "mm"), 1.0, "MM",
-                  "how far from its centre a region's tools may press (default 1 mm)")
-    number_option(p, "--tolerance", float_in(1e-6, 0.5), 0.004, "T",
-                  "ECSW's tolerance (default 0.004: the two-tool target, README)")
+    number_option(
+        p,
+        "--radius",
+        float_in(1e-3, 1e3, "mm"),
+        1.0,
+        "MM",
+        "how far from its centre a region's tools may press (default 1 mm)",
+    )
+    number_option(
+        p,
+        "--tolerance",
+        float_in(1e-6, 0.5),
+        0.004,
+        "T",
+        "ECSW's tolerance (default 0.004: the two-tool target, README)",
+    )
     p.add_argument("--solves", type=distances, default=(0.25, 0.5), metavar="MM,MM",
                    help="distances of a region's full-order solves from its centre "
                    "(default 0.25,0.5)")  # fmt: skip
-    number_option(p, "--solves-per-distance", int_in(1, 64), 3, "N",
-                  "full-order solves at each distance (default 3)")
-    number_option(p, "--state-modes", int_in(1, 1000), 30, "N",
-                  "displacement modes of the solves' states (default 30)")
-    number_option(p, "--pressure-modes", int_in(1, 1000), 20, "N",
-                  "pressure modes (default 20; each adds a supremizer mode)")
+    number_option(
+        p,
+        "--solves-per-distance",
+        int_in(1, 64),
+        3,
+        "N",
+        "full-order solves at each distance (default 3)",
+    )
+    number_option(
+        p,
+        "--state-modes",
+        int_in(1, 1000),
+        30,
+        "N",
+        "displacement modes of the solves' states (default 30)",
+    )
+    number_option(
+        p,
+        "--pressure-modes",
+        int_in(1, 1000),
+        20,
+        "N",
+        "pressure modes (default 20; each adds a supremizer mode)",
+    )
 
 
 def add_offline_commands(sub) -> None:
