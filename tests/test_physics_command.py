@@ -31,6 +31,21 @@ def physics_file(force_campaign, force_artifact, tmp_path_factory):
     return out
 
 
+def pressed_surface(physics, tools, data, model) -> tuple[np.ndarray, np.ndarray]:
+    """(the region's surface, the full order's) after ``tools`` ((point, force) pairs)
+    pressed along ``data``'s load factors in 40 steps and held 40 more."""
+    factors = data["load_factor"]
+    for factor in np.linspace(0.0, factors[-1], 41)[1:]:
+        for k, (point, force) in enumerate(tools):
+            physics.press(k, point, factor * np.asarray(force))
+        assert physics.step()
+    for _ in range(40):
+        assert physics.step()
+    u = np.zeros_like(physics.vertices)
+    physics.surface_displacement(u)
+    return u, data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+
+
 def test_a_region_reproduces_a_solve_it_was_built_from(force_campaign, physics_file):
     import hapticrom.offline  # noqa: F401 - h5py and MPI first
     from hapticrom.offline.reduce.ecsw_regions import RegionSolves
@@ -44,16 +59,9 @@ def test_a_region_reproduces_a_solve_it_was_built_from(force_campaign, physics_f
     assert np.linalg.norm(nodes - point, axis=1).min() < 1e-9  # one of the region's solves
     model = load(physics_file, isolate=False)
     physics = model.physics(slices=1)
-    f, factors = data["load_vector"], data["load_factor"]
+    f = data["load_vector"]
     force = f.reshape(-1, 3).sum(axis=0)
-    for factor in np.linspace(0.0, factors[-1], 41)[1:]:
-        physics.press(0, point, factor * force)
-        assert physics.step()
-    for _ in range(40):
-        assert physics.step()
-    out = np.zeros_like(physics.vertices)
-    physics.surface_displacement(out)
-    full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+    out, full = pressed_surface(physics, [(point, force)], data, model)
     assert np.linalg.norm(out - full) <= 1e-2 * np.linalg.norm(full)  # 0.42 % when written
     depth = physics.tool_load(point, force) @ physics.q / np.linalg.norm(force)
     assert abs(depth / (f @ data["displacement"][-1] / np.linalg.norm(force)) - 1) <= 1e-2
@@ -122,14 +130,5 @@ def test_a_pair_region_reproduces_a_two_tool_solve_it_was_built_from(
     tools = [solves.tool(first, 1.0), solves.tool(second, 0.5)]
     data = solves.solve(first, tools=tools[1:])
     physics = model.physics(slices=1)
-    factors = data["load_factor"]
-    for factor in np.linspace(0.0, factors[-1], 41)[1:]:
-        for k, (point, force) in enumerate(tools):
-            physics.press(k, point, factor * np.asarray(force))
-        assert physics.step()
-    for _ in range(40):
-        assert physics.step()
-    u = np.zeros_like(physics.vertices)
-    physics.surface_displacement(u)
-    full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+    u, full = pressed_surface(physics, tools, data, model)
     assert np.linalg.norm(u - full) <= 1e-2 * np.linalg.norm(full)

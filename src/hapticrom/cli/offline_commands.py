@@ -566,7 +566,7 @@ def add_physics(sub) -> None:
         "online on the few elements ECSW samples, for two tools, holders and any load) "
         "about points of a model's trained surface, and write them with the model to a "
         "new file (artifact group hyperreduced). Each region takes full-order solves of "
-        "the campaign's load path about its centre (about a minute each on the demo "
+        "the campaign's load path about its centre (2-3 minutes a region on the demo "
         "cornea). Load it with hapticrom.online.load(OUT).physics(region)."))  # fmt: skip
     model_argument(p)
     p.add_argument("campaign_dir", help="the campaign directory the model was reduced from")
