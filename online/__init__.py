@@ -26,8 +26,9 @@ the surface), :mod:`~hapticrom.online.scalpel` (the simulator's cutting controll
 :mod:`~hapticrom.online.cut_worker` (the cuts), :mod:`~hapticrom.online.latency`,
 :mod:`~hapticrom.online.play`, :mod:`~hapticrom.online.reference` (benchmarks, a scripted
 tool path, the plain-numpy reference), :mod:`~hapticrom.online.jit_cache` (numba's cache
-kept in step with the sources). Hyper-reduced physics solved online (issue 18, not yet
-behind an artifact): :mod:`~hapticrom.online.material_kernels`,
+kept in step with the sources). Hyper-reduced physics solved online (issue 18; the
+artifact's ``hyperreduced`` group, ``model.physics()``): :mod:`~hapticrom.online.physics`
+(a region under pressing tools and holders), :mod:`~hapticrom.online.material_kernels`,
 :mod:`~hapticrom.online.element_kernels`, :mod:`~hapticrom.online.hyperreduced` (the
 sampled sums), :mod:`~hapticrom.online.haptic_newton` (a step of fixed cost) and
 :mod:`~hapticrom.online.dense_solve` (its LU).

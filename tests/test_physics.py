@@ -316,3 +316,26 @@ def test_a_tangled_element_is_refused_when_stepped(trained, tmp_path):
     model = load(tampered(trained, tmp_path, {"element_nodes": swap}), isolate=False)
     with pytest.raises(ArtifactError, match="element 0 is tangled"):
         model.physics()
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="HapticNewton has no guard against a diverging step "
+    "(README, stop 43): the lagging tangent of this 201-element sample "
+    "diverges while the load holds, and the state stays where it blew up",
+)
+def test_the_lagging_tangent_holds_a_steady_load(trained):
+    """The haptic schedule (a tangent part a step, 3 parts) on the sampled region: pressed
+    as the campaign in 40 steps, then held for 60, every step is taken and the state
+    settles. Measured with the same schedule: in the 8th held step the update jumps (0.016
+    -> 0.146 of the state), by the 13th it reaches 0.51, and every step after is refused.
+    """
+    config, (data, point), _, _, paths, _, _ = trained
+    physics = load(paths["sampled"], isolate=False).physics(slices=3)
+    force = data["load_vector"].reshape(-1, 3).sum(axis=0)
+    for factor in np.linspace(0.0, data["load_factor"][-1], 41)[1:]:
+        physics.press(0, point, factor * force)
+        assert physics.step()
+    for _ in range(60):
+        assert physics.step()
+    assert physics.newton.last_update <= 1e-9

@@ -563,11 +563,12 @@ def add_physics(sub) -> None:
     """``hapticrom physics MODEL CAMPAIGN_DIR --at X,Y,Z --out FILE``."""
     p = new_command(sub, "physics", cmd_physics, HELP["physics"], description=(
         "Build regions of hyper-reduced physics (issue 18: the reduced mixed model solved "
-        "online on the few elements ECSW samples, for two tools, holders and any load) "
+        "online on the few elements ECSW samples: one press or two tools at once) "
         "about points of a model's trained surface, and write them with the model to a "
         "new file (artifact group hyperreduced). Each region takes full-order solves of "
-        "the campaign's load path about its centre (2-3 minutes a region on the demo "
-        "cornea). Load it with hapticrom.online.load(OUT).physics(region)."))  # fmt: skip
+        "the campaign's load path about its centre (on the demo cornea 2 minutes a "
+        "single-press region, 3.3 a two-tool one). Load it with "
+        "hapticrom.online.load(OUT).physics(region)."))  # fmt: skip
     model_argument(p)
     p.add_argument("campaign_dir", help="the campaign directory the model was reduced from")
     p.add_argument(
