@@ -129,11 +129,12 @@ def main() -> None:
                "pressure_modes": physics.pi.size, "depth_error": float(depth - 1),
                "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
                "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
-               "max_ms": float(ms.max())}  # fmt: skip
+               "max_ms": float(ms.max()), "refreshes": physics.refreshes}  # fmt: skip
         print(f"position {i:3d}: {row['elements']} elements, {row['modes']} + "
               f"{row['pressure_modes']} modes, depth {100 * row['depth_error']:+.2f} %, field "
               f"{100 * row['field_error']:.2f} %, step p50/p99/max {row['p50_ms']:.2f}/"
-              f"{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms", flush=True)  # fmt: skip
+              f"{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms, {physics.refreshes} fresh "
+              "tangents", flush=True)  # fmt: skip
         rows.append(row)
     Path(args.out).with_suffix(".json").write_text(json.dumps(rows, indent=1))
 

@@ -226,6 +226,20 @@ class HapticNewton:
             raise InputError("the model's tangent at rest is singular: no first step")
         self.last_update = np.inf  # the last step's |delta q| / |q|
 
+    def refresh(self, q, pi) -> bool:
+        """The whole tangent at (q, pi), factorised now (one call of every part: the cost of
+        ``slices`` steps' parts at once), the tangent being built dropped; False if it does
+        not factorise (then the last factors stay)."""
+        sampled_residual_tangent(*self.sample, q, pi, self.r, self.K, *self.scratch.buffers())
+        np.add(self.K, self.linear, out=self.building)
+        factored = lu_factor(self.building, self.pivots[1])
+        if factored:
+            self.lu[:] = self.building
+            self.pivots[0] = self.pivots[1]
+        self.building[:] = self.linear
+        self.counters[PART] = 0
+        return bool(factored)
+
     @property
     def part(self) -> int:
         """The tangent part the next step sums."""

@@ -22,6 +22,8 @@ from hapticrom.offline.reduce.ecsw_model import (
 )
 from hapticrom.offline.reduce.ecsw_physics import add_physics, physics_group, region_arrays
 from hapticrom.offline.reduce.tool_stiffness import ToolLoads
+from hapticrom.online.dense_solve import lu_solve
+from hapticrom.online.haptic_newton import HapticNewton
 from hapticrom.online.model import load
 from hapticrom.shared.artifact import read_artifact, with_group, write_artifact
 from hapticrom.shared.errors import ArtifactError, InputError
@@ -92,6 +94,7 @@ def test_steps_settle_on_the_trainers_model_and_the_full_order(trained, name):
     # slices=1: a tangent at every step's state (at 3, the 201-element sample's lagging
     # tangent diverged on this 20 + 20 mode basis; test_ecsw_model holds the lagging schedule)
     physics = pressed(model.physics(slices=1), point, f.reshape(-1, 3).sum(axis=0), factors)
+    assert physics.refreshes == 0  # a converging schedule never wakes the guard
     out = np.zeros_like(physics.vertices)
     physics.surface_displacement(out)
     nodes = model.artifact["surface"]["nodes"]
@@ -318,24 +321,41 @@ def test_a_tangled_element_is_refused_when_stepped(trained, tmp_path):
         model.physics()
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="HapticNewton has no guard against a diverging step "
-    "(README, stop 43): the lagging tangent of this 201-element sample "
-    "diverges while the load holds, and the state stays where it blew up",
-)
-def test_the_lagging_tangent_holds_a_steady_load(trained):
-    """The haptic schedule (a tangent part a step, 3 parts) on the sampled region: pressed
-    as the campaign in 40 steps, then held for 60, every step is taken and the state
-    settles. Measured with the same schedule: in the 8th held step the update jumps (0.016
-    -> 0.146 of the state), by the 13th it reaches 0.51, and every step after is refused.
-    """
-    config, (data, point), _, _, paths, _, _ = trained
+def test_the_guard_takes_a_diverging_step_again_on_a_fresh_tangent(trained):
+    """The haptic schedule (a tangent part a step, 3 parts) on the sampled region, pressed
+    as the campaign in 40 steps, then held for 60. Without the guard (HapticNewton alone)
+    the lagging tangent diverges at the hold: in the 8th held step the update jumps from
+    0.016 to 0.146 of the state, by the 13th it reaches 0.51, and every step after is
+    refused. With it, every step is taken, a few on a fresh tangent, and the state settles
+    on the trainer's model's equilibrium."""
+    config, (data, point), Phi, models, paths, _, _ = trained
+    f, factors = data["load_vector"], data["load_factor"]
+    force = f.reshape(-1, 3).sum(axis=0)
     physics = load(paths["sampled"], isolate=False).physics(slices=3)
-    force = data["load_vector"].reshape(-1, 3).sum(axis=0)
-    for factor in np.linspace(0.0, data["load_factor"][-1], 41)[1:]:
+    bare = HapticNewton(physics.newton.sample, physics.newton.linear, 1, 3)
+    q, pi, refused = np.zeros_like(physics.q), np.zeros_like(physics.pi), 0
+    for factor in list(np.linspace(0.0, factors[-1], 41)[1:]) + [factors[-1]] * 60:
         physics.press(0, point, factor * force)
         assert physics.step()
-    for _ in range(60):
-        assert physics.step()
-    assert physics.newton.last_update <= 1e-9
+        refused += not bare.step(q, pi, physics.load)
+    assert refused > 0  # the schedule alone diverges
+    assert 0 < physics.refreshes <= 10
+    expected = models["sampled"].solve(Phi.T @ f, factors, tolerance=1e-12)[0][-1]
+    assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
+
+
+def test_a_refresh_is_the_tangent_at_the_state(trained):
+    """HapticNewton.refresh factorises the tangent at the given state (the trainer's
+    model's), drops the tangent being built and starts the parts again."""
+    _, _, _, models, _, _, _ = trained
+    model = models["sampled"]
+    newton = HapticNewton(model.sample, model.linear, 1, 3)
+    rng = np.random.default_rng(3)
+    q, pi = 1e-2 * rng.standard_normal(model.n), 1e-3 * rng.standard_normal(model.n_p)
+    assert newton.refresh(q, pi)
+    K = model.residual_tangent(q, pi, np.zeros(model.n))[1]
+    x = rng.standard_normal(K.shape[0])
+    b = K @ x
+    lu_solve(newton.lu, newton.pivots[0], b)
+    assert np.allclose(b, x, rtol=0, atol=1e-8 * np.abs(x).max())
+    assert newton.part == 0 and np.array_equal(newton.building, model.linear)
