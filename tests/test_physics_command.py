@@ -77,11 +77,14 @@ def test_a_region_reproduces_a_solve_it_was_built_from(force_campaign, physics_f
         (["--at", "0,0,0", "--solves", "0.25"], "free loadable surface nodes"),
         (["--at", "0,0,40"], "no loadable surface vertex"),
         (["--at=-40,0,0"], "no loadable surface vertex"),  # a negative first coordinate
+        (["--at", "0,0,0", "--state-modes", "40"], "give 24 states"),
     ],
 )
 def test_bad_input_gives_one_clear_line(force_campaign, force_artifact, tmp_path, extra, message):
     out = tmp_path / "physics.h5"
-    proc = run_cli("physics", force_artifact, force_campaign[1].root, "--out", out, *extra)
+    modes = ["--state-modes", "8", "--pressure-modes", "4"]  # within the solves' 24 states
+    proc = run_cli("physics", force_artifact, force_campaign[1].root, "--out", out, *modes,
+                   *extra)  # fmt: skip
     assert proc.returncode == 2 or proc.returncode == 1, proc.stderr
     assert message in proc.stderr, proc.stderr
     assert not out.exists()

@@ -229,6 +229,12 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
         raise InputError(f"hapticrom physics needs a force-controlled campaign (its tool "
                          f"presses the regions' tools do); {store.root}'s load is "
                          f"'{config.load.mode}'")  # fmt: skip
+    states = recipe.per_distance * len(recipe.distances) * config.load.steps
+    if states < max(recipe.state_modes, recipe.pressure_modes):
+        raise InputError(f"a region's {recipe.per_distance * len(recipe.distances)} solves of "
+                         f"{config.load.steps} steps give {states} states, fewer than "
+                         f"{recipe.state_modes} state or {recipe.pressure_modes} pressure "
+                         "modes: more solves, or fewer modes")  # fmt: skip
     for site in sites:  # before any solve: each site has loadable surface within the radius
         for point in np.asarray(site, dtype=float).reshape(-1, 3):
             region_vertices(artifact["surface"], point, recipe.radius)
