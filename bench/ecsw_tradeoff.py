@@ -98,6 +98,7 @@ from hapticrom.offline.reduce.ecsw_model import (
 from hapticrom.offline.reduce.ecsw_physics import HOLD_STIFFNESS, linear_stiffness
 from hapticrom.offline.reduce.ecsw_regions import RegionSolves
 from hapticrom.online.haptic_newton import HapticNewton
+from hapticrom.online.physics import rotation_rows
 
 
 def bases(store, training, args, mesh, rest, config):
@@ -372,17 +373,6 @@ def hold(model, Phi, nodes, coordinates=None) -> None:
     if coordinates is not None:
         A = np.vstack([A, rotation_rows(coordinates[nodes], rows)])
     model.linear[: model.n, : model.n] += k * (A.T @ A)
-
-
-def rotation_rows(points, rows) -> np.ndarray:
-    """(3, n): the least-squares rotation theta of a patch (``points`` (P, 3) mm, their
-    displacement ``rows`` (P, 3, n)), u_i = t + theta x r_i about the centroid, times the
-    patch's RMS radius (mm, as the mean's rows): theta = J^-1 sum_i r_i x u_i, J = sum_i
-    |r_i|^2 I - r_i r_i^T."""
-    r = points - points.mean(axis=0)
-    J = (r**2).sum() * np.eye(3) - r.T @ r
-    moments = np.cross(r[:, :, None], rows, axis=1).sum(axis=0)  # (3, n)
-    return np.sqrt((r**2).sum(axis=1).mean()) * np.linalg.solve(J, moments)
 
 
 def couple_loads(coordinates, nodes, N) -> np.ndarray:

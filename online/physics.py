@@ -77,13 +77,21 @@ def holder_rows(surface_basis, vertices, point, radius) -> np.ndarray:
     n = surface_basis.shape[1]
     rows = surface_basis.reshape(-1, 3, n)[near]  # (patch, 3, n)
     r = vertices[near] - vertices[near].mean(axis=0)
-    J = (r**2).sum() * np.eye(3) - r.T @ r
-    if np.linalg.cond(J) > 1e8:
+    if np.linalg.cond((r**2).sum() * np.eye(3) - r.T @ r) > 1e8:
         raise InputError(f"the holder at {np.round(point, 4).tolist()} mm grips vertices in "
                          "a line: its rotation is not defined")  # fmt: skip
-    moments = np.cross(r[:, :, None], rows, axis=1).sum(axis=0)
-    rotation = np.sqrt((r**2).sum(axis=1).mean()) * np.linalg.solve(J, moments)
-    return np.vstack([rows.mean(axis=0), rotation])
+    return np.vstack([rows.mean(axis=0), rotation_rows(vertices[near], rows)])
+
+
+def rotation_rows(points, rows) -> np.ndarray:
+    """(3, n): the least-squares rotation theta of a patch (``points`` (P, 3) mm, their
+    displacement ``rows`` (P, 3, n)), u_i = t + theta x r_i about the centroid, times the
+    patch's RMS radius (mm, as the mean's rows): theta = J^-1 sum_i r_i x u_i, J = sum_i
+    |r_i|^2 I - r_i r_i^T."""
+    r = points - points.mean(axis=0)
+    J = (r**2).sum() * np.eye(3) - r.T @ r
+    moments = np.cross(r[:, :, None], rows, axis=1).sum(axis=0)  # (3, n)
+    return np.sqrt((r**2).sum(axis=1).mean()) * np.linalg.solve(J, moments)
 
 
 @njit("Tuple((int64, float64))(float64[::1], float64[:, ::1], int64[:, ::1], float64[::1])",
