@@ -94,7 +94,16 @@ def rotation_rows(points, rows) -> np.ndarray:
     return np.sqrt((r**2).sum(axis=1).mean()) * np.linalg.solve(J, moments)
 
 
-@njit("Tuple((int64, float64))(float64[::1], float64[:, ::1], int64[:, ::1], float64[::1])",
+# The compiled calls' array types: read-only (a writeable array converts at the call); a
+# caller's vector in any layout
+VEC = "Array(float64, 1, 'A', readonly=True)"
+RO_F8_1D = "Array(float64, 1, 'C', readonly=True)"
+RO_F8_2D = "Array(float64, 2, 'C', readonly=True)"
+RO_F8_3D = "Array(float64, 3, 'C', readonly=True)"
+RO_I8_2D = "Array(int64, 2, 'C', readonly=True)"
+
+
+@njit(f"Tuple((int64, float64))({VEC}, {RO_F8_2D}, {RO_I8_2D}, float64[::1])",
       cache=True, nogil=True)  # fmt: skip
 def _nearest_triangle(p, vertices, triangles, w):
     """(the triangle nearest p, distance^2); its barycentric weights into w (3,)."""
@@ -108,32 +117,83 @@ def _nearest_triangle(p, vertices, triangles, w):
     return t_best, best
 
 
-def _vector(name: str, value, bound: float = MAX_LENGTH) -> np.ndarray:
+# _tool_load's statuses: the load written, or what is wrong (press's error names it)
+LOADED, POINT_REFUSED, FORCE_REFUSED, OUTSIDE_REGION, OFF_SURFACE = 0, 1, 2, 3, 4
+_NDARRAY, _F8 = np.ndarray, np.dtype(np.float64)
+_INTEGER = (int, np.integer)  # built once: ``int | np.integer`` makes a union a call
+
+
+@njit(f"boolean({VEC}, float64)", cache=True, nogil=True)
+def _bounded(v, bound):
+    """3 finite numbers within +-bound (a NaN fails every comparison)."""
+    if v.shape[0] != 3:
+        return False
+    for i in range(3):
+        if not abs(v[i]) <= bound:
+            return False
+    return True
+
+
+@njit(f"int64({VEC}, {VEC}, {RO_F8_1D}, float64, float64, {RO_F8_2D}, {RO_I8_2D}, {RO_F8_3D}, "
+      "float64[::1], float64[::1])", cache=True, nogil=True)  # fmt: skip
+def _tool_load(point, force, centre, radius, reach, load_points, triangles, tool_loads, w, out):
+    """The reduced load of ``force`` (N) at ``point`` (mm) into ``out`` (n,): the unit loads
+    ``tool_loads`` (L, 3, n) of the nearest triangle's corners blended by its barycentric
+    weights (into ``w``); a status other than LOADED leaves ``out`` untouched."""
+    if not _bounded(point, MAX_LENGTH):
+        return POINT_REFUSED
+    if not _bounded(force, MAX_FORCE):
+        return FORCE_REFUSED
+    d2 = 0.0
+    for i in range(3):
+        d2 += (point[i] - centre[i]) ** 2
+    if d2 > radius * radius:
+        return OUTSIDE_REGION
+    t, d2 = _nearest_triangle(point, load_points, triangles, w)
+    if d2 > reach * reach:
+        return OFF_SURFACE
+    out[:] = 0.0
+    for c in range(3):
+        corner = tool_loads[triangles[t, c]]
+        for a in range(3):
+            coefficient = w[c] * force[a]
+            for k in range(out.shape[0]):
+                out[k] += coefficient * corner[a, k]
+    return LOADED
+
+
+def _vector(
+    name: str, value, bound: float = MAX_LENGTH, out: np.ndarray | None = None
+) -> np.ndarray:
+    """``value`` as 3 finite float64 numbers within +-``bound`` (into ``out`` if given)."""
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError):
         a = np.full(0, np.nan)
     if a.shape != (3,) or not np.isfinite(a).all() or np.abs(a).max() > bound:
         raise InputError(f"{name} must be 3 finite numbers within +-{bound:g}, got {value!r}")
-    return a
+    if out is None:
+        return a
+    out[:] = a
+    return out
 
 
 def _index(name: str, value, count: int) -> int:
-    integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    integer = isinstance(value, _INTEGER) and not isinstance(value, bool)
     if not integer or not 0 <= value < count:
         raise InputError(f"{name} must be an integer from 0 to {count - 1}, got {value!r}")
     return int(value)
 
 
 def _count(name: str, value, high: int | None) -> None:
-    integer = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    integer = isinstance(value, _INTEGER) and not isinstance(value, bool)
     if not integer or value < 1 or (high is not None and value > high):
         upto = f" to {high}" if high is not None else ""
         raise InputError(f"{name} must be an integer from 1{upto}, got {value!r}")
 
 
 def _tool_id(tool) -> int:
-    if not isinstance(tool, int | np.integer) or isinstance(tool, bool):
+    if not isinstance(tool, _INTEGER) or isinstance(tool, bool):
         raise InputError(f"a tool id must be an integer, got {tool!r}")
     return int(tool)
 
@@ -176,6 +236,7 @@ class HyperReducedPhysics:
         self.load = np.zeros(n)  # the pressing tools' reduced loads, summed
         self.pressing: dict[int, np.ndarray] = {}  # tool id -> its reduced load (n,)
         self._weights = np.zeros(3)  # the blend of the last tool's triangle corners
+        self._point, self._force = np.zeros(3), np.zeros(3)  # press's slower path: copies
         self.refreshes = 0  # steps the divergence guard took again on a fresh tangent
         self._before = (np.zeros(n), np.zeros(linear.shape[0] - n))  # q, pi before a step
         self._last_load = np.zeros(n)  # the load of the last step
@@ -233,24 +294,53 @@ class HyperReducedPhysics:
 
     def tool_load(self, point, force) -> np.ndarray:
         """(n,) the reduced load of ``force`` (N) of a tool at the surface ``point`` (mm):
-        the stored unit loads of the nearest region triangle's corners, blended."""
-        point = _vector("a tool's point", point)
-        force = _vector("a tool's force (N)", force, MAX_FORCE)
-        self._check_within("a tool", point)
-        w = self._weights
-        t, d2 = _nearest_triangle(point, self.load_points, self.triangles, w)
-        if d2 > self.contact_radius**2:
-            raise InputError(f"a tool at {np.round(point, 4).tolist()} mm is "
-                             f"{np.sqrt(d2):.3g} mm off the region's loadable surface")  # fmt: skip
-        corners = self.tool_loads[self.triangles[t]]  # (3 corners, 3 axes, n)
-        return np.einsum("c,a,can->n", w, force, corners)
+        the stored unit loads of the nearest region triangle's corners, blended (a new
+        array; ``press`` writes into the tool's own)."""
+        out = np.empty(len(self.load))
+        self._load_into(point, force, out)
+        return out
 
     def press(self, tool: int, point, force) -> None:
         """Tool ``tool`` (any int id) presses with ``force`` (N) at ``point`` (mm) from
-        the next step on (replacing its last press)."""
+        the next step on (replacing its last press). A tool's press after its first
+        allocates nothing when point and force are 1-D float64 arrays (other sequences of
+        3 numbers are copied into buffers first)."""
         tool = _tool_id(tool)
-        self.pressing[tool] = self.tool_load(point, force)
+        load = self.pressing.get(tool)
+        if load is None:  # a new tool: its own load buffer, once
+            load = np.empty(len(self.load))
+            self._load_into(point, force, load)
+            self.pressing[tool] = load
+        else:
+            self._load_into(point, force, load)
         self._sum_loads()
+
+    def _load_into(self, point, force, out: np.ndarray) -> None:
+        """The reduced load of a tool into ``out`` (compiled: nothing allocated for 1-D
+        float64 input); refused input raises InputError naming it, ``out`` untouched."""
+        p, f = point, force
+        if type(p) is not _NDARRAY or p.dtype is not _F8 or p.ndim != 1:
+            p = _vector("a tool's point", p, MAX_LENGTH, self._point)
+        if type(f) is not _NDARRAY or f.dtype is not _F8 or f.ndim != 1:
+            f = _vector("a tool's force (N)", f, MAX_FORCE, self._force)
+        status = _tool_load(p, f, self.centre, self.radius, self.contact_radius,
+                            self.load_points, self.triangles, self.tool_loads, self._weights,
+                            out)  # fmt: skip
+        if status != LOADED:
+            self._refuse_tool(status, point, force)
+
+    def _refuse_tool(self, status: int, point, force) -> None:
+        """Raise the error of a tool that ``_tool_load`` refused."""
+        if status == POINT_REFUSED:
+            _vector("a tool's point", point)
+        if status == FORCE_REFUSED:
+            _vector("a tool's force (N)", force, MAX_FORCE)
+        point = np.asarray(point, np.float64)
+        if status == OUTSIDE_REGION:
+            self._check_within("a tool", point)
+        gap = np.sqrt(_nearest_triangle(point, self.load_points, self.triangles, np.zeros(3))[1])
+        raise InputError(f"a tool at {np.round(point, 4).tolist()} mm is {gap:.3g} mm off "
+                         "the region's loadable surface")  # fmt: skip
 
     def release(self, tool: int) -> None:
         """Tool ``tool`` no longer presses (nothing if it did not)."""
@@ -260,7 +350,7 @@ class HyperReducedPhysics:
     def _sum_loads(self) -> None:
         """The load summed again over the tools (a running sum would keep the rounding of
         a large force after its tool is released)."""
-        self.load[:] = 0.0
+        self.load.fill(0.0)
         for load in self.pressing.values():
             self.load += load
 
