@@ -220,6 +220,8 @@ def local_models(store, training, held_out, args, mesh, rest, config) -> list[di
                                  reach=1e-9) for d in np.eye(3)]  # fmt: skip
             if args.hold == "rigid":
                 forces.append(couple_loads(node_coordinates(mesh), held_nodes, U.shape[0]))
+            if args.hold == "nodes":  # a unit force at each held node, along x, y and z
+                forces = [node_loads(held_nodes, U.shape[0])]
             holder = solve(np.hstack(forces))
         Phi, Psi = derivative_bases(args, mesh, operators, solve, solve(loads), blocks, free,
                                     holder)  # fmt: skip
@@ -286,6 +288,8 @@ def nearby_blocks(solver, centres, forbidden, args) -> list[tuple]:
     the second (the k-th of each, ``--second-force`` of the campaign's force along its
     normal); ``both``: all three. With ``--pinch`` or ``--oblique``: one block of that load
     at each nearby node (the k-th oblique press along its own direction)."""
+    if args.held_tool and args.held_basis == "free":  # presses alone about the first centre
+        return [(*solver.states(centres[0], forbidden), args.state_modes)]
     if args.held_tool:  # the k-th press about the first centre, held about the second
         presses = solver.nodes(centres[0], forbidden)
         holders = solver.nodes(centres[1], [*forbidden, *presses])
@@ -329,7 +333,7 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_n
             model = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights,
                                       split=split, rest=rest)  # fmt: skip
         if held_nodes is not None:
-            hold(model, Phi, held_nodes, node_coordinates(mesh) if args.hold == "rigid" else None)
+            hold(model, Phi, held_nodes, args.hold, node_coordinates(mesh))
         solved = solve_paths(model, Phi, [path])
         p50, p99 = kernel_times(model, *states[-1]) if states else (None, None)
         ratios = solved["depth_ratios"][0]
@@ -350,7 +354,7 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_n
         yield row
 
 
-def hold(model, Phi, nodes, coordinates=None) -> None:
+def hold(model, Phi, nodes, kind, coordinates) -> None:
     """A holder that keeps the mean displacement of ``nodes`` (canonical: its patch) in
     place, in the reduced space: the energy k/2 |A q|^2, a constant k A^T A in the model's
     constant tangent (so in its residual, its Newton's and HapticNewton's), A (3, n) the
@@ -358,7 +362,9 @@ def hold(model, Phi, nodes, coordinates=None) -> None:
     force spread over the patch (the runtime's ``hold_stiffness`` takes the stiffest of
     its region's tools instead, offline/reduce/ecsw_physics.py: the same scale). With the
     nodes' reference ``coordinates`` (``--hold rigid``) A also holds the patch's
-    least-squares rotation (``rotation_rows``, 3 more rows). The patch's rigid motion, not
+    least-squares rotation (``rotation_rows``, 3 more rows); ``--hold nodes``: A is every
+    held node's rows (3 a node), the basis carrying the response to a unit force at each
+    (their reactions, exactly at the linear step). The patch's rigid motion, not
     each node: a basis holds no states with the patch exactly still (its solves hold
     patches about it): a penalty on each held row (without the responses below) left the
     depth 79.5 % short at position 6 (README, stop 42). The basis carries the responses to
@@ -368,11 +374,18 @@ def hold(model, Phi, nodes, coordinates=None) -> None:
     """
     nodes = np.asarray(nodes)
     rows = Phi.reshape(-1, 3, Phi.shape[1])[nodes]  # (patch, 3, n)
-    A = rows.mean(axis=0)
+    A = rows.reshape(-1, Phi.shape[1]) if kind == "nodes" else rows.mean(axis=0)
     k = HOLD_STIFFNESS * float(linear_stiffness(model, A).max())
-    if coordinates is not None:
+    if kind == "rigid":
         A = np.vstack([A, rotation_rows(coordinates[nodes], rows)])
     model.linear[: model.n, : model.n] += k * (A.T @ A)
+
+
+def node_loads(nodes, N) -> np.ndarray:
+    """(N, 3 len(nodes)): a unit force at each of ``nodes`` (canonical) along x, y, z."""
+    F = np.zeros((N, 3 * len(nodes)))
+    F[3 * np.repeat(nodes, 3) + np.tile(np.arange(3), len(nodes)), np.arange(F.shape[1])] = 1.0
+    return F
 
 
 def couple_loads(coordinates, nodes, N) -> np.ndarray:
@@ -520,8 +533,6 @@ class NearbySolver(RegionSolves):
         # --pinch: the campaign's tool at the centre node presses with a pinch's force
         load = replace(config.load, magnitude=args.pinch) if args.pinch else config.load
         super().__init__(replace(config, load=load), args.local_solves, args.solves_per_distance)
-        # --held-tool: the first tool holds its patch in place, the others press
-        self.held = replace(config, load=replace(config.load, mode="displacement", magnitude=0.0))
 
     def states(self, point, forbidden=()) -> tuple[np.ndarray, np.ndarray]:
         """The states and pressures (N, k), (cells, k) of the solves about ``point``, at
@@ -699,11 +710,16 @@ def parse_arguments() -> argparse.Namespace:
                         "holds its patch in place while the position's tool presses")  # fmt: skip
     parser.add_argument(
         "--hold",
-        choices=("mean", "rigid"),
+        choices=("mean", "rigid", "nodes"),
         default="mean",
         help="--held-tool: the reduced holder keeps its patch's mean "
-        "displacement, or its rigid motion (the mean and the rotation)",
+        "displacement, its rigid motion (the mean and the rotation), or each node "
+        "(the basis gaining the response to a force at each)",
     )
+    parser.add_argument("--held-basis", choices=("held", "free"), default="held",
+                        help="--held-tool: the solves about the press each beside a holder "
+                        "about the holder's node, or alone (the holder's reaction then "
+                        "from the responses of --hold only)")  # fmt: skip
     parser.add_argument("--second-force", type=float, default=None,
                         help="--second-tool: its force, of the campaign's (0.5)")  # fmt: skip
     parser.add_argument("--second-basis", choices=("single", "paired", "both"),
@@ -776,6 +792,8 @@ def check_arguments(parser, args) -> None:
         parser.error("--indicator-tolerance: in (0, 1)")
     if args.indicator_apart and not (args.indicator_modes and args.tolerances):
         parser.error("--indicator-apart needs --indicator-modes and ECSW --tolerances")
+    if args.held_basis != "held" and not args.held_tool:
+        parser.error("--held-basis needs --held-tool")
     if args.second_basis != "single" and not args.second_tool:
         parser.error("--second-basis needs --second-tool")
     if args.second_force is not None and not args.second_tool:

@@ -9,6 +9,9 @@ haptic steps, against the stored full-order solve (not among the region's own so
 ``--pair MM``: two tools, the position's and a second at the free loadable node nearest MM
 away pressing with ``--second-force`` of the campaign's force, each region a ``--pair``
 region of the two sites, the reference a full-order solve under both (solved here).
+``--held MM``: the position's tool presses while a holder MM away grips (``--held``
+regions, ``physics(region, holders=[...])``), the reference the full order with the
+holder's patch held in place (solved here).
 
 Per region: the sampled elements, the modes, the depth error (the tool's load-weighted
 mean displacement along its force, as the campaign's) and the surface field's relative L2
@@ -41,7 +44,10 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--skip-build", action="store_true", help="OUT exists: only step it")
     parser.add_argument("--pair", type=float, default=0.0, help="mm: a second tool this far")
     parser.add_argument("--second-force", type=float, default=0.5)
+    parser.add_argument("--held", type=float, default=0.0, help="mm: a holder this far")
     args, extra = parser.parse_known_args()
+    if args.pair and args.held:
+        parser.error("--pair or --held, not both")
     try:
         args.positions = [int(v) for v in args.positions.split(",")]
     except ValueError:
@@ -88,11 +94,33 @@ def two_tools(store, point, args) -> tuple:
     return [first, second], data, g / W
 
 
+def held_case(store, point, args) -> tuple:
+    """([(point, force)] of the campaign's tool at ``point``, the full order's datasets
+    with a holder's patch ``--held`` mm away held in place, the press's load vector; the
+    holder's point)."""
+    from mpi4py import MPI
+
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.offline.reduce.inputs import campaign_config
+
+    solves = RegionSolves(campaign_config(store, store.manifest(), None), (), 1)
+    node = solves.nearest(point)
+    holder = solves.second_tool(point, args.held, 1.0)[1][0]
+    press = solves.tool(node, 1.0)
+    t = time.perf_counter()
+    data = solves.solve(solves.nearest(holder), tools=[press], config=solves.held)
+    print(f"  the full order pressed at {np.round(press[0], 3).tolist()} mm, held at "
+          f"{np.round(holder, 3).tolist()} mm ({time.perf_counter() - t:.0f} s, "
+          f"rank {MPI.COMM_WORLD.rank})", flush=True)  # fmt: skip
+    return [press], data, data["load_vector"], np.asarray(holder)
+
+
 def main() -> None:
     args, options = parse_arguments()
     store = SnapshotStore(args.campaign)
     points = [np.asarray(store.read_position(i)[1]["point"], float) for i in args.positions]
-    cases = [two_tools(store, point, args) if args.pair else None for point in points]
+    case_of = two_tools if args.pair else held_case if args.held else None
+    cases = [case_of(store, point, args) if case_of else None for point in points]
     if not args.skip_build:
         from hapticrom.cli import main as hapticrom
 
@@ -101,6 +129,9 @@ def main() -> None:
             at = ["--pair=" + ",".join(f"{v:.9g}" for v in (*p, *case[0][1][0]))
                   for p, case in zip(points, cases, strict=True)]  # fmt: skip
             options = ["--second-force", str(args.second_force), *options]
+        if args.held:
+            at = ["--held=" + ",".join(f"{v:.9g}" for v in (*p, *case[3]))
+                  for p, case in zip(points, cases, strict=True)]  # fmt: skip
         t = time.perf_counter()
         if hapticrom(["physics", args.model, args.campaign, *at, "--out", args.out, *options]):
             raise SystemExit("hapticrom physics failed")
@@ -118,7 +149,8 @@ def main() -> None:
             tools = case[0]
             force = np.asarray(tools[0][1])
             f = case[2]  # the first tool's own load vector: its depth, as the campaign's
-        physics = model.physics(region=region)
+        holders = [case[3]] if args.held else []
+        physics = model.physics(region=region, holders=holders)
         ms = pressed(physics, tools, factors, args.frames)
         u = np.zeros_like(physics.vertices)
         physics.surface_displacement(u)

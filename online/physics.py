@@ -12,8 +12,8 @@ pressing tools and holders (issue 18).
 A pressing tool's load is the campaign's force tool's (its dead load spread over a disk of
 ``contact_radius``), stored per unit force at the region's loadable vertices and blended
 linearly over the surface triangle nearest the point; a holder keeps the rigid motion (the
-mean displacement and the least-squares rotation) of the surface vertices within
-``contact_radius`` of its point (at least the three nearest), by a penalty in the constant
+mean displacement and the least-squares rotation) of the loadable surface vertices within
+``contact_radius`` of its point (each of them if fewer than three), by a penalty in the constant
 tangent (fixed for the physics' life: a holder that grips elsewhere is a new physics). The
 state lags equilibrium by what one iteration a step leaves and settles on it while the loads
 hold (``HapticNewton``).
@@ -66,21 +66,30 @@ def element_geometry(X: np.ndarray, cell: str, first: int = 0) -> tuple[np.ndarr
     return dN, dV
 
 
-def holder_rows(surface_basis, vertices, point, radius) -> np.ndarray:
-    """(6, n): the mean displacement and the least-squares rotation (times the patch's RMS
-    radius, mm) of the surface vertices within ``radius`` of ``point`` (at least the three
-    nearest), in the basis."""
-    distance = np.linalg.norm(vertices - point, axis=1)
-    near = np.flatnonzero(distance <= radius)
-    if len(near) < 3:  # a coarse mesh: the three nearest (a rotation needs a triangle)
-        near = np.argsort(distance)[:3]
+def holder_patch(vertices, loadable, point, radius) -> np.ndarray:
+    """The vertices a holder at ``point`` grips: those of ``loadable`` (the tools' surface)
+    within ``radius`` (mm), as the full order's displacement-controlled tool holds its
+    nodes (``ContactPatch.blocks``); none is refused."""
+    near = loadable[np.linalg.norm(vertices[loadable] - point, axis=1) <= radius]
+    if not len(near):
+        raise InputError(f"a holder at {np.round(point, 4).tolist()} mm has no loadable "
+                         f"surface vertex within the tool's radius {radius} mm")  # fmt: skip
+    return near
+
+
+def holder_rows(surface_basis, vertices, patch) -> np.ndarray:
+    """The rows a holder keeps still, in the basis: on a patch of three vertices or more,
+    its mean displacement and least-squares rotation (times the patch's RMS radius, mm; 6
+    rows), on one or two (a coarse mesh) each vertex's displacement (3 a vertex)."""
     n = surface_basis.shape[1]
-    rows = surface_basis.reshape(-1, 3, n)[near]  # (patch, 3, n)
-    r = vertices[near] - vertices[near].mean(axis=0)
+    rows = surface_basis.reshape(-1, 3, n)[patch]  # (patch, 3, n)
+    if len(patch) < 3:
+        return rows.reshape(-1, n)
+    r = vertices[patch] - vertices[patch].mean(axis=0)
     if np.linalg.cond((r**2).sum() * np.eye(3) - r.T @ r) > 1e8:
-        raise InputError(f"the holder at {np.round(point, 4).tolist()} mm grips vertices in "
-                         "a line: its rotation is not defined")  # fmt: skip
-    return np.vstack([rows.mean(axis=0), rotation_rows(vertices[near], rows)])
+        raise InputError(f"a holder grips vertices {patch.tolist()} in a line: its rotation "
+                         "is not defined")  # fmt: skip
+    return np.vstack([rows.mean(axis=0), rotation_rows(vertices[patch], rows)])
 
 
 def rotation_rows(points, rows) -> np.ndarray:
@@ -224,6 +233,8 @@ class HyperReducedPhysics:
         n = self.surface_basis.shape[1]
         linear = np.array(h["constant_tangent"][region], np.float64)
         self.hold_stiffness = float(attrs["hold_stiffness"])
+        surface = model.artifact["surface"]
+        self.loadable = np.unique(surface["triangles"][surface["groups"] == 1])
         if isinstance(holders, str) or not hasattr(holders, "__iter__"):
             raise InputError(f"holders must be a list of points (mm), got {holders!r}")
         self.holders = [self._holder(p) for p in holders]
@@ -262,12 +273,8 @@ class HyperReducedPhysics:
     def _holder(self, point) -> np.ndarray:
         point = _vector("a holder's point", point)
         self._check_within("a holder", point)
-        gap = float(np.linalg.norm(self.vertices - point, axis=1).min())
-        if gap > self.contact_radius:
-            raise InputError(f"a holder at {np.round(point, 4).tolist()} mm is {gap:.3g} mm "
-                             f"from the surface's nearest vertex (more than the tool's "
-                             f"radius {self.contact_radius} mm)")  # fmt: skip
-        return holder_rows(self.surface_basis, self.vertices, point, self.contact_radius)
+        patch = holder_patch(self.vertices, self.loadable, point, self.contact_radius)
+        return holder_rows(self.surface_basis, self.vertices, patch)
 
     def _loads_of(self, model, h, region) -> None:
         """The region's load vertices, their unit loads, and its triangles: the loadable
@@ -394,4 +401,7 @@ class HyperReducedPhysics:
         """(3,) N: the force holder ``holder`` exerts on the tissue (its penalty's, minus
         the stiffness times the patch's mean displacement)."""
         holder = _index("holder", holder, len(self.holders))
-        return -self.hold_stiffness * (self.holders[holder][:3] @ self.q)
+        A = self.holders[holder]
+        if len(A) != 6:  # a vertex or two, each held: the sum of their reactions
+            return -self.hold_stiffness * (A @ self.q).reshape(-1, 3).sum(axis=0)
+        return -self.hold_stiffness * (A[:3] @ self.q)

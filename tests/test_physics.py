@@ -125,15 +125,18 @@ def test_a_holder_is_the_trainers_penalty_and_pulls_back(trained):
     dent = [np.dot(p.tool_load(point, force), p.q) / np.linalg.norm(force) for p in (free, held)]
     assert 0 < dent[1] < dent[0]
     assert np.dot(held.holder_force(0), force) < 0
-    distance = np.linalg.norm(vertices - grip, axis=1)
-    near = np.argsort(distance)[: max(3, int((distance <= 0.6).sum()))]
+    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    near = loadable[np.linalg.norm(vertices[loadable] - grip, axis=1) <= config.load.contact_radius]
     n = Phi.shape[1]
     rows = Phi.reshape(-1, 3, n)[surface["nodes"][near]]
-    r = vertices[near] - vertices[near].mean(axis=0)
-    moment = sum(np.cross(r[k][:, None], rows[k], axis=0) for k in range(len(near)))
-    J = sum(r[k] @ r[k] * np.eye(3) - np.outer(r[k], r[k]) for k in range(len(near)))
-    A = np.vstack([rows.mean(axis=0), np.sqrt(np.mean(np.sum(r**2, axis=1)))
-                   * np.linalg.solve(J, moment)])  # fmt: skip
+    if len(near) < 3:  # a coarse mesh: each vertex held, as the full order's holder
+        A = rows.reshape(-1, n)
+    else:
+        r = vertices[near] - vertices[near].mean(axis=0)
+        moment = sum(np.cross(r[k][:, None], rows[k], axis=0) for k in range(len(near)))
+        J = sum(r[k] @ r[k] * np.eye(3) - np.outer(r[k], r[k]) for k in range(len(near)))
+        A = np.vstack([rows.mean(axis=0), np.sqrt(np.mean(np.sum(r**2, axis=1)))
+                       * np.linalg.solve(J, moment)])  # fmt: skip
     assert np.allclose(held.holders[0], A, rtol=0, atol=1e-12)
     trainers = models["galerkin"]
     constant = trainers.linear.copy()
@@ -143,6 +146,27 @@ def test_a_holder_is_the_trainers_penalty_and_pulls_back(trained):
     finally:
         trainers.linear[:] = constant
     assert np.linalg.norm(held.q - expected) <= 1e-8 * np.linalg.norm(expected)
+
+
+def test_a_holders_rows_are_its_patchs_translation_and_rotation():
+    """On a patch of three vertices or more a holder keeps the mean displacement and the
+    least-squares rotation (times the RMS radius): a basis of a translation along x and a
+    rigid rotation about z (u_i = e_z x r_i) reads back as exactly those; on two vertices,
+    each vertex's rows."""
+    from hapticrom.online.physics import holder_rows
+
+    rng = np.random.default_rng(4)
+    vertices = rng.normal(size=(5, 3))
+    r = vertices - vertices.mean(axis=0)
+    basis = np.zeros((5, 3, 2))
+    basis[:, 0, 0] = 1.0
+    basis[:, :, 1] = np.cross([0.0, 0.0, 1.0], r)
+    A = holder_rows(basis.reshape(-1, 2), vertices, np.arange(5))
+    rms = np.sqrt(np.mean(np.sum(r**2, axis=1)))
+    assert np.allclose(A @ [1.0, 0.0], [1, 0, 0, 0, 0, 0], atol=1e-12)
+    assert np.allclose(A @ [0.0, 1.0], [0, 0, 0, 0, 0, rms], atol=1e-12)
+    two = holder_rows(basis.reshape(-1, 2), vertices, np.array([1, 3]))
+    assert np.array_equal(two, basis[[1, 3]].reshape(-1, 2))
 
 
 def test_refused_input_changes_nothing(trained, force_artifact):
@@ -171,7 +195,7 @@ def test_refused_input_changes_nothing(trained, force_artifact):
                             ({"iterations": 1000}, "iterations"), ({"slices": 2.0}, "slices"),
                             ({"holders": None}, "holders must be"),
                             ({"holders": [far]}, "outside the region"),
-                            ({"holders": [point + [0, 0, 1.0]]}, "from the surface"),
+                            ({"holders": [point + [0, 0, 1.0]]}, "no loadable surface vertex"),
                             ({"holders": [[np.inf, 0, 0]]}, "holder")):  # fmt: skip
         with pytest.raises(InputError, match=message):
             model.physics(**kwargs)

@@ -16,9 +16,10 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.sparse.linalg
 from mpi4py import MPI
 
 from hapticrom.meshes.msh import read_surface
@@ -34,6 +35,7 @@ from hapticrom.offline.reduce.ecsw_model import (
     training_matrix,
 )
 from hapticrom.offline.reduce.ecsw_physics import PhysicsRegion, region_arrays, region_vertices
+from hapticrom.online.physics import holder_patch
 from hapticrom.shared.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -75,6 +77,8 @@ class RegionSolves:
 
     def __init__(self, config, distances, per_distance: int):
         self.config = config
+        # a holder: the campaign's tool under displacement control, held where it is
+        self.held = replace(config, load=replace(config.load, mode="displacement", magnitude=0.0))
         self.distances, self.per_distance = tuple(distances), int(per_distance)
         self.surface = read_surface(config.problem.mesh.file, config.load.surface)
         self.organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
@@ -147,32 +151,86 @@ def pod(columns: np.ndarray) -> np.ndarray:
     return np.linalg.svd(columns[:, norms > 0] / norms[norms > 0], full_matrices=False)[0]
 
 
-def region_snapshots(solves: RegionSolves, centre, second=None,
+@dataclass(frozen=True)
+class RegionSite:
+    """Where a region's tools go: ``kind`` "at" (one site: presses about it), "pair" (two
+    tools pressing at once) or "held" (the first presses while a holder grips the
+    second); ``points`` (1 or 2, 3) mm."""
+
+    kind: str
+    points: np.ndarray
+
+    def __post_init__(self):
+        count = {"at": 1, "pair": 2, "held": 2}.get(self.kind)
+        if count is None or np.shape(self.points) != (count, 3):
+            raise InputError(f"a region site is 'at' one point or a 'pair' / 'held' two, got "
+                             f"{self.kind!r} with shape {np.shape(self.points)}")  # fmt: skip
+
+
+def region_snapshots(solves: RegionSolves, site: RegionSite,
                      second_force: float = 0.5) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """(states (N, k), pressures (cells, k)) of the solves about ``centre``; with a
-    ``second`` site (mm), of pairs: the k-th node about ``centre`` pressed with the
-    campaign's force while the k-th about ``second`` presses with ``second_force`` of it
-    (never both on one node; README stop 39: single presses about each site left the two
-    dents' interaction out, 3.4 % against 1.1-1.5 % with pairs)."""
-    first = solves.nodes(centre)
-    if second is None:
+    """(states (N, k), pressures (cells, k)) of the solves about the site's first point;
+    for a pair, of pairs: the k-th node about the first pressed with the campaign's force
+    while the k-th about the second presses with ``second_force`` of it (never both on one
+    node; README stop 39: single presses about each site left the two dents' interaction
+    out, 3.4 % against 1.1-1.5 % with pairs); held, the k-th about the first pressed while
+    a holder keeps its patch at the k-th about the second in place (``solves.held``)."""
+    first = solves.nodes(site.points[0])
+    if site.kind == "at":
         solved = [solves.solve(node) for node in first]
     else:
-        pairs = zip(first, solves.nodes(second, forbidden=first), strict=True)
-        solved = [solves.solve(a, tools=[solves.tool(b, second_force)]) for a, b in pairs]
+        pairs = zip(first, solves.nodes(site.points[1], forbidden=first), strict=True)
+        if site.kind == "pair":
+            solved = [solves.solve(a, tools=[solves.tool(b, second_force)]) for a, b in pairs]
+        else:
+            solved = [solves.solve(b, tools=[solves.tool(a, 1.0)], config=solves.held)
+                      for a, b in pairs]  # fmt: skip
     return (np.vstack([d["displacement"] for d in solved]).T,
             np.vstack([d["pressure"] for d in solved]).T)  # fmt: skip
 
 
-def region_bases(operators, U, P, recipe: RegionRecipe) -> tuple[np.ndarray, np.ndarray]:
-    """(Phi, Psi): ``state_modes`` of the states and the supremizers of ``pressure_modes``
-    of the pressures, orthonormalised; the pressure modes."""
+def holder_responses(operators, surface, point, radius, free) -> np.ndarray:
+    """(N, 6, or 3 a vertex): the linear responses at rest to a unit force along x, y, z
+    spread evenly over a holder's patch at ``point`` (mm; the runtime's ``holder_patch``)
+    and to unit couples about x, y, z on it; on a patch of one or two vertices (which the
+    runtime holds each) to a unit force at each along x, y, z. Zero outside the ``free``
+    rows. A held region's basis carries them: the holder's reaction (without them a
+    holder nearly locks a region built from presses alone: README, stop 43)."""
+    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    patch = holder_patch(surface["vertices"], loadable, point, radius)
+    nodes = np.asarray(surface["nodes"])[patch]
+    F = np.zeros((operators.A.shape[0], 3 * len(nodes) if len(nodes) < 3 else 6))
+    columns = F.reshape(-1, 3, F.shape[1])
+    if len(nodes) < 3:
+        for k, node in enumerate(nodes):
+            columns[node, :, 3 * k : 3 * k + 3] = np.eye(3)
+    else:
+        r = surface["vertices"][patch] - surface["vertices"][patch].mean(axis=0)
+        for axis, e in enumerate(np.eye(3)):
+            columns[nodes, axis, axis] = 1.0 / len(nodes)
+            columns[nodes, :, 3 + axis] = np.cross(e, r) / (r**2).sum()
+    K = operators.condensed()
+    out = np.zeros_like(F)
+    out[free] = scipy.sparse.linalg.splu(K[free][:, free].tocsc()).solve(F[free])
+    return out
+
+
+def region_bases(operators, U, P, recipe: RegionRecipe,
+                 extra=None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(Phi, Psi): ``state_modes`` of the states, the ``extra`` displacement modes kept
+    whole (a holder's responses) and the supremizers of ``pressure_modes`` of the
+    pressures (with the extra modes' condensed pressures), orthonormalised; the pressure
+    modes."""
     free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
     if U.shape[1] < recipe.state_modes or P.shape[1] < recipe.pressure_modes:
         raise InputError(f"{U.shape[1]} states for {recipe.state_modes} state and "
                          f"{recipe.pressure_modes} pressure modes")  # fmt: skip
+    parts = [pod(U)[:, : recipe.state_modes]]
+    if extra is not None:
+        parts.append(extra)
+        P = np.hstack([P, operators.Bt.T @ extra / operators.compliance[:, None]])
     Psi = pod(P)[:, : recipe.pressure_modes]
-    parts = [pod(U)[:, : recipe.state_modes], supremizers(operators, Psi, free)]
+    parts.append(supremizers(operators, Psi, free))
     return np.linalg.qr(np.hstack(parts))[0], Psi
 
 
@@ -184,31 +242,35 @@ def region_model(mesh, rest, Phi, Psi, U, P, tolerance) -> HyperReducedModel:
 
 
 def build_regions(config, mesh, rest, surface, loads, sites, recipe: RegionRecipe):
-    """The :class:`PhysicsRegion` of each of ``sites``: a centre (3,) mm, or a pair of sites
-    (2, 3) for two tools (its solves pairs, ``region_snapshots``; its centre their midpoint,
-    its radius ``recipe.radius`` beyond each site), logged as it goes."""
+    """The :class:`PhysicsRegion` of each of ``sites`` (:class:`RegionSite`; solves as
+    ``region_snapshots``; a held site's basis also carries its holder's responses,
+    ``holder_responses``; a two-point site's centre is their midpoint, its radius
+    ``recipe.radius`` beyond each), logged as it goes."""
     solves = RegionSolves(config, recipe.distances, recipe.per_distance)
     operators = rest_operators(mesh, rest)
     regions: list[PhysicsRegion] = []
     for k, site in enumerate(sites):
         t0 = time.perf_counter()
-        site = np.asarray(site, dtype=float).reshape(-1, 3)
-        second = site[1] if len(site) == 2 else None
-        U, P = region_snapshots(solves, site[0], second, recipe.second_force)
-        Phi, Psi = region_bases(operators, U, P, recipe)
+        U, P = region_snapshots(solves, site, recipe.second_force)
+        extra = None
+        if site.kind == "held":
+            free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
+            extra = holder_responses(operators, surface, site.points[1],
+                                     config.load.contact_radius, free)  # fmt: skip
+        Phi, Psi = region_bases(operators, U, P, recipe, extra)
         model = region_model(mesh, rest, Phi, Psi, U, P, recipe.tolerance)
-        centre = site.mean(axis=0)  # a pair's midpoint: its tools within radius of a site
-        radius = recipe.radius + float(np.linalg.norm(site[-1] - site[0])) / 2
+        centre = site.points.mean(axis=0)  # two points' midpoint: tools within radius of each
+        radius = recipe.radius + float(np.linalg.norm(site.points[-1] - site.points[0])) / 2
         regions.append(region_arrays(mesh, model, Phi, surface, centre, radius, loads))
-        log.info("region %d of %d at %s mm: %d states, %d + %d modes, %d of %d elements "
-                 "(%.0f s)", k + 1, len(sites), np.round(site, 3).tolist(), U.shape[1],
-                 Phi.shape[1], Psi.shape[1], model.sampled_elements, len(mesh.X),
+        log.info("region %d of %d (%s) at %s mm: %d states, %d + %d modes, %d of %d elements "
+                 "(%.0f s)", k + 1, len(sites), site.kind, np.round(site.points, 3).tolist(),
+                 U.shape[1], Phi.shape[1], Psi.shape[1], model.sampled_elements, len(mesh.X),
                  time.perf_counter() - t0)  # fmt: skip
     return regions
 
 
 def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -> list:
-    """The regions of ``sites`` (each a centre, or a pair of tool sites: ``build_regions``)
+    """The regions of ``sites`` (:class:`RegionSite` each: ``build_regions``)
     built from the solved campaign in ``store`` (a SnapshotStore) and written with
     ``model_path``'s artifact (which must have been reduced from it) to ``out``. The
     campaign must be force-controlled: its tool's load is what the regions' tools press
@@ -236,7 +298,7 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
                          f"{recipe.state_modes} state or {recipe.pressure_modes} pressure "
                          "modes: more solves, or fewer modes")  # fmt: skip
     for site in sites:  # before any solve: each site has loadable surface within the radius
-        for point in np.asarray(site, dtype=float).reshape(-1, 3):
+        for point in site.points:
             region_vertices(artifact["surface"], point, recipe.radius)
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)

@@ -508,13 +508,13 @@ def centre_point(text: str) -> tuple[float, float, float]:
 
 
 def pair_points(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """``--pair X1,Y1,Z1,X2,Y2,Z2``: two sites (mm)."""
+    """``--pair`` or ``--held X1,Y1,Z1,X2,Y2,Z2``: two sites (mm)."""
     parts = text.split(",")
     if len(parts) != 6:
         raise argparse.ArgumentTypeError(f"expected X1,Y1,Z1,X2,Y2,Z2 in mm, got {text!r}")
     first, second = centre_point(",".join(parts[:3])), centre_point(",".join(parts[3:]))
     if first == second:
-        raise argparse.ArgumentTypeError(f"a pair's two sites must differ, got {text!r}")
+        raise argparse.ArgumentTypeError(f"the two sites must differ, got {text!r}")
     return first, second
 
 
@@ -544,11 +544,20 @@ def cmd_physics(args, petsc) -> int:
     out = made_parent(check_out_file(args.out, f"physics --out {args.out}", make_parents=True))
     if out.resolve() == Path(args.model).resolve():
         raise HapticromError(f"physics --out {args.out} is the model itself: write a new file")
-    from hapticrom.offline.reduce.ecsw_regions import RegionRecipe, physics_from_campaign
+    import numpy as np
 
-    sites = (args.at or []) + (args.pair or [])
+    from hapticrom.offline.reduce.ecsw_regions import (
+        RegionRecipe,
+        RegionSite,
+        physics_from_campaign,
+    )
+
+    sites = [RegionSite(kind, np.array(points, dtype=float).reshape(-1, 3))
+             for kind in ("at", "pair", "held")
+             for points in getattr(args, kind) or []]  # fmt: skip
     if not sites:
-        raise HapticromError("physics: give a region with --at=X,Y,Z or --pair=X1,Y1,Z1,X2,Y2,Z2")
+        raise HapticromError("physics: give a region with --at=X,Y,Z, --pair=X1,Y1,Z1,X2,Y2,Z2 "
+                             "or --held=X1,Y1,Z1,X2,Y2,Z2")  # fmt: skip
     recipe = RegionRecipe(distances=args.solves, per_distance=args.solves_per_distance,
                           state_modes=args.state_modes, pressure_modes=args.pressure_modes,
                           tolerance=args.tolerance, radius=args.radius,
@@ -563,7 +572,8 @@ def add_physics(sub) -> None:
     """``hapticrom physics MODEL CAMPAIGN_DIR --at X,Y,Z --out FILE``."""
     p = new_command(sub, "physics", cmd_physics, HELP["physics"], description=(
         "Build regions of hyper-reduced physics (issue 18: the reduced mixed model solved "
-        "online on the few elements ECSW samples: one press or two tools at once) "
+        "online on the few elements ECSW samples: one press, two tools at once, or a press "
+        "beside a holder) "
         "about points of a model's trained surface, and write them with the model to a "
         "new file (artifact group hyperreduced). Each region takes full-order solves of "
         "the campaign's load path about its centre (on the demo cornea 2 minutes a "
@@ -586,6 +596,15 @@ def add_physics(sub) -> None:
         metavar="X1,Y1,Z1,X2,Y2,Z2",
         help="a region for two tools at these sites (mm), its solves pairs of "
         "presses about them; after the --at regions",
+    )
+    p.add_argument(
+        "--held",
+        type=pair_points,
+        action="append",
+        metavar="X1,Y1,Z1,X2,Y2,Z2",
+        help="a region where a tool presses about the first site while a holder grips "
+        "the second (physics(region, holders=[second])), its solves presses each beside a "
+        "holder about the second, its basis the holder's responses; after the --pair regions",
     )
     number_option(
         p,
