@@ -116,6 +116,8 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
         (["--at", "0,0,40"], "no loadable surface vertex"),
         (["--at=-40,0,0"], "no loadable surface vertex"),  # a negative first coordinate
         (["--at", "0,0,0", "--state-modes", "40"], "give 24 states"),
+        (["--held=0,0,0,0,0,0"], "the two sites must differ"),
+        (["--held=0,0,0,0,0,40"], "no loadable surface vertex"),
     ],
 )
 def test_bad_input_gives_one_clear_line(force_campaign, force_artifact, tmp_path, extra, message):
