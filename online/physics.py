@@ -220,7 +220,8 @@ class HyperReducedPhysics:
         region = self.region = _index("region", region, len(h["centres"]))
         _count("iterations", iterations, MAX_ITERATIONS)
         _count("slices", slices, None)
-        self.centre, self.radius = h["centres"][region], float(h["radii"][region])
+        self.centre = np.ascontiguousarray(h["centres"][region], np.float64)  # the kernel's
+        self.radius = float(h["radii"][region])
         self.contact_radius = float(model.artifact.group_attrs["model"]["contact_radius"])
         self.vertices = np.ascontiguousarray(model.artifact["surface"]["vertices"], np.float64)
         first, last = (int(v) for v in h["element_offsets"][region : region + 2])
@@ -237,7 +238,9 @@ class HyperReducedPhysics:
         self.loadable = np.unique(surface["triangles"][surface["groups"] == 1])
         if isinstance(holders, str) or not hasattr(holders, "__iter__"):
             raise InputError(f"holders must be a list of points (mm), got {holders!r}")
-        self.holders = [self._holder(p) for p in holders]
+        patches = [self._holder_patch(p) for p in holders]
+        self.holders = [holder_rows(self.surface_basis, self.vertices, q) for q in patches]
+        self.holder_vertices = [len(q) for q in patches]  # under 3: each vertex held
         for A in self.holders:
             linear[:n, :n] += self.hold_stiffness * (A.T @ A)
         # slices: at most one element a part (a small region has fewer elements than 20)
@@ -270,11 +273,10 @@ class HyperReducedPhysics:
                 f"{GROUP}/constant_tangent: region {self.region}'s tangent at rest is singular"
             ) from None
 
-    def _holder(self, point) -> np.ndarray:
+    def _holder_patch(self, point) -> np.ndarray:
         point = _vector("a holder's point", point)
         self._check_within("a holder", point)
-        patch = holder_patch(self.vertices, self.loadable, point, self.contact_radius)
-        return holder_rows(self.surface_basis, self.vertices, patch)
+        return holder_patch(self.vertices, self.loadable, point, self.contact_radius)
 
     def _loads_of(self, model, h, region) -> None:
         """The region's load vertices, their unit loads, and its triangles: the loadable
@@ -293,11 +295,14 @@ class HyperReducedPhysics:
         self.load_points = np.ascontiguousarray(self.vertices[vertices])
 
     def _check_within(self, what: str, point) -> None:
-        if np.linalg.norm(point - self.centre) > self.radius:
-            raise InputError(
-                f"{what} at {np.round(point, 4).tolist()} mm is outside the region "
-                f"({self.radius} mm about {np.round(self.centre, 4).tolist()})"
-            )
+        d = point - self.centre  # squared, as the kernel's test: one boundary for both
+        if d @ d > self.radius * self.radius:
+            raise self._outside(what, point)
+
+    def _outside(self, what: str, point) -> InputError:
+        centre = np.round(self.centre, 4).tolist()
+        return InputError(f"{what} at {np.round(point, 4).tolist()} mm is outside the region "
+                          f"({self.radius} mm about {centre})")  # fmt: skip
 
     def tool_load(self, point, force) -> np.ndarray:
         """(n,) the reduced load of ``force`` (N) of a tool at the surface ``point`` (mm):
@@ -334,19 +339,22 @@ class HyperReducedPhysics:
                             self.load_points, self.triangles, self.tool_loads, self._weights,
                             out)  # fmt: skip
         if status != LOADED:
-            self._refuse_tool(status, point, force)
+            self._refuse_tool(status, p, f)
 
-    def _refuse_tool(self, status: int, point, force) -> None:
-        """Raise the error of a tool that ``_tool_load`` refused."""
+    def _refuse_tool(self, status: int, p: np.ndarray, f: np.ndarray) -> None:
+        """Raise the error of a tool whose point ``p`` and force ``f`` (the float64 arrays
+        the kernel read) ``_tool_load`` refused."""
         if status == POINT_REFUSED:
-            _vector("a tool's point", point)
+            _vector("a tool's point", p)
         if status == FORCE_REFUSED:
-            _vector("a tool's force (N)", force, MAX_FORCE)
-        point = np.asarray(point, np.float64)
+            _vector("a tool's force (N)", f, MAX_FORCE)
+        if status in (POINT_REFUSED, FORCE_REFUSED):  # _vector passed what the kernel did not
+            raise InputError(f"a tool's point {p!r} or force {f!r} is not 3 finite numbers "
+                             "within bounds")  # fmt: skip
         if status == OUTSIDE_REGION:
-            self._check_within("a tool", point)
-        gap = np.sqrt(_nearest_triangle(point, self.load_points, self.triangles, np.zeros(3))[1])
-        raise InputError(f"a tool at {np.round(point, 4).tolist()} mm is {gap:.3g} mm off "
+            raise self._outside("a tool", p)
+        gap = np.sqrt(_nearest_triangle(p, self.load_points, self.triangles, np.zeros(3))[1])
+        raise InputError(f"a tool at {np.round(p, 4).tolist()} mm is {gap:.3g} mm off "
                          "the region's loadable surface")  # fmt: skip
 
     def release(self, tool: int) -> None:
@@ -399,9 +407,10 @@ class HyperReducedPhysics:
 
     def holder_force(self, holder: int) -> np.ndarray:
         """(3,) N: the force holder ``holder`` exerts on the tissue (its penalty's, minus
-        the stiffness times the patch's mean displacement)."""
+        the stiffness times the patch's mean displacement; on a patch of one or two
+        vertices, the sum of each vertex's)."""
         holder = _index("holder", holder, len(self.holders))
         A = self.holders[holder]
-        if len(A) != 6:  # a vertex or two, each held: the sum of their reactions
+        if self.holder_vertices[holder] < 3:  # each vertex held: the sum of their reactions
             return -self.hold_stiffness * (A @ self.q).reshape(-1, 3).sum(axis=0)
-        return -self.hold_stiffness * (A[:3] @ self.q)
+        return -self.hold_stiffness * (A[:3] @ self.q)  # the mean's (the rotation's sum to 0)

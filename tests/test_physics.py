@@ -169,6 +169,36 @@ def test_a_holders_rows_are_its_patchs_translation_and_rotation():
     assert np.array_equal(two, basis[[1, 3]].reshape(-1, 2))
 
 
+def test_a_holder_on_two_vertices_holds_each_and_sums_their_reactions(trained):
+    """A grip between two loadable vertices (both within the tool's radius, as the full
+    order's holder would hold both): each vertex held, its force the penalty's on their
+    displacements summed, read from the drawn surface."""
+    config, (data, point), _, _, paths, _, _ = trained
+    model = load(paths["galerkin"], isolate=False)
+    surface = model.artifact["surface"]
+    vertices, radius = surface["vertices"], config.load.contact_radius
+    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    edges = [(a, b) for t in surface["triangles"][surface["groups"] == 1]
+             for a, b in ((t[0], t[1]), (t[1], t[2]), (t[2], t[0]))]  # fmt: skip
+    grip = None
+    for a, b in edges:
+        middle = 0.5 * (vertices[a] + vertices[b])
+        near = np.linalg.norm(vertices[loadable] - middle, axis=1) <= radius
+        if near.sum() == 2 and 1.0 < np.linalg.norm(middle - point) < 2.0:
+            grip = middle
+            break
+    assert grip is not None
+    force = data["load_vector"].reshape(-1, 3).sum(axis=0)
+    held = pressed(model.physics(holders=[grip], slices=1), point, force, data["load_factor"])
+    assert held.holder_vertices == [2] and held.holders[0].shape[0] == 6
+    u = np.zeros_like(held.vertices)
+    held.surface_displacement(u)
+    patch = loadable[np.linalg.norm(vertices[loadable] - grip, axis=1) <= radius]
+    expected = -held.hold_stiffness * u[patch].sum(axis=0)
+    assert np.allclose(held.holder_force(0), expected, rtol=1e-10, atol=0)
+    assert np.dot(held.holder_force(0), force) < 0  # it pulls back against the press
+
+
 def test_refused_input_changes_nothing(trained, force_artifact):
     config, (data, point), _, _, paths, _, _ = trained
     model = load(paths["galerkin"], isolate=False)

@@ -35,7 +35,7 @@ from hapticrom.offline.reduce.ecsw_model import (
     training_matrix,
 )
 from hapticrom.offline.reduce.ecsw_physics import PhysicsRegion, region_arrays, region_vertices
-from hapticrom.online.physics import holder_patch
+from hapticrom.online.physics import holder_patch, holder_rows
 from hapticrom.shared.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -297,9 +297,15 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
                          f"{config.load.steps} steps give {states} states, fewer than "
                          f"{recipe.state_modes} state or {recipe.pressure_modes} pressure "
                          "modes: more solves, or fewer modes")  # fmt: skip
+    surface = artifact["surface"]
     for site in sites:  # before any solve: each site has loadable surface within the radius
         for point in site.points:
-            region_vertices(artifact["surface"], point, recipe.radius)
+            region_vertices(surface, point, recipe.radius)
+        if site.kind == "held":  # and a holder's site a patch the runtime can hold
+            loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+            patch = holder_patch(surface["vertices"], loadable, site.points[1],
+                                 config.load.contact_radius)  # fmt: skip
+            holder_rows(np.zeros((surface["vertices"].size, 1)), surface["vertices"], patch)
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)
     regions = build_regions(config, mesh, rest, artifact["surface"], ToolLoads(config),
