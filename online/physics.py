@@ -8,6 +8,7 @@ pressing tools and holders (issue 18).
     physics.step()                      # one physics step (a modified Newton iteration)
     physics.surface_displacement(out)   # (V, 3) mm, to draw
     physics.holder_force(0)             # (3,) N: what the holder holds the tissue with
+    physics.move_holder(0, lift)        # the holder's grip moved by lift (3,) mm
 
 A pressing tool's load is the campaign's force tool's (its dead load spread over a disk of
 ``contact_radius``), stored per unit force at the region's loadable vertices and blended
@@ -247,8 +248,11 @@ class HyperReducedPhysics:
         self.newton = self._newton(sample, linear, iterations, min(slices, last - first))
         self._loads_of(model, h, region)
         self.q, self.pi = np.zeros(n), np.zeros(linear.shape[0] - n)
-        self.load = np.zeros(n)  # the pressing tools' reduced loads, summed
+        self.load = np.zeros(n)  # the pressing tools' and moved holders' reduced loads, summed
         self.pressing: dict[int, np.ndarray] = {}  # tool id -> its reduced load (n,)
+        # a moved holder: its target rows (the held rows' values) and its load k A^T t
+        self.holder_targets = [np.zeros(len(A)) for A in self.holders]
+        self.holder_loads = np.zeros((len(self.holders), n))
         self._weights = np.zeros(3)  # the blend of the last tool's triangle corners
         self._point, self._force = np.zeros(3), np.zeros(3)  # press's slower path: copies
         self.refreshes = 0  # steps the divergence guard took again on a fresh tangent
@@ -368,6 +372,24 @@ class HyperReducedPhysics:
         self.load.fill(0.0)
         for load in self.pressing.values():
             self.load += load
+        for load in self.holder_loads:
+            self.load += load
+
+    def move_holder(self, holder: int, displacement) -> None:
+        """Holder ``holder`` moves its grip by ``displacement`` (3,) mm from where it
+        gripped (grasp-and-lift; zero: held in place), without turning it, from the next
+        step on: the penalty's rest point moves, a load k A^T t (t the held rows' target:
+        the patch's mean at ``displacement`` and no rotation, or each vertex there)."""
+        holder = _index("holder", holder, len(self.holders))
+        d = _vector("a holder's displacement (mm)", displacement, MAX_LENGTH, self._point)
+        t = self.holder_targets[holder]
+        if self.holder_vertices[holder] < 3:
+            t.reshape(-1, 3)[:] = d
+        else:
+            t[:3], t[3:] = d, 0.0
+        np.dot(self.holders[holder].T, t, out=self.holder_loads[holder])
+        self.holder_loads[holder] *= self.hold_stiffness
+        self._sum_loads()
 
     def step(self) -> bool:
         """One physics step under the tools' loads; False if refused (nothing changed).
@@ -410,7 +432,7 @@ class HyperReducedPhysics:
         the stiffness times the patch's mean displacement; on a patch of one or two
         vertices, the sum of each vertex's)."""
         holder = _index("holder", holder, len(self.holders))
-        A = self.holders[holder]
+        gap = self.holders[holder] @ self.q - self.holder_targets[holder]
         if self.holder_vertices[holder] < 3:  # each vertex held: the sum of their reactions
-            return -self.hold_stiffness * (A @ self.q).reshape(-1, 3).sum(axis=0)
-        return -self.hold_stiffness * (A[:3] @ self.q)  # the mean's (the rotation's sum to 0)
+            return -self.hold_stiffness * gap.reshape(-1, 3).sum(axis=0)
+        return -self.hold_stiffness * gap[:3]  # the mean's (the rotation's sum to zero)

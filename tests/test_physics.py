@@ -199,6 +199,52 @@ def test_a_holder_on_two_vertices_holds_each_and_sums_their_reactions(trained):
     assert np.dot(held.holder_force(0), force) < 0  # it pulls back against the press
 
 
+def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
+    """Grasp-and-lift: a holder moved 0.05 mm out of the surface, nothing pressing. The
+    runtime settles on the trainer's model with the penalty about the moved grip (its load
+    k A^T t, 1e-8), the patch follows the grip (to 1e-3 of the lift), and the holder pulls
+    the tissue along the lift; a refused move changes nothing."""
+    config, (data, point), Phi, models, paths, _, _ = trained
+    model = load(paths["galerkin"], isolate=False)
+    vertices = model.artifact["surface"]["vertices"]
+    k = np.argmin(np.abs(np.linalg.norm(vertices - point, axis=1) - 1.5))
+    grip = vertices[k]
+    lift = 0.05 * (grip - vertices.mean(axis=0)) / np.linalg.norm(grip - vertices.mean(axis=0))
+    physics = model.physics(holders=[grip], slices=1)
+    for factor in np.linspace(0.0, 1.0, 41)[1:]:
+        physics.move_holder(0, factor * lift)
+        assert physics.step()
+    for _ in range(60):
+        assert physics.step()
+    load_before = physics.load.copy()
+    for bad in ([np.nan, 0, 0], [0, 0], "up"):
+        with pytest.raises(InputError, match="displacement"):
+            physics.move_holder(0, bad)
+    with pytest.raises(InputError, match="holder must be"):
+        physics.move_holder(1, lift)
+    assert np.array_equal(physics.load, load_before)
+    A, t = physics.holders[0], physics.holder_targets[0]
+    trainers, n = models["galerkin"], Phi.shape[1]
+    constant = trainers.linear.copy()
+    try:
+        trainers.linear[:n, :n] += physics.hold_stiffness * (A.T @ A)
+        pull = physics.hold_stiffness * (A.T @ t)
+        expected = trainers.solve(pull, np.linspace(0.1, 1.0, 10), tolerance=1e-10)[0][-1]
+    finally:
+        trainers.linear[:] = constant
+    assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
+    u = np.zeros_like(vertices)
+    physics.surface_displacement(u)
+    assert physics.holder_vertices[0] < 3  # the coarse mesh: each vertex held
+    surface = model.artifact["surface"]
+    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    patch = loadable[
+        np.linalg.norm(vertices[loadable] - grip, axis=1) <= config.load.contact_radius
+    ]
+    assert np.abs(u[patch] - lift).max() <= 1e-3 * np.linalg.norm(lift)
+    assert np.dot(physics.holder_force(0), lift) > 0
+
+
 def test_refused_input_changes_nothing(trained, force_artifact):
     config, (data, point), _, _, paths, _, _ = trained
     model = load(paths["galerkin"], isolate=False)
