@@ -11,7 +11,11 @@ away pressing with ``--second-force`` of the campaign's force, each region a ``-
 region of the two sites, the reference a full-order solve under both (solved here).
 ``--held MM``: the position's tool presses while a holder MM away grips (``--held``
 regions, ``physics(region, holders=[...])``), the reference the full order with the
-holder's patch held in place (solved here).
+holder's patch held in place (solved here). ``--lift MM`` (with ``--held``): the
+regions' solves also lift (``hapticrom physics --lift``), and the steps grasp-and-lift
+instead, nothing pressing, the holder moved MM out of the surface along its normal
+(``physics.move_holder``), against the full order with that patch so moved (solved here):
+the field, and the holder's force against the full order's tool force.
 
 Per region: the sampled elements, the modes, the depth error (the tool's load-weighted
 mean displacement along its force, as the campaign's) and the surface field's relative L2
@@ -45,9 +49,12 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--pair", type=float, default=0.0, help="mm: a second tool this far")
     parser.add_argument("--second-force", type=float, default=0.5)
     parser.add_argument("--held", type=float, default=0.0, help="mm: a holder this far")
+    parser.add_argument("--lift", type=float, default=0.0, help="mm: --held's holder lifts")
     args, extra = parser.parse_known_args()
     if args.pair and args.held:
         parser.error("--pair or --held, not both")
+    if args.lift and not (args.held and 0 < args.lift <= 1):
+        parser.error("--lift needs --held, and at most 1 mm")
     try:
         args.positions = [int(v) for v in args.positions.split(",")]
     except ValueError:
@@ -115,6 +122,51 @@ def held_case(store, point, args) -> tuple:
     return [press], data, data["load_vector"], np.asarray(holder)
 
 
+def lifted(store, model, region, i, holder, args) -> dict:
+    """Grasp-and-lift at ``region``: the holder at ``holder`` (mm) moved ``--lift`` mm out
+    along the surface's normal there over ``--frames`` steps, then held as long, against
+    the full order so lifted (its tool under displacement control, its patch moved)."""
+    from dataclasses import replace
+
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.offline.reduce.inputs import campaign_config
+
+    config = campaign_config(store, store.manifest(), None)
+    solves = RegionSolves(config, (), 1)
+    node = solves.nearest(holder)
+    load = replace(config.load, mode="displacement", magnitude=-args.lift)  # out of the surface
+    data = solves.solve(node, config=replace(config, load=load))
+    vector = load.magnitude * load.unit_direction(solves.position(node))
+    factors = data["load_factor"]
+    physics = model.physics(region=region, holders=[holder])
+    times = []
+    for factor in (
+        list(np.linspace(0.0, factors[-1], args.frames + 1)[1:]) + [factors[-1]] * args.frames
+    ):
+        physics.move_holder(0, factor * vector)
+        t0 = time.perf_counter_ns()
+        if not physics.step():
+            raise SystemExit("a physics step was refused")
+        times.append(time.perf_counter_ns() - t0)
+    ms = np.array(times[1:]) / 1e6
+    u = np.zeros_like(physics.vertices)
+    physics.surface_displacement(u)
+    full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+    pull, reaction = physics.holder_force(0), np.asarray(data["force"][-1])  # on the tissue
+    row = {"position": i, "lift_mm": args.lift, "elements": len(physics.newton.sample[0]),
+           "field_error": float(np.linalg.norm(u - full) / np.linalg.norm(full)),
+           "force_error": float(np.linalg.norm(pull - reaction) / np.linalg.norm(reaction)),
+           "holder_force": pull.tolist(), "full_force": reaction.tolist(),
+           "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
+           "max_ms": float(ms.max()), "refreshes": physics.refreshes}  # fmt: skip
+    print(f"position {i:3d}, lifted {args.lift} mm: field {100 * row['field_error']:.2f} %, "
+          f"holder force {np.round(pull, 5).tolist()} N against the full order's "
+          f"{np.round(reaction, 5).tolist()} ({100 * row['force_error']:.2f} %), step "
+          f"p50/p99/max {row['p50_ms']:.2f}/{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms, "
+          f"{physics.refreshes} fresh tangents", flush=True)  # fmt: skip
+    return row
+
+
 def main() -> None:
     args, options = parse_arguments()
     store = SnapshotStore(args.campaign)
@@ -132,12 +184,18 @@ def main() -> None:
         if args.held:
             at = ["--held=" + ",".join(f"{v:.9g}" for v in (*p, *case[3]))
                   for p, case in zip(points, cases, strict=True)]  # fmt: skip
+            options = ["--lift", str(args.lift), *options] if args.lift else options
         t = time.perf_counter()
         if hapticrom(["physics", args.model, args.campaign, *at, "--out", args.out, *options]):
             raise SystemExit("hapticrom physics failed")
         print(f"hapticrom physics: {time.perf_counter() - t:.0f} s", flush=True)
     model = load(args.out, isolate=False)
     nodes = model.artifact["surface"]["nodes"]
+    if args.lift:
+        pairs = enumerate(zip(args.positions, cases, strict=True))
+        rows = [lifted(store, model, region, i, case[3], args) for region, (i, case) in pairs]
+        Path(args.out).with_suffix(".lift.json").write_text(json.dumps(rows, indent=1))
+        return
     rows = []
     for region, (i, point, case) in enumerate(zip(args.positions, points, cases, strict=True)):
         data = store.read_position(i)[0] if case is None else case[1]

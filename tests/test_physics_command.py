@@ -74,7 +74,9 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
     about the second site, its basis carries the holder's responses; with the holder at
     one of those solves' holder nodes and pressed as that solve, it reproduces the full
     order (whose held patch does not move at all; the runtime holds its rigid motion),
-    and the patch stays in place."""
+    and the patch stays in place. With ``--lift``, grasp-and-lift: the same holder moved
+    out of the surface (``move_holder``) reproduces the full order's lift solve, field and
+    the holder's force."""
     import hapticrom.offline  # noqa: F401 - h5py and MPI first
     from hapticrom.offline.reduce.ecsw_regions import RegionSolves
     from hapticrom.online.model import load
@@ -84,7 +86,7 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
     out = tmp_path / "held.h5"
     proc = run_cli("physics", force_artifact, force_campaign[1].root, "--out", out,
                    "--held=" + ",".join(str(v) for v in sites.ravel()), *OPTIONS,
-                   "--solves-per-distance", "3")  # fmt: skip
+                   "--solves-per-distance", "3", "--lift", "0.05")  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     model = load(out, isolate=False)
     solves = RegionSolves(config, (0.95,), 3)
@@ -103,6 +105,24 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
     u_loose, _ = pressed_surface(loose, [tool], data, model)
     loose_error = np.linalg.norm(u_loose - full) / np.linalg.norm(full)
     assert error <= 2e-2 and error <= 0.25 * loose_error  # 1.37 % and 15.9 % when written
+    # grasp-and-lift: the same holder lifted 0.05 mm out of the surface, nothing pressing
+    from dataclasses import replace
+
+    lifting = replace(solves.held, load=replace(solves.held.load, magnitude=-0.05))
+    data = solves.solve(holder, config=lifting)
+    lifted = model.physics(slices=1, holders=[grip])
+    vector = -0.05 * config.load.unit_direction(solves.position(holder))
+    for factor in np.linspace(0.0, data["load_factor"][-1], 41)[1:]:
+        lifted.move_holder(0, factor * vector)
+        assert lifted.step()
+    for _ in range(40):
+        assert lifted.step()
+    u = np.zeros_like(lifted.vertices)
+    lifted.surface_displacement(u)
+    full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+    pull, reaction = lifted.holder_force(0), data["force"][-1]  # each on the tissue, N
+    assert np.linalg.norm(u - full) <= 1e-2 * np.linalg.norm(full)  # 0.32 % when written
+    assert np.linalg.norm(pull - reaction) <= 3e-2 * np.linalg.norm(reaction)  # 1.7 %
 
 
 @pytest.mark.parametrize(
@@ -117,6 +137,7 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
         (["--at=-40,0,0"], "no loadable surface vertex"),  # a negative first coordinate
         (["--at", "0,0,0", "--state-modes", "40"], "give 24 states"),
         (["--held=0,0,0,0,0,0"], "the two sites must differ"),
+        (["--at", "0,0,0", "--lift", "0.1"], "give --held"),
         (["--held=0,0,0,0,0,40"], "no loadable surface vertex"),
     ],
 )

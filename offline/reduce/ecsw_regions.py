@@ -56,6 +56,7 @@ class RegionRecipe:
     tolerance: float = 0.004
     radius: float = 1.0
     second_force: float = 0.5  # a pair region's second tool, of the campaign's force
+    lift: float = 0.0  # mm: a held region's holders also lift this far, alone (grasp-and-lift)
 
     def __post_init__(self):
         if not self.distances or min(self.distances) <= 0:
@@ -64,6 +65,8 @@ class RegionRecipe:
         if min(counts) < 1:
             raise InputError("a region needs at least one solve a distance, state mode and "
                              "pressure mode")  # fmt: skip
+        if not 0 <= self.lift <= 10:
+            raise InputError(f"a holder's lift must lie in [0, 10] mm, got {self.lift}")
         if not (0 < self.tolerance < 1 and self.radius > 0 and 0 < self.second_force <= 10):
             raise InputError(
                 "ECSW's tolerance must lie in (0, 1), the radius be positive and "
@@ -167,14 +170,16 @@ class RegionSite:
                              f"{self.kind!r} with shape {np.shape(self.points)}")  # fmt: skip
 
 
-def region_snapshots(solves: RegionSolves, site: RegionSite,
-                     second_force: float = 0.5) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float = 0.5,
+                     lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """(states (N, k), pressures (cells, k)) of the solves about the site's first point;
     for a pair, of pairs: the k-th node about the first pressed with the campaign's force
     while the k-th about the second presses with ``second_force`` of it (never both on one
     node; README stop 39: single presses about each site left the two dents' interaction
     out, 3.4 % against 1.1-1.5 % with pairs); held, the k-th about the first pressed while
-    a holder keeps its patch at the k-th about the second in place (``solves.held``)."""
+    a holder keeps its patch at the k-th about the second in place (``solves.held``), and
+    with a ``lift`` (mm) each of those holders also lifts its patch that far out of the
+    surface along its normal, nothing pressing (grasp-and-lift's states)."""
     first = solves.nodes(site.points[0])
     if site.kind == "at":
         solved = [solves.solve(node) for node in first]
@@ -183,8 +188,13 @@ def region_snapshots(solves: RegionSolves, site: RegionSite,
         if site.kind == "pair":
             solved = [solves.solve(a, tools=[solves.tool(b, second_force)]) for a, b in pairs]
         else:
+            pairs = list(pairs)
             solved = [solves.solve(b, tools=[solves.tool(a, 1.0)], config=solves.held)
                       for a, b in pairs]  # fmt: skip
+            if lift:
+                load = replace(solves.held.load, magnitude=-lift)  # against the inward normal
+                lifting = replace(solves.held, load=load)
+                solved += [solves.solve(b, config=lifting) for _, b in pairs]
     return (np.vstack([d["displacement"] for d in solved]).T,
             np.vstack([d["pressure"] for d in solved]).T)  # fmt: skip
 
@@ -251,7 +261,7 @@ def build_regions(config, mesh, rest, surface, loads, sites, recipe: RegionRecip
     regions: list[PhysicsRegion] = []
     for k, site in enumerate(sites):
         t0 = time.perf_counter()
-        U, P = region_snapshots(solves, site, recipe.second_force)
+        U, P = region_snapshots(solves, site, recipe.second_force, recipe.lift)
         extra = None
         if site.kind == "held":
             free = np.flatnonzero(np.abs(U).max(axis=1) > 0)

@@ -561,7 +561,9 @@ def cmd_physics(args, petsc) -> int:
     recipe = RegionRecipe(distances=args.solves, per_distance=args.solves_per_distance,
                           state_modes=args.state_modes, pressure_modes=args.pressure_modes,
                           tolerance=args.tolerance, radius=args.radius,
-                          second_force=args.second_force)  # fmt: skip
+                          second_force=args.second_force, lift=args.lift)  # fmt: skip
+    if args.lift and not args.held:
+        raise HapticromError("physics --lift lifts the holders of --held regions: give --held")
     petsc.start()
     regions = physics_from_campaign(args.model, store, sites, recipe, out)
     log.info(f"wrote {out}: {len(regions)} region(s) of hyper-reduced physics")
@@ -613,6 +615,16 @@ def add_physics(sub) -> None:
         0.5,
         "F",
         "a --pair region's second tool in its solves, of the campaign's force (default 0.5)",
+    )
+    number_option(
+        p,
+        "--lift",
+        float_in(0.0, 10.0, "mm"),
+        0.0,
+        "MM",
+        "--held regions: their solves also lift each holder this far against the "
+        "campaign's direction (out of the surface), nothing pressing: grasp-and-lift "
+        "(default 0: none)",
     )
     p.add_argument("--out", required=True, metavar="FILE", help="the model with its physics")
     number_option(
