@@ -381,7 +381,14 @@ class HyperReducedPhysics:
         step on: the penalty's rest point moves, a load k A^T t (t the held rows' target:
         the patch's mean at ``displacement`` and no rotation, or each vertex there)."""
         holder = _index("holder", holder, len(self.holders))
-        d = _vector("a holder's displacement (mm)", displacement, MAX_LENGTH, self._point)
+        d = displacement  # a 1-D float64 array within bounds is read as is (no copy)
+        if (
+            type(d) is not _NDARRAY
+            or d.dtype is not _F8
+            or d.ndim != 1
+            or not _bounded(d, MAX_LENGTH)
+        ):
+            d = _vector("a holder's displacement (mm)", d, MAX_LENGTH, self._point)
         t = self.holder_targets[holder]
         if self.holder_vertices[holder] < 3:
             t.reshape(-1, 3)[:] = d
