@@ -51,6 +51,40 @@ def test_distributed_solve_equals_serial_solve(mesh_dir, case):
             "load": {**load, "steps": 3},
         }
     )
+    assert_distributed_equals_serial(config)
+
+
+# Further tools (issue 18's references): a second force tool beside the first, and a
+# force tool pressing beside one that holds its patch in place (grasping forceps)
+FURTHER = {
+    "two-forces": ({"mode": "force", "force": [0.0, 0.0, -0.01]}, (0.0, 0.0, -0.006)),
+    "held-and-pressed": (
+        {"mode": "displacement", "displacement": [0.0, 0.0, 0.0]},
+        (0.0, 0.0, -0.01),
+    ),  # fmt: skip
+}
+
+
+@pytest.mark.parametrize("case", list(FURTHER))
+def test_further_tools_distributed_equal_serial(mesh_dir, case):
+    from dataclasses import replace
+
+    if MPI.COMM_WORLD.size < 2:
+        pytest.skip("run under mpirun -n 2")
+    first, force = FURTHER[case]
+    config = ProblemConfig.from_dict({
+        "mesh": {"file": str(mesh_dir / "cornea-coarse.msh")},
+        "material": {"law": "hgo"},
+        "load": {**first, "contact_point": [0.0, 0.0, 0.0], "contact_radius": 0.8, "steps": 3},
+    })  # fmt: skip
+    tools = (((1.0, 0.5, 0.0), force),)  # on the coarse cornea's loadable cap
+    assert_distributed_equals_serial(replace(config, load=replace(config.load, tools=tools)))
+
+
+def assert_distributed_equals_serial(config) -> None:
+    """``config`` solved on COMM_WORLD and on COMM_SELF: forces, contact displacements and
+    the field's L2 norm equal to 1e-9, every rank agreeing."""
+    comm = MPI.COMM_WORLD
     distributed_model = FullOrderModel(config, comm=comm, verbose=False)
     assert distributed_model.model.V.dofmap.index_map.size_local < (
         distributed_model.model.V.dofmap.index_map.size_global
