@@ -13,9 +13,10 @@ region of the two sites, the reference a full-order solve under both (solved her
 regions, ``physics(region, holders=[...])``), the reference the full order with the
 holder's patch held in place (solved here). ``--lift MM`` (with ``--held``): the
 regions' solves also lift (``hapticrom physics --lift``), and the steps grasp-and-lift
-instead, nothing pressing, the holder moved MM out of the surface along its normal
-(``physics.move_holder``), against the full order with that patch so moved (solved here):
-the field, and the holder's force against the full order's tool force.
+instead, nothing pressing, the holder moved MM against the campaign's direction (out of
+the surface along its normal for "normal"; ``physics.move_holder``), against the full
+order with that patch so moved (solved here): the field, and the holder's force against
+the full order's tool force.
 
 Per region: the sampled elements, the modes, the depth error (the tool's load-weighted
 mean displacement along its force, as the campaign's) and the surface field's relative L2

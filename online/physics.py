@@ -257,8 +257,12 @@ class HyperReducedPhysics:
         self._point, self._force = np.zeros(3), np.zeros(3)  # press's slower path: copies
         self.refreshes = 0  # steps the divergence guard took again on a fresh tangent
         self._before = (np.zeros(n), np.zeros(linear.shape[0] - n))  # q, pi before a step
-        self._last_load = np.zeros(n)  # the load of the last step
+        # the guard's steady test reads the pressing tools' loads alone (a moved holder's
+        # load k A^T t is some 1e4 times theirs: beside it any press would pass as steady)
+        self._pressing_load = np.zeros(n)  # the pressing tools' loads, summed
+        self._last_load = np.zeros(n)  # the pressing load of the last step
         self._load_change = np.zeros(n)
+        self._holders_moved = False  # a holder moved since the last step: not steady
 
     def _newton(self, sample, linear, iterations, slices) -> HapticNewton:
         """HapticNewton on the region; a rest tangent that does not factorise is the file's
@@ -367,11 +371,12 @@ class HyperReducedPhysics:
             self._sum_loads()
 
     def _sum_loads(self) -> None:
-        """The load summed again over the tools (a running sum would keep the rounding of
-        a large force after its tool is released)."""
-        self.load.fill(0.0)
+        """The load summed again over the pressing tools and the moved holders (a running
+        sum would keep the rounding of a large force after its tool is released)."""
+        self._pressing_load.fill(0.0)
         for load in self.pressing.values():
-            self.load += load
+            self._pressing_load += load
+        np.copyto(self.load, self._pressing_load)
         for load in self.holder_loads:
             self.load += load
 
@@ -396,6 +401,7 @@ class HyperReducedPhysics:
             t[:3], t[3:] = d, 0.0
         np.dot(self.holders[holder].T, t, out=self.holder_loads[holder])
         self.holder_loads[holder] *= self.hold_stiffness
+        self._holders_moved = True
         self._sum_loads()
 
     def step(self) -> bool:
@@ -409,9 +415,12 @@ class HyperReducedPhysics:
         q0, pi0 = self._before
         np.copyto(q0, self.q)
         np.copyto(pi0, self.pi)
-        change = np.subtract(self.load, self._last_load, out=self._load_change)
-        steady = change.dot(change) <= STEADY**2 * self.load.dot(self.load)  # dot: no norm's cost
-        np.copyto(self._last_load, self.load)
+        pressing = self._pressing_load
+        change = np.subtract(pressing, self._last_load, out=self._load_change)
+        steady = change.dot(change) <= STEADY**2 * pressing.dot(pressing)  # dot: no norm's cost
+        steady = steady and not self._holders_moved
+        np.copyto(self._last_load, pressing)
+        self._holders_moved = False
         previous = self.newton.last_update
         taken = self.newton.step(self.q, self.pi, self.load)
         update = self.newton.last_update
@@ -435,9 +444,9 @@ class HyperReducedPhysics:
         return out
 
     def holder_force(self, holder: int) -> np.ndarray:
-        """(3,) N: the force holder ``holder`` exerts on the tissue (its penalty's, minus
-        the stiffness times the patch's mean displacement; on a patch of one or two
-        vertices, the sum of each vertex's)."""
+        """(3,) N: the force holder ``holder`` exerts on the tissue (its penalty's: minus
+        the stiffness times the patch's mean displacement less the grip's move; on a
+        patch of one or two vertices, the sum of each vertex's)."""
         holder = _index("holder", holder, len(self.holders))
         gap = self.holders[holder] @ self.q - self.holder_targets[holder]
         if self.holder_vertices[holder] < 3:  # each vertex held: the sum of their reactions

@@ -71,19 +71,32 @@ def test_further_tools_distributed_equal_serial(mesh_dir, case):
 
     if MPI.COMM_WORLD.size < 2:
         pytest.skip("run under mpirun -n 2")
+    from hapticrom.offline.fe.dofs import CanonicalOrder
+
     first, force = FURTHER[case]
     config = ProblemConfig.from_dict({
         "mesh": {"file": str(mesh_dir / "cornea-coarse.msh")},
         "material": {"law": "hgo"},
-        "load": {**first, "contact_point": [0.0, 0.0, 0.0], "contact_radius": 0.8, "steps": 3},
+        "load": {**first, "contact_point": [0.0, 0.0, 0.0], "contact_radius": 0.5, "steps": 3},
     })  # fmt: skip
-    tools = (((1.0, 0.5, 0.0), force),)  # on the coarse cornea's loadable cap
-    assert_distributed_equals_serial(replace(config, load=replace(config.load, tools=tools)))
+    tools = (((1.0, 0.5, 0.0), force),)  # on the loadable cap, 1.12 mm away: disks apart
+    models = assert_distributed_equals_serial(
+        replace(config, load=replace(config.load, tools=tools))
+    )
+    # the whole field, gathered in canonical order, and the further tool's share of it
+    fields = [CanonicalOrder(m.model.V).gather(m.model.u.x.array) for m in models]
+    alone = FullOrderModel(config, comm=MPI.COMM_SELF, verbose=False)
+    alone.solve()
+    without = CanonicalOrder(alone.model.V).gather(alone.model.u.x.array)
+    if MPI.COMM_WORLD.rank == 0:
+        distributed, serial = fields
+        assert np.linalg.norm(distributed - serial) <= 1e-9 * np.linalg.norm(serial)
+        assert np.linalg.norm(serial - without) > 0.1 * np.linalg.norm(serial)
 
 
-def assert_distributed_equals_serial(config) -> None:
+def assert_distributed_equals_serial(config) -> tuple:
     """``config`` solved on COMM_WORLD and on COMM_SELF: forces, contact displacements and
-    the field's L2 norm equal to 1e-9, every rank agreeing."""
+    the field's L2 norm equal to 1e-9, every rank agreeing; the two models."""
     comm = MPI.COMM_WORLD
     distributed_model = FullOrderModel(config, comm=comm, verbose=False)
     assert distributed_model.model.V.dofmap.index_map.size_local < (
@@ -104,3 +117,4 @@ def assert_distributed_equals_serial(config) -> None:
     # Every rank agrees on the distributed answer.
     gathered = comm.allgather(distributed.force)
     assert all(np.array_equal(g, gathered[0]) for g in gathered)
+    return distributed_model, serial_model

@@ -216,13 +216,14 @@ def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
         assert physics.step()
     for _ in range(60):
         assert physics.step()
-    load_before = physics.load.copy()
-    for bad in ([np.nan, 0, 0], [0, 0], "up"):
+    before = [physics.load.copy(), physics.holder_targets[0].copy(), physics.holder_loads.copy()]
+    for bad in ([np.nan, 0, 0], np.array([np.nan, 0, 0]), np.array([0, 0, 2e4]), [0, 0], "up"):
         with pytest.raises(InputError, match="displacement"):
             physics.move_holder(0, bad)
     with pytest.raises(InputError, match="holder must be"):
         physics.move_holder(1, lift)
-    assert np.array_equal(physics.load, load_before)
+    after = [physics.load, physics.holder_targets[0], physics.holder_loads]
+    assert all(np.array_equal(a, b) for a, b in zip(before, after, strict=True))
     A, t = physics.holders[0], physics.holder_targets[0]
     trainers, n = models["galerkin"], Phi.shape[1]
     constant = trainers.linear.copy()
@@ -243,6 +244,13 @@ def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
     ]
     assert np.abs(u[patch] - lift).max() <= 1e-3 * np.linalg.norm(lift)
     assert np.dot(physics.holder_force(0), lift) > 0
+    # a press beside the lifted holder: the guard judges the pressing load alone (beside
+    # the holder's k A^T t any press had passed as steady: a fresh tangent for each)
+    force = data["load_vector"].reshape(-1, 3).sum(axis=0)
+    for factor in np.linspace(0.0, 0.5, 11)[1:]:
+        physics.press(0, point, factor * force)
+        assert physics.step()
+    assert physics.refreshes == 0
 
 
 def test_refused_input_changes_nothing(trained, force_artifact):

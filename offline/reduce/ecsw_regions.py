@@ -178,8 +178,9 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
     node; README stop 39: single presses about each site left the two dents' interaction
     out, 3.4 % against 1.1-1.5 % with pairs); held, the k-th about the first pressed while
     a holder keeps its patch at the k-th about the second in place (``solves.held``), and
-    with a ``lift`` (mm) each of those holders also lifts its patch that far out of the
-    surface along its normal, nothing pressing (grasp-and-lift's states)."""
+    with a ``lift`` (mm) each of those holders also lifts its patch that far against the
+    campaign's direction (out of the surface along its normal for "normal"), nothing
+    pressing (grasp-and-lift's states)."""
     first = solves.nodes(site.points[0])
     if site.kind == "at":
         solved = [solves.solve(node) for node in first]
@@ -192,7 +193,7 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
             solved = [solves.solve(b, tools=[solves.tool(a, 1.0)], config=solves.held)
                       for a, b in pairs]  # fmt: skip
             if lift:
-                load = replace(solves.held.load, magnitude=-lift)  # against the inward normal
+                load = replace(solves.held.load, magnitude=-lift)  # against the direction
                 lifting = replace(solves.held, load=load)
                 solved += [solves.solve(b, config=lifting) for _, b in pairs]
     return (np.vstack([d["displacement"] for d in solved]).T,

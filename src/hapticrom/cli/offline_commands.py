@@ -623,8 +623,8 @@ def add_physics(sub) -> None:
         0.0,
         "MM",
         "--held regions: their solves also lift each holder this far against the "
-        "campaign's direction (out of the surface), nothing pressing: grasp-and-lift "
-        "(default 0: none)",
+        "campaign's direction (out of the surface for 'normal'), nothing pressing: "
+        "grasp-and-lift (omit for none)",
     )
     p.add_argument("--out", required=True, metavar="FILE", help="the model with its physics")
     number_option(
