@@ -54,8 +54,8 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     args, extra = parser.parse_known_args()
     if args.pair and args.held:
         parser.error("--pair or --held, not both")
-    if args.lift and not (args.held and 0 < args.lift <= 1):
-        parser.error("--lift needs --held, and at most 1 mm")
+    if args.lift and not (args.held and 0 < args.lift <= 10):
+        parser.error("--lift needs --held, and at most 10 mm (hapticrom physics --lift's)")
     try:
         args.positions = [int(v) for v in args.positions.split(",")]
     except ValueError:
