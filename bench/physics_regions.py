@@ -65,18 +65,34 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     return args, [v for v in extra if v != "--"]
 
 
-def pressed(physics, tools, factors, frames) -> np.ndarray:
-    """The region ramped to the last factor of each tool's force (``tools``: (point,
-    force) pairs) in ``frames`` steps, then held as long: each step's time (ms)."""
+def ramped(physics, load, factors, frames) -> np.ndarray:
+    """The region ramped to the last of the load ``factors`` in ``frames`` steps, then held
+    as long, ``load(factor)`` applying the loads before each step: each step's time (ms),
+    the first left out."""
     times = []
     for factor in list(np.linspace(0.0, factors[-1], frames + 1)[1:]) + [factors[-1]] * frames:
-        for k, (point, force) in enumerate(tools):
-            physics.press(k, point, factor * np.asarray(force))
+        load(factor)
         t0 = time.perf_counter_ns()
         if not physics.step():
             raise SystemExit("a physics step was refused")
         times.append(time.perf_counter_ns() - t0)
     return np.array(times[1:]) / 1e6
+
+
+def pressed(physics, tools, factors, frames) -> np.ndarray:
+    """``ramped`` under each tool's force (``tools``: (point, force) pairs)."""
+
+    def press(factor):
+        for k, (point, force) in enumerate(tools):
+            physics.press(k, point, factor * np.asarray(force))
+
+    return ramped(physics, press, factors, frames)
+
+
+def timing(ms) -> dict:
+    """The steps' times (ms): p50, p99, max."""
+    return {"p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
+            "max_ms": float(ms.max())}  # fmt: skip
 
 
 def two_tools(store, point, args) -> tuple:
@@ -124,8 +140,8 @@ def held_case(store, point, args) -> tuple:
 
 
 def lifted(store, model, region, i, holder, args) -> dict:
-    """Grasp-and-lift at ``region``: the holder at ``holder`` (mm) moved ``--lift`` mm out
-    along the surface's normal there over ``--frames`` steps, then held as long, against
+    """Grasp-and-lift at ``region``: the holder at ``holder`` (mm) moved ``--lift`` mm
+    against the campaign's direction over ``--frames`` steps, then held as long, against
     the full order so lifted (its tool under displacement control, its patch moved)."""
     from dataclasses import replace
 
@@ -140,16 +156,8 @@ def lifted(store, model, region, i, holder, args) -> dict:
     vector = load.magnitude * load.unit_direction(solves.position(node))
     factors = data["load_factor"]
     physics = model.physics(region=region, holders=[holder])
-    times = []
-    for factor in (
-        list(np.linspace(0.0, factors[-1], args.frames + 1)[1:]) + [factors[-1]] * args.frames
-    ):
-        physics.move_holder(0, factor * vector)
-        t0 = time.perf_counter_ns()
-        if not physics.step():
-            raise SystemExit("a physics step was refused")
-        times.append(time.perf_counter_ns() - t0)
-    ms = np.array(times[1:]) / 1e6
+    ms = ramped(physics, lambda factor: physics.move_holder(0, factor * vector), factors,
+                args.frames)  # fmt: skip
     u = np.zeros_like(physics.vertices)
     physics.surface_displacement(u)
     full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
@@ -157,9 +165,8 @@ def lifted(store, model, region, i, holder, args) -> dict:
     row = {"position": i, "lift_mm": args.lift, "elements": len(physics.newton.sample[0]),
            "field_error": float(np.linalg.norm(u - full) / np.linalg.norm(full)),
            "force_error": float(np.linalg.norm(pull - reaction) / np.linalg.norm(reaction)),
-           "holder_force": pull.tolist(), "full_force": reaction.tolist(),
-           "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
-           "max_ms": float(ms.max()), "refreshes": physics.refreshes}  # fmt: skip
+           "holder_force": pull.tolist(), "full_force": reaction.tolist(), **timing(ms),
+           "refreshes": physics.refreshes}  # fmt: skip
     print(f"position {i:3d}, lifted {args.lift} mm: field {100 * row['field_error']:.2f} %, "
           f"holder force {np.round(pull, 5).tolist()} N against the full order's "
           f"{np.round(reaction, 5).tolist()} ({100 * row['force_error']:.2f} %), step "
@@ -219,8 +226,7 @@ def main() -> None:
         row = {"position": i, "elements": len(physics.newton.sample[0]), "modes": physics.q.size,
                "pressure_modes": physics.pi.size, "depth_error": float(depth - 1),
                "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
-               "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
-               "max_ms": float(ms.max()), "refreshes": physics.refreshes}  # fmt: skip
+               **timing(ms), "refreshes": physics.refreshes}  # fmt: skip
         print(f"position {i:3d}: {row['elements']} elements, {row['modes']} + "
               f"{row['pressure_modes']} modes, depth {100 * row['depth_error']:+.2f} %, field "
               f"{100 * row['field_error']:.2f} %, step p50/p99/max {row['p50_ms']:.2f}/"
