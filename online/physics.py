@@ -14,15 +14,19 @@ A pressing tool's load is the campaign's force tool's (its dead load spread over
 ``contact_radius``), stored per unit force at the region's loadable vertices and blended
 linearly over the surface triangle nearest the point; a holder keeps the rigid motion (the
 mean displacement and the least-squares rotation) of the loadable surface vertices within
-``contact_radius`` of its point (each of them if fewer than three), by a penalty in the constant
-tangent (fixed for the physics' life: a holder that grips elsewhere is a new physics). The
-state lags equilibrium by what one iteration a step leaves and settles on it while the loads
-hold (``HapticNewton``).
+``contact_radius`` of its point (each of them if fewer than three), by a penalty in the
+constant tangent (fixed for the physics' life: a holder that grips elsewhere is a new
+physics); a moved holder's penalty pulls those rows towards its moved grip (a load). A
+region is built for its holders (``hapticrom physics --held``, ``--lift``): on a region of
+presses alone a holder nearly locks the tissue. The state lags equilibrium by what one
+iteration a step leaves and settles on it while the loads hold (``HapticNewton``). Pressing
+again and moving a holder with 1-D float64 arrays allocate nothing (the blend is compiled).
+One physics is one thread's: its scratch buffers are shared between its calls.
 
 What is checked where: the artifact's values by its reader (``ARTIFACT.md``); here, once, the
 region's element geometry (every quadrature point's Jacobian of one sign an element, not
 degenerate; else ArtifactError) and the caller's input (InputError naming it). A refused
-``press`` or ``step`` changes nothing.
+``press``, ``move_holder`` or ``step`` changes nothing.
 """
 
 from __future__ import annotations
