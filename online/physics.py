@@ -20,7 +20,8 @@ physics); a moved holder's penalty pulls those rows towards its moved grip (a lo
 region is built for its holders (``hapticrom physics --held``, ``--lift``): on a region of
 presses alone a holder nearly locks the tissue. The state lags equilibrium by what one
 iteration a step leaves and settles on it while the loads hold (``HapticNewton``). Pressing
-again and moving a holder with 1-D float64 arrays allocate nothing (the blend is compiled).
+again with 1-D float64 arrays allocates nothing (the blend is compiled); moving a holder
+allocates no array buffer (a few views).
 One physics is one thread's: its scratch buffers are shared between its calls.
 
 What is checked where: the artifact's values by its reader (``ARTIFACT.md``); here, once, the
