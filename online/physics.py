@@ -72,6 +72,12 @@ def element_geometry(X: np.ndarray, cell: str, first: int = 0) -> tuple[np.ndarr
     return dN, dV
 
 
+def loadable_vertices(surface) -> np.ndarray:
+    """The vertices of an artifact surface's loadable triangles (group 1): where tools
+    press and holders grip."""
+    return np.unique(surface["triangles"][surface["groups"] == 1])
+
+
 def holder_patch(vertices, loadable, point, radius) -> np.ndarray:
     """The vertices a holder at ``point`` grips: those of ``loadable`` (the tools' surface)
     within ``radius`` (mm), as the full order's displacement-controlled tool holds its
@@ -240,8 +246,7 @@ class HyperReducedPhysics:
         n = self.surface_basis.shape[1]
         linear = np.array(h["constant_tangent"][region], np.float64)
         self.hold_stiffness = float(attrs["hold_stiffness"])
-        surface = model.artifact["surface"]
-        self.loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+        self.loadable = loadable_vertices(model.artifact["surface"])
         if isinstance(holders, str) or not hasattr(holders, "__iter__"):
             raise InputError(f"holders must be a list of points (mm), got {holders!r}")
         patches = [self._holder_patch(p) for p in holders]

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hapticrom.online.physics import loadable_vertices
 from hapticrom.shared.artifact import read_artifact, with_group, write_artifact
 from hapticrom.shared.errors import InputError
 
@@ -94,7 +95,7 @@ def hold_stiffness(model, loads) -> float:
 def region_vertices(surface, centre, radius) -> np.ndarray:
     """The vertices of loadable triangles within ``radius`` of ``centre``: where the
     region's tools may press (refused if none)."""
-    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    loadable = loadable_vertices(surface)
     near = np.linalg.norm(surface["vertices"][loadable] - centre, axis=1) <= radius
     if not near.any():
         raise InputError(f"no loadable surface vertex within {radius} mm of {centre.tolist()}")

@@ -35,7 +35,7 @@ from hapticrom.offline.reduce.ecsw_model import (
     training_matrix,
 )
 from hapticrom.offline.reduce.ecsw_physics import PhysicsRegion, region_arrays, region_vertices
-from hapticrom.online.physics import holder_patch, holder_rows
+from hapticrom.online.physics import holder_patch, holder_rows, loadable_vertices
 from hapticrom.shared.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -207,8 +207,7 @@ def holder_responses(operators, surface, point, radius, free) -> np.ndarray:
     runtime holds each) to a unit force at each along x, y, z. Zero outside the ``free``
     rows. A held region's basis carries them: the holder's reaction (without them a
     holder nearly locks a region built from presses alone: README, stop 43)."""
-    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
-    patch = holder_patch(surface["vertices"], loadable, point, radius)
+    patch = holder_patch(surface["vertices"], loadable_vertices(surface), point, radius)
     nodes = np.asarray(surface["nodes"])[patch]
     F = np.zeros((operators.A.shape[0], 3 * len(nodes) if len(nodes) < 3 else 6))
     columns = F.reshape(-1, 3, F.shape[1])
@@ -313,9 +312,8 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
         for point in site.points:
             region_vertices(surface, point, recipe.radius)
         if site.kind == "held":  # and a holder's site a patch the runtime can hold
-            loadable = np.unique(surface["triangles"][surface["groups"] == 1])
-            patch = holder_patch(surface["vertices"], loadable, site.points[1],
-                                 config.load.contact_radius)  # fmt: skip
+            patch = holder_patch(surface["vertices"], loadable_vertices(surface),
+                                 site.points[1], config.load.contact_radius)  # fmt: skip
             holder_rows(np.zeros((surface["vertices"].size, 1)), surface["vertices"], patch)
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)
