@@ -71,7 +71,6 @@ from pathlib import Path
 
 import h5py  # noqa: F401  (before dolfinx: see the README)
 import numpy as np
-import scipy.sparse.linalg
 from basis_span import (
     bump_loads,
     contact_points,
@@ -91,6 +90,7 @@ from hapticrom.offline.reduce.ecsw_model import (
     mesh_elements,
     modal_derivatives,
     rest_operators,
+    rest_solver,
     rest_tangents,
     supremizers,
     training_matrix,
@@ -128,20 +128,6 @@ def bases(store, training, args, mesh, rest, config):
     if args.supremizers:
         Phi = np.linalg.qr(np.hstack([Phi, supremizers(operators, Psi, free)]))[0]
     return Phi, Psi
-
-
-def rest_solver(operators, free):
-    """F -> K^-1 F on the ``free`` rows (zero elsewhere), K the condensed stiffness at rest:
-    one factorisation."""
-    K = operators.condensed()
-    factor = scipy.sparse.linalg.splu(K[free][:, free].tocsc())
-
-    def solve(F):
-        out = np.zeros(F.shape)
-        out[free] = factor.solve(F[free])
-        return out
-
-    return solve
 
 
 def derivative_bases(args, mesh, operators, solve, responses, blocks, free, extra=None):

@@ -137,6 +137,20 @@ def rest_operators(mesh: MeshElements, rest) -> RestOperators:
     return RestOperators(A, Bt, compliance)
 
 
+def rest_solver(operators, free):
+    """F -> K^-1 F on the ``free`` rows (zero elsewhere), K the condensed stiffness at rest:
+    one factorisation."""
+    K = operators.condensed()
+    factor = scipy.sparse.linalg.splu(K[free][:, free].tocsc())
+
+    def solve(F):
+        out = np.zeros(F.shape)
+        out[free] = factor.solve(F[free])
+        return out
+
+    return solve
+
+
 def supremizers(operators: RestOperators, Psi, free) -> np.ndarray:
     """A^-1 Bt Psi (N, n_p), zero outside the ``free`` rows: for each pressure mode the
     displacement it pushes hardest, whose addition makes a mixed reduced basis inf-sup

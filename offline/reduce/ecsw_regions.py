@@ -19,7 +19,6 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.sparse.linalg
 from mpi4py import MPI
 
 from hapticrom.meshes.msh import read_surface
@@ -31,6 +30,7 @@ from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
     rest_operators,
+    rest_solver,
     supremizers,
     training_matrix,
 )
@@ -219,10 +219,7 @@ def holder_responses(operators, surface, point, radius, free) -> np.ndarray:
         for axis, e in enumerate(np.eye(3)):
             columns[nodes, axis, axis] = 1.0 / len(nodes)
             columns[nodes, :, 3 + axis] = np.cross(e, r) / (r**2).sum()
-    K = operators.condensed()
-    out = np.zeros_like(F)
-    out[free] = scipy.sparse.linalg.splu(K[free][:, free].tocsc()).solve(F[free])
-    return out
+    return rest_solver(operators, free)(F)
 
 
 def region_bases(operators, U, P, recipe: RegionRecipe,
