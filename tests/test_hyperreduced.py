@@ -158,6 +158,9 @@ def element_tangents(X, u, p, params, reference):
 
 
 def make_problem(name: str) -> Problem:
+    """The synthetic problem ``name``, the same whatever drew from RNG before (another
+    module's fixture builds these too, in an order pytest-xdist chooses)."""
+    reseed(RNG, f"problem-{name}")
     cell, laws = CASES[name]
     X = hexahedra() if cell == "hexahedron" else tetrahedra()
     numbers = global_nodes(X)
@@ -183,7 +186,6 @@ def make_problem(name: str) -> Problem:
 
 @pytest.fixture(scope="module", params=list(CASES))
 def problem(request) -> Problem:
-    reseed(RNG, f"problem-{request.param}")
     return make_problem(request.param)
 
 
