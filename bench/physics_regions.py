@@ -4,7 +4,7 @@ haptic steps, against the stored full-order solve (not among the region's own so
 
     python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
         [--pair MM [--second-force 0.5]] [--out out/physics.h5] [--frames 100]
-        [--skip-build] [-- hapticrom physics options]
+        [--skip-build] [--slices 20] [-- hapticrom physics options]
 
 ``--pair MM``: two tools, the position's and a second at the free loadable node nearest MM
 away pressing with ``--second-force`` of the campaign's force, each region a ``--pair``
@@ -18,11 +18,12 @@ the surface along its normal for "normal"; ``physics.move_holder``), against the
 order with that patch so moved (solved here): the field, and the holder's force against
 the full order's tool force.
 
-Per region: the sampled elements, the modes, the depth error (the tool's load-weighted
-mean displacement along its force, as the campaign's) and the surface field's relative L2
-error at the last load, after ``--frames`` steps of the ramp and as many held; the time of
-each ``physics.step()`` (p50, p99, max). Writes OUT with suffix .json. Serial; run alone
-for the times. Units: mm, N.
+Per region: the sampled elements, the modes, the depth error (the tool's load-weighted mean
+displacement along its force, as the campaign's) and the surface field's relative L2 error
+at the last load, after ``--frames`` steps of the ramp and as many held; the time of each
+``physics.step()`` (p50, p99, max), its tangent built in ``--slices`` parts; and the
+depth (or, lifted, the field) at the ramp's last step, which lags the load. Writes OUT with
+suffix .json. Serial; run alone for the times. Units: mm, N.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--second-force", type=float, default=0.5)
     parser.add_argument("--held", type=float, default=0.0, help="mm: a holder this far")
     parser.add_argument("--lift", type=float, default=0.0, help="mm: --held's holder lifts")
+    parser.add_argument("--slices", type=int, default=20, help="the tangent's parts (physics')")
     args, extra = parser.parse_known_args()
     if args.pair and args.held:
         parser.error("--pair or --held, not both")
@@ -60,26 +62,28 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
         args.positions = [int(v) for v in args.positions.split(",")]
     except ValueError:
         parser.error("--positions: comma-separated campaign position indices")
-    if args.frames < 1:
-        parser.error("--frames must be at least 1")
+    if args.frames < 1 or args.slices < 1:
+        parser.error("--frames and --slices must be at least 1")
     return args, [v for v in extra if v != "--"]
 
 
-def ramped(physics, load, factors, frames) -> np.ndarray:
+def ramped(physics, load, factors, frames) -> tuple[np.ndarray, np.ndarray]:
     """The region ramped to the last of the load ``factors`` in ``frames`` steps, then held
     as long, ``load(factor)`` applying the loads before each step: each step's time (ms),
-    the first left out."""
-    times = []
+    the first left out, and the state q at the ramp's last step (what lags the load)."""
+    times, ramp_end = [], None
     for factor in list(np.linspace(0.0, factors[-1], frames + 1)[1:]) + [factors[-1]] * frames:
         load(factor)
         t0 = time.perf_counter_ns()
         if not physics.step():
             raise SystemExit("a physics step was refused")
         times.append(time.perf_counter_ns() - t0)
-    return np.array(times[1:]) / 1e6
+        if len(times) == frames:
+            ramp_end = physics.q.copy()
+    return np.array(times[1:]) / 1e6, ramp_end
 
 
-def pressed(physics, tools, factors, frames) -> np.ndarray:
+def pressed(physics, tools, factors, frames) -> tuple[np.ndarray, np.ndarray]:
     """``ramped`` under each tool's force (``tools``: (point, force) pairs)."""
 
     def press(factor):
@@ -155,15 +159,17 @@ def lifted(store, model, region, i, holder, args) -> dict:
     data = solves.solve(node, config=replace(config, load=load))
     vector = load.magnitude * load.unit_direction(solves.position(node))
     factors = data["load_factor"]
-    physics = model.physics(region=region, holders=[holder])
-    ms = ramped(physics, lambda factor: physics.move_holder(0, factor * vector), factors,
-                args.frames)  # fmt: skip
+    physics = model.physics(region=region, holders=[holder], slices=args.slices)
+    ms, ramp_end = ramped(physics, lambda factor: physics.move_holder(0, factor * vector),
+                          factors, args.frames)  # fmt: skip
     u = np.zeros_like(physics.vertices)
     physics.surface_displacement(u)
     full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
+    lagging = (physics.surface_basis @ ramp_end).reshape(-1, 3)
     pull, reaction = physics.holder_force(0), np.asarray(data["force"][-1])  # on the tissue
     row = {"position": i, "lift_mm": args.lift, "elements": len(physics.newton.sample[0]),
            "field_error": float(np.linalg.norm(u - full) / np.linalg.norm(full)),
+           "ramp_end_field_error": float(np.linalg.norm(lagging - full) / np.linalg.norm(full)),
            "force_error": float(np.linalg.norm(pull - reaction) / np.linalg.norm(reaction)),
            "holder_force": pull.tolist(), "full_force": reaction.tolist(), **timing(ms),
            "refreshes": physics.refreshes}  # fmt: skip
@@ -171,7 +177,8 @@ def lifted(store, model, region, i, holder, args) -> dict:
           f"holder force {np.round(pull, 5).tolist()} N against the full order's "
           f"{np.round(reaction, 5).tolist()} ({100 * row['force_error']:.2f} %), step "
           f"p50/p99/max {row['p50_ms']:.2f}/{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms, "
-          f"{physics.refreshes} fresh tangents", flush=True)  # fmt: skip
+          f"{physics.refreshes} fresh tangents; at the ramp's last step: field "
+          f"{100 * row['ramp_end_field_error']:.2f} %", flush=True)  # fmt: skip
     return row
 
 
@@ -216,22 +223,25 @@ def main() -> None:
             force = np.asarray(tools[0][1])
             f = case[2]  # the first tool's own load vector: its depth, as the campaign's
         holders = [case[3]] if args.held else []
-        physics = model.physics(region=region, holders=holders)
-        ms = pressed(physics, tools, factors, args.frames)
+        physics = model.physics(region=region, holders=holders, slices=args.slices)
+        ms, ramp_end = pressed(physics, tools, factors, args.frames)
         u = np.zeros_like(physics.vertices)
         physics.surface_displacement(u)
         full = data["displacement"][-1]
-        depth = physics.tool_load(point, force) @ physics.q / (f @ full)
+        tool = physics.tool_load(point, force)
+        depth, lagging = tool @ physics.q / (f @ full), tool @ ramp_end / (f @ full)
         field = full.reshape(-1, 3)[nodes]
         row = {"position": i, "elements": len(physics.newton.sample[0]), "modes": physics.q.size,
                "pressure_modes": physics.pi.size, "depth_error": float(depth - 1),
+               "ramp_end_depth_error": float(lagging - 1),
                "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
                **timing(ms), "refreshes": physics.refreshes}  # fmt: skip
         print(f"position {i:3d}: {row['elements']} elements, {row['modes']} + "
               f"{row['pressure_modes']} modes, depth {100 * row['depth_error']:+.2f} %, field "
               f"{100 * row['field_error']:.2f} %, step p50/p99/max {row['p50_ms']:.2f}/"
               f"{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms, {physics.refreshes} fresh "
-              "tangents", flush=True)  # fmt: skip
+              f"tangents; at the ramp's last step: depth {100 * lagging - 100:+.2f} %",
+              flush=True)  # fmt: skip
         rows.append(row)
     Path(args.out).with_suffix(".json").write_text(json.dumps(rows, indent=1))
 

@@ -13,8 +13,9 @@ pressing tools and holders (issue 18).
 A pressing tool's load is the campaign's force tool's (its dead load spread over a disk of
 ``contact_radius``), stored per unit force at the region's loadable vertices and blended
 linearly over the surface triangle nearest the point; a holder keeps the rigid motion (the
-mean displacement and the least-squares rotation) of the loadable surface vertices within
-``contact_radius`` of its point (each of them if fewer than three), by a penalty in the
+mean displacement and the least-squares rotation) of the loadable surface's nodes within
+``contact_radius`` of its point (each of them if fewer than three; the region's grip nodes,
+P2's mid-side nodes too, or in a format 2.5 file the vertices), by a penalty in the
 constant tangent (fixed for the physics' life: a holder that grips elsewhere is a new
 physics); a moved holder's penalty pulls those rows towards its moved grip (a load). A
 region is built for its holders (``hapticrom physics --held``, ``--lift``): on a region of
@@ -78,30 +79,32 @@ def loadable_vertices(surface) -> np.ndarray:
     return np.unique(surface["triangles"][surface["groups"] == 1])
 
 
-def holder_patch(vertices, loadable, point, radius) -> np.ndarray:
-    """The vertices a holder at ``point`` grips: those of ``loadable`` (the tools' surface)
-    within ``radius`` (mm), as the full order's displacement-controlled tool holds its
-    nodes (``ContactPatch.blocks``); none is refused."""
-    near = loadable[np.linalg.norm(vertices[loadable] - point, axis=1) <= radius]
+def holder_patch(points, grippable, point, radius) -> np.ndarray:
+    """The nodes a holder at ``point`` grips: those of ``grippable`` (indices into
+    ``points`` (G, 3) mm: the loadable surface's) within ``radius`` (mm), as the full
+    order's displacement-controlled tool holds its nodes (``ContactPatch.blocks``); none
+    is refused."""
+    near = grippable[np.linalg.norm(points[grippable] - point, axis=1) <= radius]
     if not len(near):
         raise InputError(f"a holder at {np.round(point, 4).tolist()} mm has no loadable "
-                         f"surface vertex within the tool's radius {radius} mm")  # fmt: skip
+                         f"surface node within the tool's radius {radius} mm")  # fmt: skip
     return near
 
 
-def holder_rows(surface_basis, vertices, patch) -> np.ndarray:
-    """The rows a holder keeps still, in the basis: on a patch of three vertices or more,
-    its mean displacement and least-squares rotation (times the patch's RMS radius, mm; 6
-    rows), on one or two (a coarse mesh) each vertex's displacement (3 a vertex)."""
-    n = surface_basis.shape[1]
-    rows = surface_basis.reshape(-1, 3, n)[patch]  # (patch, 3, n)
+def holder_rows(basis, points, patch) -> np.ndarray:
+    """The rows a holder keeps still, in the ``basis`` (3G, n) of ``points`` (G, 3) mm: on
+    a ``patch`` of three nodes or more, its mean displacement and least-squares rotation
+    (times the patch's RMS radius, mm; 6 rows), on one or two (a coarse mesh) each node's
+    displacement (3 a node)."""
+    n = basis.shape[1]
+    rows = basis.reshape(-1, 3, n)[patch]  # (patch, 3, n)
     if len(patch) < 3:
         return rows.reshape(-1, n)
-    r = vertices[patch] - vertices[patch].mean(axis=0)
+    r = points[patch] - points[patch].mean(axis=0)
     if np.linalg.cond((r**2).sum() * np.eye(3) - r.T @ r) > 1e8:
-        raise InputError(f"a holder grips vertices {patch.tolist()} in a line: its rotation "
+        raise InputError(f"a holder grips nodes {patch.tolist()} in a line: its rotation "
                          "is not defined")  # fmt: skip
-    return np.vstack([rows.mean(axis=0), rotation_rows(vertices[patch], rows)])
+    return np.vstack([rows.mean(axis=0), rotation_rows(points[patch], rows)])
 
 
 def rotation_rows(points, rows) -> np.ndarray:
@@ -246,12 +249,12 @@ class HyperReducedPhysics:
         n = self.surface_basis.shape[1]
         linear = np.array(h["constant_tangent"][region], np.float64)
         self.hold_stiffness = float(attrs["hold_stiffness"])
-        self.loadable = loadable_vertices(model.artifact["surface"])
+        self.grip_points, self.grip_basis, self.grippable = self._grip_nodes(model, h, region)
         if isinstance(holders, str) or not hasattr(holders, "__iter__"):
             raise InputError(f"holders must be a list of points (mm), got {holders!r}")
         patches = [self._holder_patch(p) for p in holders]
-        self.holders = [holder_rows(self.surface_basis, self.vertices, q) for q in patches]
-        self.holder_vertices = [len(q) for q in patches]  # under 3: each vertex held
+        self.holders = [holder_rows(self.grip_basis, self.grip_points, q) for q in patches]
+        self.holder_nodes = [len(q) for q in patches]  # under 3: each node held
         for A in self.holders:
             linear[:n, :n] += self.hold_stiffness * (A.T @ A)
         # slices: at most one element a part (a small region has fewer elements than 20)
@@ -291,10 +294,22 @@ class HyperReducedPhysics:
                 f"{GROUP}/constant_tangent: region {self.region}'s tangent at rest is singular"
             ) from None
 
+    def _grip_nodes(self, model, h, region) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points (G, 3) mm, their basis rows (3G, n), the rows a holder may grip): the
+        region's grip nodes (group 1.1: the loadable facets' nodes, P2's mid-side nodes
+        too), else (a 1.0 file) the surface vertices and the loadable ones among them."""
+        if "grip_rows" not in h:
+            loadable = loadable_vertices(model.artifact["surface"])
+            return self.vertices, self.surface_basis, loadable
+        first, last = (int(v) for v in h["grip_offsets"][region : region + 2])
+        points = np.ascontiguousarray(h["grip_nodes"][first:last], np.float64)
+        rows = np.ascontiguousarray(h["grip_rows"][first:last], np.float64)
+        return points, rows.reshape(-1, rows.shape[-1]), np.arange(last - first)
+
     def _holder_patch(self, point) -> np.ndarray:
         point = _vector("a holder's point", point)
         self._check_within("a holder", point)
-        return holder_patch(self.vertices, self.loadable, point, self.contact_radius)
+        return holder_patch(self.grip_points, self.grippable, point, self.contact_radius)
 
     def _loads_of(self, model, h, region) -> None:
         """The region's load vertices, their unit loads, and its triangles: the loadable
@@ -405,7 +420,7 @@ class HyperReducedPhysics:
         ):
             d = _vector("a holder's displacement (mm)", d, MAX_LENGTH, self._point)
         t = self.holder_targets[holder]
-        if self.holder_vertices[holder] < 3:
+        if self.holder_nodes[holder] < 3:
             t.reshape(-1, 3)[:] = d
         else:
             t[:3], t[3:] = d, 0.0
@@ -459,6 +474,6 @@ class HyperReducedPhysics:
         patch of one or two vertices, the sum of each vertex's)."""
         holder = _index("holder", holder, len(self.holders))
         gap = self.holders[holder] @ self.q - self.holder_targets[holder]
-        if self.holder_vertices[holder] < 3:  # each vertex held: the sum of their reactions
+        if self.holder_nodes[holder] < 3:  # each node held: the sum of their reactions
             return -self.hold_stiffness * gap.reshape(-1, 3).sum(axis=0)
         return -self.hold_stiffness * gap[:3]  # the mean's (the rotation's sum to zero)

@@ -59,8 +59,9 @@ FORMAT = "hapticrom"
 # 2.3: the depth grid to the deepest sample, each sample's solved depth (samples 2.2); the
 # tool's linear stiffness at the loadable vertices (contact_fields 1.1);
 # 2.4: and at the midpoints of the loadable triangles' edges (contact_fields 1.2);
-# 2.5: the hyper-reduced physics of regions of the surface (hyperreduced).
-FORMAT_VERSION = (2, 5)
+# 2.5: the hyper-reduced physics of regions of the surface (hyperreduced);
+# 2.6: the nodes its holders grip, P2's mid-side nodes too (hyperreduced 1.1).
+FORMAT_VERSION = (2, 6)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -299,7 +300,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "hyperreduced",
         "ecsw-physics",
-        (1, 0),
+        (1, 1),
         _fields(
             ("centres", "f", ("Hr", 3), "mm", "the centre of each region"),
             ("radii", "f", ("Hr",), "mm", "how far from its centre a region's tools may be",
@@ -325,6 +326,14 @@ SCHEMA: tuple[Group, ...] = (
              "index:V"),
             ("tool_loads", "f", ("Hl", 3, "Hq"), "1",
              "the reduced load of a unit force (N) along x, y, z of the tool centred there"),
+        ) + _fields(
+            # group version 1.1 (format 2.6): the nodes a holder grips, mid-side ones too
+            ("grip_offsets", "i", ("Hr1",), "1",
+             "region r's grip nodes: rows offsets[r]:[r+1]", "nonnegative"),
+            ("grip_nodes", "f", ("Hg", 3), "mm", "a node of the loadable facets a holder may grip"),
+            ("grip_rows", "f", ("Hg", 3, "Hq"), "1",
+             "the region's displacement basis at that node"),
+            required=False,
         ),
         required=False,
         attrs=(

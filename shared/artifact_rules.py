@@ -619,17 +619,24 @@ MAX_TANGENT = 1e15  # N/mm: the constant tangent with a holder's penalty (1e4 x 
 
 
 def _hyperreduced(artifact) -> None:
-    """``hyperreduced``: offsets that split the elements and load vertices into the
-    regions (each at least one of each), n + n_p the tangent's size, the cell's node count,
-    each element's packed law, each region's load vertices distinct and loadable, and
-    bounds on every value (above)."""
+    """``hyperreduced``: offsets that split the elements, load vertices and (with the other two
+    grip datasets) grip nodes into the regions (each at least one of each), n + n_p the
+    tangent's size, the cell's node count, each element's packed law, each region's load
+    vertices distinct and loadable, and bounds on every value (above)."""
     if "hyperreduced" not in artifact.groups:
         return
     h, sym = artifact["hyperreduced"], artifact.symbols
     regions = sym["Hr"]
     if regions < 1:
         raise _fail(artifact, "hyperreduced/centres: the group holds no region")
-    for name, total in (("element_offsets", sym["He"]), ("load_offsets", sym["Hl"])):
+    offsets = [("element_offsets", sym["He"]), ("load_offsets", sym["Hl"])]
+    grip = [name for name in ("grip_offsets", "grip_nodes", "grip_rows") if name in h]
+    if grip and len(grip) < 3:
+        raise _fail(artifact, "hyperreduced: grip_offsets, grip_nodes and grip_rows go together "
+                              f"(the file has only {', '.join(grip)})")  # fmt: skip
+    if grip:
+        offsets.append(("grip_offsets", sym["Hg"]))
+    for name, total in offsets:
         o = h[name].astype(np.int64)  # unsigned offsets would wrap in np.diff
         if len(o) != regions + 1 or o[0] != 0 or o[-1] != total or np.any(np.diff(o) < 1):
             raise _fail(artifact, f"hyperreduced/{name} must rise from 0 to {total} in "
@@ -649,6 +656,7 @@ def _hyperreduced(artifact) -> None:
               ("weights", MAX_WEIGHT), ("basis_rows", BASIS_BOUND),
               ("pressure_rows", BASIS_BOUND), ("surface_basis", BASIS_BOUND),
               ("tool_loads", MAX_TOOL_LOAD), ("constant_tangent", MAX_TANGENT))  # fmt: skip
+    bounds += (("grip_nodes", MAX_LENGTH), ("grip_rows", BASIS_BOUND)) if grip else ()
     for name, bound in bounds:
         if np.max(np.abs(h[name]), initial=0.0) > bound:
             raise _fail(artifact, f"hyperreduced/{name} has values beyond +-{bound:g}")

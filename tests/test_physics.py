@@ -16,11 +16,17 @@ import hapticrom.offline  # noqa: F401 - h5py and MPI first
 from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
+    group_nodes,
     mesh_elements,
     rest_tangents,
     training_matrix,
 )
-from hapticrom.offline.reduce.ecsw_physics import add_physics, physics_group, region_arrays
+from hapticrom.offline.reduce.ecsw_physics import (
+    GripNodes,
+    add_physics,
+    physics_group,
+    region_arrays,
+)
 from hapticrom.offline.reduce.tool_stiffness import ToolLoads
 from hapticrom.online.dense_solve import lu_solve
 from hapticrom.online.haptic_newton import HapticNewton
@@ -51,10 +57,12 @@ def trained(force_campaign, force_artifact, tmp_path_factory):
                                            rest=rest)}  # fmt: skip
     surface = read_artifact(force_artifact)["surface"]
     loads = ToolLoads(config)
+    grip = GripNodes(*group_nodes(config.problem.mesh.file, config.load.surface))
     root = tmp_path_factory.mktemp("physics")
     paths, regions = {}, {}
     for name, model in models.items():
-        regions[name] = region_arrays(mesh, model, Phi, surface, attrs["point"], RADIUS, loads)
+        regions[name] = region_arrays(mesh, model, Phi, surface, attrs["point"], RADIUS, loads,
+                                      grip, config.load.contact_radius)  # fmt: skip
         paths[name] = add_physics(force_artifact, root / f"{name}.h5", [regions[name]],
                                   mesh.reference.cell, 1e-4)  # fmt: skip
     path = (data, np.asarray(attrs["point"], float))
@@ -190,13 +198,102 @@ def test_a_holder_on_two_vertices_holds_each_and_sums_their_reactions(trained):
     assert grip is not None
     force = data["load_vector"].reshape(-1, 3).sum(axis=0)
     held = pressed(model.physics(holders=[grip], slices=1), point, force, data["load_factor"])
-    assert held.holder_vertices == [2] and held.holders[0].shape[0] == 6
+    assert held.holder_nodes == [2] and held.holders[0].shape[0] == 6
     u = np.zeros_like(held.vertices)
     held.surface_displacement(u)
     patch = loadable[np.linalg.norm(vertices[loadable] - grip, axis=1) <= radius]
     expected = -held.hold_stiffness * u[patch].sum(axis=0)
     assert np.allclose(held.holder_force(0), expected, rtol=1e-10, atol=0)
     assert np.dot(held.holder_force(0), force) < 0  # it pulls back against the press
+
+
+def test_a_holder_grips_the_nodes_the_full_orders_holder_holds(trained):
+    """At grips 1-2 mm from the region's centre, the runtime's patch is the full order's
+    displacement-controlled tool's (``ContactPatch.blocks``: the nodes of the loadable
+    facets within the tool's radius, the mid-side nodes of P2 too): the same positions,
+    and the grip rows are the basis at those nodes."""
+    from dolfinx import fem
+    from mpi4py import MPI
+
+    from hapticrom.offline.fe.contact import ContactPatch
+    from hapticrom.offline.fe.dofs import CanonicalOrder
+    from hapticrom.offline.fe.organ import load_organ
+    from hapticrom.online.element_kernels import CELLS
+
+    config, (_, point), Phi, _, paths, _, _ = trained
+    model = load(paths["galerkin"], isolate=False)
+    organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
+    V = fem.functionspace(organ.mesh, ("Lagrange", CELLS[organ.cell_type], (3,)))
+    canonical, coordinates = CanonicalOrder(V).canonical_of_global, V.tabulate_dof_coordinates()
+    vertices, radius, n = (
+        model.artifact["surface"]["vertices"],
+        config.load.contact_radius,
+        Phi.shape[1],
+    )
+    grips = vertices[(np.linalg.norm(vertices - point, axis=1) > 1.0)
+                     & (np.linalg.norm(vertices - point, axis=1) < 2.0)][:4]  # fmt: skip
+    assert len(grips) == 4
+    mid_side = 0
+    for grip in grips:
+        physics = model.physics(holders=[grip], slices=1)
+        patch = physics._holder_patch(grip)
+        blocks = ContactPatch.around_point(organ, grip, radius, config.load.surface).blocks(V)
+        order = np.lexsort(coordinates[blocks].T)
+        mine = np.lexsort(physics.grip_points[patch].T)
+        assert np.allclose(physics.grip_points[patch][mine], coordinates[blocks][order], atol=1e-12)
+        rows = physics.grip_basis.reshape(-1, 3, n)[patch][mine]
+        assert np.array_equal(rows, Phi.reshape(-1, 3, n)[canonical[blocks][order]])
+        on_surface = np.linalg.norm(physics.grip_points[patch][:, None] - vertices, axis=2)
+        mid_side += int((on_surface.min(axis=1) > 1e-9).sum())
+    if organ.cell_type == "tetrahedron":  # P2: the mid-side nodes, which the surface lacks
+        assert mid_side > 0
+
+
+def test_a_file_without_grip_nodes_grips_the_loadable_vertices(trained, tmp_path):
+    """A group 1.0 file (no grip datasets): a holder grips the loadable surface vertices
+    within the tool's radius, their surface rows."""
+    config, (_, point), _, _, _, _, _ = trained
+    path = tampered(trained, tmp_path, {name: lambda a: None for name in
+                                        ("grip_offsets", "grip_nodes", "grip_rows")})  # fmt: skip
+    model = load(path, isolate=False)
+    surface = model.artifact["surface"]
+    vertices = surface["vertices"]
+    grip = vertices[np.argmin(np.abs(np.linalg.norm(vertices - point, axis=1) - 1.5))]
+    physics = model.physics(holders=[grip], slices=1)
+    assert physics.grip_points is physics.vertices
+    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    near = loadable[np.linalg.norm(vertices[loadable] - grip, axis=1) <= config.load.contact_radius]
+    assert np.array_equal(physics._holder_patch(grip), near)
+
+
+def lifted(physics, lift, ramp=40, hold=60):
+    """``physics``' holder 0 moved to ``lift`` (3,) mm in ``ramp`` steps, then held."""
+    for factor in np.linspace(0.0, 1.0, ramp + 1)[1:]:
+        physics.move_holder(0, factor * lift)
+        assert physics.step()
+    for _ in range(hold):
+        assert physics.step()
+    return physics
+
+
+def trainers_lift(models, Phi, physics) -> np.ndarray:
+    """The trainer's Galerkin model with ``physics``' holder penalty k A^T A and its load
+    k A^T t solved (Newton, 1e-10): the state the runtime must settle on."""
+    A, t = physics.holders[0], physics.holder_targets[0]
+    trainers, n = models["galerkin"], Phi.shape[1]
+    constant = trainers.linear.copy()
+    try:
+        trainers.linear[:n, :n] += physics.hold_stiffness * (A.T @ A)
+        pull = physics.hold_stiffness * (A.T @ t)
+        return trainers.solve(pull, np.linspace(0.1, 1.0, 10), tolerance=1e-10)[0][-1]
+    finally:
+        trainers.linear[:] = constant
+
+
+def outward(vertices, grip, length) -> np.ndarray:
+    """(3,) mm: ``length`` along the grip's direction from the surface's mean (out of it)."""
+    away = grip - vertices.mean(axis=0)
+    return length * away / np.linalg.norm(away)
 
 
 def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
@@ -207,15 +304,9 @@ def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
     config, (data, point), Phi, models, paths, _, _ = trained
     model = load(paths["galerkin"], isolate=False)
     vertices = model.artifact["surface"]["vertices"]
-    k = np.argmin(np.abs(np.linalg.norm(vertices - point, axis=1) - 1.5))
-    grip = vertices[k]
-    lift = 0.05 * (grip - vertices.mean(axis=0)) / np.linalg.norm(grip - vertices.mean(axis=0))
-    physics = model.physics(holders=[grip], slices=1)
-    for factor in np.linspace(0.0, 1.0, 41)[1:]:
-        physics.move_holder(0, factor * lift)
-        assert physics.step()
-    for _ in range(60):
-        assert physics.step()
+    grip = vertices[np.argmin(np.abs(np.linalg.norm(vertices - point, axis=1) - 1.5))]
+    lift = outward(vertices, grip, 0.05)
+    physics = lifted(model.physics(holders=[grip], slices=1), lift)
     before = [physics.load.copy(), physics.holder_targets[0].copy(), physics.holder_loads.copy()]
     for bad in ([np.nan, 0, 0], np.array([np.nan, 0, 0]), np.array([0, 0, 2e4]), [0, 0], "up"):
         with pytest.raises(InputError, match="displacement"):
@@ -224,19 +315,11 @@ def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
         physics.move_holder(1, lift)
     after = [physics.load, physics.holder_targets[0], physics.holder_loads]
     assert all(np.array_equal(a, b) for a, b in zip(before, after, strict=True))
-    A, t = physics.holders[0], physics.holder_targets[0]
-    trainers, n = models["galerkin"], Phi.shape[1]
-    constant = trainers.linear.copy()
-    try:
-        trainers.linear[:n, :n] += physics.hold_stiffness * (A.T @ A)
-        pull = physics.hold_stiffness * (A.T @ t)
-        expected = trainers.solve(pull, np.linspace(0.1, 1.0, 10), tolerance=1e-10)[0][-1]
-    finally:
-        trainers.linear[:] = constant
+    expected = trainers_lift(models, Phi, physics)
     assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
     u = np.zeros_like(vertices)
     physics.surface_displacement(u)
-    assert physics.holder_vertices[0] < 3  # the coarse mesh: each vertex held
+    assert physics.holder_nodes[0] < 3  # the coarse mesh: each node held
     surface = model.artifact["surface"]
     loadable = np.unique(surface["triangles"][surface["groups"] == 1])
     patch = loadable[
@@ -251,6 +334,37 @@ def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
         physics.press(0, point, factor * force)
         assert physics.step()
     assert physics.refreshes == 0
+
+
+def test_a_wide_holder_lifts_its_patchs_mean_as_the_trainers_model(trained):
+    """A grip of three nodes or more (the tool's radius widened 2.5 times in the loaded
+    model: on the coarse mesh a tool grips one node), held by its mean and rotation (6
+    rows), moved 0.05 mm out of the surface: the runtime settles on the trainer's model
+    with that penalty and load (1e-8), the patch's mean displacement (read from the drawn
+    surface) follows the grip to 1e-3 of the lift, and the holder's force is the penalty
+    on that mean's gap, along the lift."""
+    config, (_, point), Phi, models, paths, _, _ = trained
+    model = load(paths["galerkin"], isolate=False)
+    radius = 2.5 * config.load.contact_radius
+    model.artifact.group_attrs["model"]["contact_radius"] = radius  # in memory only
+    vertices = model.artifact["surface"]["vertices"]
+    grip = vertices[np.argmin(np.abs(np.linalg.norm(vertices - point, axis=1) - 1.5))]
+    lift = outward(vertices, grip, 0.05)
+    physics = lifted(model.physics(holders=[grip], slices=1), lift)
+    assert physics.holder_nodes[0] >= 3 and physics.holders[0].shape[0] == 6
+    expected = trainers_lift(models, Phi, physics)
+    assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
+    u = np.zeros_like(vertices)
+    physics.surface_displacement(u)
+    surface = model.artifact["surface"]
+    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+    patch = loadable[np.linalg.norm(vertices[loadable] - grip, axis=1) <= radius]
+    assert len(patch) == physics.holder_nodes[0]
+    mean = u[patch].mean(axis=0)
+    assert np.linalg.norm(mean - lift) <= 1e-3 * np.linalg.norm(lift)
+    pull = physics.holder_force(0)
+    assert np.allclose(pull, -physics.hold_stiffness * (mean - lift), rtol=1e-9, atol=0)
+    assert np.dot(pull, lift) > 0
 
 
 def test_refused_input_changes_nothing(trained, force_artifact):
@@ -279,7 +393,7 @@ def test_refused_input_changes_nothing(trained, force_artifact):
                             ({"iterations": 1000}, "iterations"), ({"slices": 2.0}, "slices"),
                             ({"holders": None}, "holders must be"),
                             ({"holders": [far]}, "outside the region"),
-                            ({"holders": [point + [0, 0, 1.0]]}, "no loadable surface vertex"),
+                            ({"holders": [point + [0, 0, 1.0]]}, "no loadable surface node"),
                             ({"holders": [[np.inf, 0, 0]]}, "holder")):  # fmt: skip
         with pytest.raises(InputError, match=message):
             model.physics(**kwargs)
@@ -336,12 +450,15 @@ def test_a_small_region_steps_with_fewer_slices(trained, tmp_path):
 
 
 def tampered(trained, tmp_path, change, attrs=None):
-    """The Galerkin region's group with ``change`` (name -> function of the array) written
+    """The Galerkin region's group with ``change`` (name -> function of the array, or of
+    None: the dataset left out) written
     and read back: the writer's read-back refuses what the reader refuses."""
     _, _, _, _, paths, regions, cell = trained
     group = physics_group([regions["galerkin"]], cell, 1e-4)
     for name, edit in change.items():
         group[name] = edit(np.array(group[name]))
+        if group[name] is None:  # the dataset left out
+            del group[name]
     group["attrs"].update(attrs or {})
     content, root = with_group(read_artifact(paths["galerkin"]), "hyperreduced", group)
     write_artifact(tmp_path / "tampered.h5", content, root)
@@ -380,11 +497,17 @@ def _set(index, value):
                 "surface_basis": lambda a: a[:0],
                 "element_offsets": lambda a: a[:1],
                 "load_offsets": lambda a: a[:1],
+                "grip_offsets": lambda a: a[:1],
             },
             None,
             "no region",
         ),
         ({"element_nodes": _set((0, 0, 0), np.nan)}, None, "NaN"),
+        ({"grip_offsets": _set(-1, 1)}, None, "grip_offsets must rise"),
+        ({"grip_rows": _set((0, 0, 0), 1.5)}, None, "grip_rows has values beyond"),
+        ({"grip_nodes": _set((0, 0), 2e4)}, None, "grip_nodes has values beyond"),
+        ({"grip_nodes": _set((0, 0), np.nan)}, None, "NaN"),
+        ({"grip_rows": lambda a: None}, None, "go together"),
         ({}, {"cell": "tetrahedron"}, "nodes an element"),
         ({}, {"hold_stiffness": -1.0}, "hold_stiffness"),
     ],

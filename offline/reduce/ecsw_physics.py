@@ -2,14 +2,16 @@
 the runtime steps online (``online/physics.py``), written from the trainer's
 :class:`~hapticrom.offline.reduce.ecsw_model.HyperReducedModel` of each region.
 
-A region is what ``bench/ecsw_tradeoff.py`` measures at one held-out position: a reduced mixed
-model on bases Phi (N, n), Psi (cells, n_p) built about a centre, its internal forces summed
-over ECSW's sampled elements. The runtime needs, per region: the sampled elements' reference
-nodes, weights, basis rows and packed laws (its sums, ``online/hyperreduced.py``); the constant
-tangent; the basis at the surface vertices (what it draws, and where a holder grips); and the
-reduced load of a unit force of the tool centred at each loadable vertex within the region's
-radius (``tool_loads``: Phi^T g / W, g the campaign's force tool's load, exactly as the full
-order spreads it, so a press at a vertex is the full order's load projected).
+A region is what ``bench/ecsw_tradeoff.py`` measures at one held-out position: a reduced
+mixed model on bases Phi (N, n), Psi (cells, n_p) built about a centre, its internal forces
+summed over ECSW's sampled elements. The runtime needs, per region: the sampled elements'
+reference nodes, weights, basis rows and packed laws (its sums, ``online/hyperreduced.py``);
+the constant tangent; the basis at the surface vertices (what it draws); the basis at the
+nodes a holder may grip (:class:`GripNodes`: every node of the loadable facets within reach,
+the mid-side nodes of P2 too, as the full order's holder holds them); and the reduced load
+of a unit force of the tool centred at each loadable vertex within the region's radius
+(``tool_loads``: Phi^T g / W, g the campaign's force tool's load, exactly as the full order
+spreads it, so a press at a vertex is the full order's load projected).
 
 Steps, as a reductor's: :func:`region_arrays` (one region's arrays from its model),
 :func:`tool_loads` (the loads at the region's vertices), :func:`physics_group` (the regions
@@ -31,6 +33,22 @@ HOLD_STIFFNESS = 1e4  # a holder's penalty, of the stiffest tool's linear stiffn
 
 
 @dataclass(frozen=True)
+class GripNodes:
+    """The nodes a holder may grip: every displacement node of the organ's loadable facets
+    (vertices, and the edges' mid-side nodes on P2), their canonical indices and positions
+    (mm): the candidates of the full order's displacement-controlled tool
+    (``ContactPatch.blocks``), which holds those within its radius
+    (``ecsw_model.group_nodes(mesh_file, "loadable")``)."""
+
+    nodes: np.ndarray  # (G,) canonical node indices
+    points: np.ndarray  # (G, 3) mm
+
+    def within(self, centre, radius) -> np.ndarray:
+        """The rows within ``radius`` (mm) of ``centre``."""
+        return np.flatnonzero(np.linalg.norm(self.points - centre, axis=1) <= radius)
+
+
+@dataclass(frozen=True)
 class PhysicsRegion:
     """One region's arrays, as the group stores them (names as ``ARTIFACT.md``'s)."""
 
@@ -46,14 +64,20 @@ class PhysicsRegion:
     load_vertices: np.ndarray  # (L,) surface vertex indices
     tool_loads: np.ndarray  # (L, 3, n) per N
     hold_stiffness: float  # N/mm
+    grip_nodes: np.ndarray  # (G, 3) mm: the grip nodes within reach of the region's holders
+    grip_rows: np.ndarray  # (G, 3, n)
 
 
-def region_arrays(mesh, model, Phi, surface, centre, radius, loads) -> PhysicsRegion:
+def region_arrays(mesh, model, Phi, surface, centre, radius, loads, grip: GripNodes,
+                  reach: float) -> PhysicsRegion:  # fmt: skip
     """A region about ``centre`` (mm) of tools within ``radius`` (mm): ``model`` (a
     HyperReducedModel on ``mesh``'s elements and the basis ``Phi`` (N, n)), ``surface`` the
     artifact's surface group (vertices, triangles, nodes, groups), ``loads`` a
-    ``tool_stiffness.ToolLoads`` (the campaign's force tool)."""
+    ``tool_stiffness.ToolLoads`` (the campaign's force tool), ``grip`` the organ's
+    :class:`GripNodes`, of which the region keeps those within ``radius + reach`` (mm:
+    the tool's contact radius) of its centre."""
     centre = np.asarray(centre, dtype=float)
+    near = grip.within(centre, radius + reach)
     s = model.elements
     dN, dV, Phi_e, Psi_e, params, weights = model.sample
     vertices = region_vertices(surface, centre, radius)
@@ -71,6 +95,8 @@ def region_arrays(mesh, model, Phi, surface, centre, radius, loads) -> PhysicsRe
         load_vertices=vertices,
         tool_loads=tool_loads_,
         hold_stiffness=hold_stiffness(model, tool_loads_),
+        grip_nodes=np.ascontiguousarray(grip.points[near], dtype=float),
+        grip_rows=np.ascontiguousarray(Phi.reshape(-1, 3, Phi.shape[1])[grip.nodes[near]]),
     )
 
 
@@ -125,7 +151,7 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
     if not regions:
         raise InputError("no region to write")
     offsets = [np.cumsum([0] + [len(getattr(r, name)) for r in regions])
-               for name in ("weights", "load_vertices")]  # fmt: skip
+               for name in ("weights", "load_vertices", "grip_nodes")]  # fmt: skip
 
     def stack(name):
         return np.concatenate([getattr(r, name) for r in regions])
@@ -138,6 +164,7 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
         "radii": np.array([r.radius for r in regions]),
         "element_offsets": offsets[0].astype(np.int64),
         "load_offsets": offsets[1].astype(np.int64),
+        "grip_offsets": offsets[2].astype(np.int64),
         **{
             name: stack(name)
             for name in (
@@ -148,6 +175,8 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
                 "parameters",
                 "load_vertices",
                 "tool_loads",
+                "grip_nodes",
+                "grip_rows",
             )
         },  # fmt: skip
         "constant_tangent": np.array([r.constant_tangent for r in regions]),

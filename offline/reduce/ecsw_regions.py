@@ -34,8 +34,13 @@ from hapticrom.offline.reduce.ecsw_model import (
     supremizers,
     training_matrix,
 )
-from hapticrom.offline.reduce.ecsw_physics import PhysicsRegion, region_arrays, region_vertices
-from hapticrom.online.physics import holder_patch, holder_rows, loadable_vertices
+from hapticrom.offline.reduce.ecsw_physics import (
+    GripNodes,
+    PhysicsRegion,
+    region_arrays,
+    region_vertices,
+)
+from hapticrom.online.physics import holder_patch, holder_rows
 from hapticrom.shared.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -200,22 +205,23 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
             np.vstack([d["pressure"] for d in solved]).T)  # fmt: skip
 
 
-def holder_responses(operators, surface, point, radius, free) -> np.ndarray:
-    """(N, 6, or 3 a vertex): the linear responses at rest to a unit force along x, y, z
-    spread evenly over a holder's patch at ``point`` (mm; the runtime's ``holder_patch``)
-    and to unit couples about x, y, z on it; on a patch of one or two vertices (which the
-    runtime holds each) to a unit force at each along x, y, z. Zero outside the ``free``
-    rows. A held region's basis carries them: the holder's reaction (without them a
-    holder nearly locks a region built from presses alone: README, stop 43)."""
-    patch = holder_patch(surface["vertices"], loadable_vertices(surface), point, radius)
-    nodes = np.asarray(surface["nodes"])[patch]
+def holder_responses(operators, grip: GripNodes, point, radius, free) -> np.ndarray:
+    """(N, 6, or 3 a node): the linear responses at rest to a unit force along x, y, z
+    spread evenly over a holder's patch at ``point`` (mm: the ``grip`` nodes within
+    ``radius``, the runtime's ``holder_patch``) and to unit couples about x, y, z on it; on
+    a patch of one or two nodes (which the runtime holds each) to a unit force at each
+    along x, y, z. Zero outside the ``free`` rows. A held region's basis carries them: the
+    holder's reaction (without them a holder nearly locks a region built from presses
+    alone: README, stop 43)."""
+    patch = holder_patch(grip.points, np.arange(len(grip.nodes)), point, radius)
+    nodes = grip.nodes[patch]
     F = np.zeros((operators.A.shape[0], 3 * len(nodes) if len(nodes) < 3 else 6))
     columns = F.reshape(-1, 3, F.shape[1])
     if len(nodes) < 3:
         for k, node in enumerate(nodes):
             columns[node, :, 3 * k : 3 * k + 3] = np.eye(3)
     else:
-        r = surface["vertices"][patch] - surface["vertices"][patch].mean(axis=0)
+        r = grip.points[patch] - grip.points[patch].mean(axis=0)
         for axis, e in enumerate(np.eye(3)):
             columns[nodes, axis, axis] = 1.0 / len(nodes)
             columns[nodes, :, 3 + axis] = np.cross(e, r) / (r**2).sum()
@@ -248,11 +254,12 @@ def region_model(mesh, rest, Phi, Psi, U, P, tolerance) -> HyperReducedModel:
     return HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights, rest=rest)
 
 
-def build_regions(config, mesh, rest, surface, loads, sites, recipe: RegionRecipe):
+def build_regions(config, mesh, rest, surface, grip: GripNodes, loads, sites,
+                  recipe: RegionRecipe):  # fmt: skip
     """The :class:`PhysicsRegion` of each of ``sites`` (:class:`RegionSite`; solves as
     ``region_snapshots``; a held site's basis also carries its holder's responses,
-    ``holder_responses``; a two-point site's centre is their midpoint, its radius
-    ``recipe.radius`` beyond each), logged as it goes."""
+    ``holder_responses`` on the ``grip`` nodes; a two-point site's centre is their
+    midpoint, its radius ``recipe.radius`` beyond each), logged as it goes."""
     solves = RegionSolves(config, recipe.distances, recipe.per_distance)
     operators = rest_operators(mesh, rest)
     regions: list[PhysicsRegion] = []
@@ -262,13 +269,14 @@ def build_regions(config, mesh, rest, surface, loads, sites, recipe: RegionRecip
         extra = None
         if site.kind == "held":
             free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
-            extra = holder_responses(operators, surface, site.points[1],
+            extra = holder_responses(operators, grip, site.points[1],
                                      config.load.contact_radius, free)  # fmt: skip
         Phi, Psi = region_bases(operators, U, P, recipe, extra)
         model = region_model(mesh, rest, Phi, Psi, U, P, recipe.tolerance)
         centre = site.points.mean(axis=0)  # two points' midpoint: tools within radius of each
         radius = recipe.radius + float(np.linalg.norm(site.points[-1] - site.points[0])) / 2
-        regions.append(region_arrays(mesh, model, Phi, surface, centre, radius, loads))
+        regions.append(region_arrays(mesh, model, Phi, surface, centre, radius, loads, grip,
+                                     config.load.contact_radius))  # fmt: skip
         log.info("region %d of %d (%s) at %s mm: %d states, %d + %d modes, %d of %d elements "
                  "(%.0f s)", k + 1, len(sites), site.kind, np.round(site.points, 3).tolist(),
                  U.shape[1], Phi.shape[1], Psi.shape[1], model.sampled_elements, len(mesh.X),
@@ -282,7 +290,7 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
     ``model_path``'s artifact (which must have been reduced from it) to ``out``. The
     campaign must be force-controlled: its tool's load is what the regions' tools press
     with."""
-    from hapticrom.offline.reduce.ecsw_model import mesh_elements, rest_tangents
+    from hapticrom.offline.reduce.ecsw_model import group_nodes, mesh_elements, rest_tangents
     from hapticrom.offline.reduce.ecsw_physics import add_physics
     from hapticrom.offline.reduce.inputs import campaign_config
     from hapticrom.offline.reduce.tool_stiffness import ToolLoads
@@ -305,16 +313,17 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
                          f"{recipe.state_modes} state or {recipe.pressure_modes} pressure "
                          "modes: more solves, or fewer modes")  # fmt: skip
     surface = artifact["surface"]
+    grip = GripNodes(*group_nodes(config.problem.mesh.file, config.load.surface))
     for site in sites:  # before any solve: each site has loadable surface within the radius
         for point in site.points:
             region_vertices(surface, point, recipe.radius)
         if site.kind == "held":  # and a holder's site a patch the runtime can hold
-            patch = holder_patch(surface["vertices"], loadable_vertices(surface),
-                                 site.points[1], config.load.contact_radius)  # fmt: skip
-            holder_rows(np.zeros((surface["vertices"].size, 1)), surface["vertices"], patch)
+            patch = holder_patch(grip.points, np.arange(len(grip.nodes)), site.points[1],
+                                 config.load.contact_radius)  # fmt: skip
+            holder_rows(np.zeros((grip.points.size, 1)), grip.points, patch)
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)
-    regions = build_regions(config, mesh, rest, artifact["surface"], ToolLoads(config),
-                            sites, recipe)  # fmt: skip
+    regions = build_regions(config, mesh, rest, surface, grip, ToolLoads(config), sites,
+                            recipe)  # fmt: skip
     add_physics(model_path, out, regions, mesh.reference.cell, recipe.tolerance)
     return regions
