@@ -13,9 +13,10 @@ pressing tools and holders (issue 18).
 A pressing tool's load is the campaign's force tool's (its dead load spread over a disk of
 ``contact_radius``), stored per unit force at the region's loadable vertices and blended
 linearly over the surface triangle nearest the point; a holder keeps the rigid motion (the
-mean displacement and the least-squares rotation) of the loadable surface's nodes within
-``contact_radius`` of its point (each of them if fewer than three; the region's grip nodes,
-P2's mid-side nodes too, or in a format 2.5 file the vertices), by a penalty in the
+mean displacement and the least-squares rotation) and the cupping of the loadable surface's
+nodes within ``contact_radius`` of its point (each of them if fewer than three; the
+region's grip nodes, P2's mid-side nodes too, or in a format 2.5 file the vertices and no
+cupping: ``holder_rows``), by a penalty in the
 constant tangent (fixed for the physics' life: a holder that grips elsewhere is a new
 physics); a moved holder's penalty pulls those rows towards its moved grip (a load). A
 region is built for its holders (``hapticrom physics --held``, ``--lift``): on a region of
@@ -83,7 +84,7 @@ def holder_patch(points, grippable, point, radius) -> np.ndarray:
     """The nodes a holder at ``point`` grips: those of ``grippable`` (indices into
     ``points`` (G, 3) mm: the loadable surface's) within ``radius`` (mm), as the full
     order's displacement-controlled tool holds its nodes (``ContactPatch.blocks``); none
-    is refused."""
+    is refused (where the full order holds the nearest node instead)."""
     near = grippable[np.linalg.norm(points[grippable] - point, axis=1) <= radius]
     if not len(near):
         raise InputError(f"a holder at {np.round(point, 4).tolist()} mm has no loadable "
@@ -91,10 +92,11 @@ def holder_patch(points, grippable, point, radius) -> np.ndarray:
     return near
 
 
-def holder_rows(basis, points, patch) -> np.ndarray:
+def holder_rows(basis, points, patch, flat: bool = False) -> np.ndarray:
     """The rows a holder keeps still, in the ``basis`` (3G, n) of ``points`` (G, 3) mm: on
     a ``patch`` of three nodes or more, its mean displacement and least-squares rotation
-    (times the patch's RMS radius, mm; 6 rows), on one or two (a coarse mesh) each node's
+    (times the patch's RMS radius, mm; 6 rows) and, if ``flat``, its cupping
+    (``flatness_weights``; 3 rows more), on one or two (a coarse mesh) each node's
     displacement (3 a node)."""
     n = basis.shape[1]
     rows = basis.reshape(-1, 3, n)[patch]  # (patch, 3, n)
@@ -104,7 +106,24 @@ def holder_rows(basis, points, patch) -> np.ndarray:
     if np.linalg.cond((r**2).sum() * np.eye(3) - r.T @ r) > 1e8:
         raise InputError(f"a holder grips nodes {patch.tolist()} in a line: its rotation "
                          "is not defined")  # fmt: skip
-    return np.vstack([rows.mean(axis=0), rotation_rows(points[patch], rows)])
+    held = [rows.mean(axis=0), rotation_rows(points[patch], rows)]
+    w = flatness_weights(points[patch]) if flat else None
+    if w is not None:
+        held.append(np.einsum("p,pcn->cn", w, rows))
+    return np.vstack(held)
+
+
+def flatness_weights(points) -> np.ndarray | None:
+    """(P,): the weights of a patch's cupping rows, sum_i w_i u_i with w_i = |r_i|^2 less
+    its mean (r_i about the centroid), of unit norm: zero for any translation, the
+    displacement of the rim against the middle's. The full order's holder moves every node
+    it holds by the same vector: a patch held by its mean and rotation alone cups under a
+    lift (measured on the liver: the middle node 0.55 mm above the grip, the rim 0.3 mm
+    below, of 2 mm). None for nodes all as far from their centroid (nothing to hold)."""
+    s = ((points - points.mean(axis=0)) ** 2).sum(axis=1)
+    w = s - s.mean()
+    norm = np.linalg.norm(w)
+    return w / norm if norm > 1e-9 * s.mean() else None
 
 
 def rotation_rows(points, rows) -> np.ndarray:
@@ -253,7 +272,10 @@ class HyperReducedPhysics:
         if isinstance(holders, str) or not hasattr(holders, "__iter__"):
             raise InputError(f"holders must be a list of points (mm), got {holders!r}")
         patches = [self._holder_patch(p) for p in holders]
-        self.holders = [holder_rows(self.grip_basis, self.grip_points, q) for q in patches]
+        # the file's regions were built for a hold of the patch's cupping too (ARTIFACT.md)
+        self.holds_flat = bool(attrs.get("holder_cupping", 0))
+        self.holders = [holder_rows(self.grip_basis, self.grip_points, q, self.holds_flat)
+                        for q in patches]  # fmt: skip
         self.holder_nodes = [len(q) for q in patches]  # under 3: each node held
         for A in self.holders:
             linear[:n, :n] += self.hold_stiffness * (A.T @ A)
@@ -409,7 +431,8 @@ class HyperReducedPhysics:
         """Holder ``holder`` moves its grip by ``displacement`` (3,) mm from where it
         gripped (grasp-and-lift; zero: held in place), without turning it, from the next
         step on: the penalty's rest point moves, a load k A^T t (t the held rows' target:
-        the patch's mean at ``displacement`` and no rotation, or each vertex there)."""
+        the patch's mean at ``displacement``, no rotation and no cupping, or each node
+        there)."""
         holder = _index("holder", holder, len(self.holders))
         d = displacement  # a 1-D float64 array within bounds is read as is (no copy)
         if (
@@ -476,4 +499,4 @@ class HyperReducedPhysics:
         gap = self.holders[holder] @ self.q - self.holder_targets[holder]
         if self.holder_nodes[holder] < 3:  # each node held: the sum of their reactions
             return -self.hold_stiffness * gap.reshape(-1, 3).sum(axis=0)
-        return -self.hold_stiffness * gap[:3]  # the mean's (the rotation's sum to zero)
+        return -self.hold_stiffness * gap[:3]  # the mean's (rotation's, cupping's sum to 0)

@@ -60,7 +60,8 @@ FORMAT = "hapticrom"
 # tool's linear stiffness at the loadable vertices (contact_fields 1.1);
 # 2.4: and at the midpoints of the loadable triangles' edges (contact_fields 1.2);
 # 2.5: the hyper-reduced physics of regions of the surface (hyperreduced);
-# 2.6: the nodes its holders grip, P2's mid-side nodes too (hyperreduced 1.1).
+# 2.6: the nodes its holders grip, P2's mid-side nodes too, and whether a holder keeps its
+# patch's cupping (hyperreduced 1.1).
 FORMAT_VERSION = (2, 6)
 # What a reader says about a file of another major version.
 REREDUCE = (
@@ -341,6 +342,8 @@ SCHEMA: tuple[Group, ...] = (
             Attr("hold_stiffness", "float", "a holder's penalty of its patch's rigid motion "
                  "(N/mm)", True, ("positive",)),  # fmt: skip
             Attr("tolerance", "float", "ECSW's tolerance", checks=("positive",)),
+            Attr("holder_cupping", "int", "1: a holder also keeps its patch's cupping (the "
+                 "regions' bases carry its responses)", checks=("range:0,1",)),  # fmt: skip
         ),
     ),
     Group(

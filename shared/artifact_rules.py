@@ -652,6 +652,8 @@ def _hyperreduced(artifact) -> None:
     if problem:
         raise _fail(artifact, f"hyperreduced/parameters {problem}")
     _hyperreduced_loads(artifact, h)
+    if grip:
+        _hyperreduced_grip(artifact, h)
     bounds = (("centres", MAX_LENGTH), ("radii", MAX_LENGTH), ("element_nodes", MAX_LENGTH),
               ("weights", MAX_WEIGHT), ("basis_rows", BASIS_BOUND),
               ("pressure_rows", BASIS_BOUND), ("surface_basis", BASIS_BOUND),
@@ -675,6 +677,21 @@ def _hyperreduced_loads(artifact, h) -> None:
         rows = vertices[o[r] : o[r + 1]]
         if len(np.unique(rows)) != len(rows):
             raise _fail(artifact, f"hyperreduced/load_vertices repeats a vertex in region {r}")
+
+
+def _hyperreduced_grip(artifact, h) -> None:
+    """Each region's grip nodes distinct and within its radius plus the tool's of its
+    centre (where its holders may grip: the trainer keeps those)."""
+    reach = float(artifact.group_attrs["model"]["contact_radius"])
+    o = h["grip_offsets"]
+    for r in range(len(o) - 1):
+        nodes = h["grip_nodes"][o[r] : o[r + 1]]
+        far = np.linalg.norm(nodes - h["centres"][r], axis=1).max()
+        if not far <= (h["radii"][r] + reach) * (1 + 1e-6):
+            raise _fail(artifact, f"hyperreduced/grip_nodes: region {r} has a node {far:.6g} mm "
+                                  "from its centre, beyond its radius plus the tool's")  # fmt: skip
+        if len(np.unique(nodes, axis=0)) != len(nodes):
+            raise _fail(artifact, f"hyperreduced/grip_nodes repeats a node in region {r}")
 
 
 CROSS_RULES = (

@@ -36,6 +36,9 @@ from hapticrom.shared.errors import ArtifactError, InputError
 
 pytestmark = pytest.mark.serial
 RADIUS = 2.5  # mm: the region's tools may be this far from its centre
+# tampered()'s change to a group 1.0 file: the grip datasets and the cupping left out
+WITHOUT_GRIP = {name: lambda a: None for name in ("grip_offsets", "grip_nodes", "grip_rows")}
+AS_1_0 = {"holder_cupping": None}
 
 
 @pytest.fixture(scope="module")
@@ -156,25 +159,34 @@ def test_a_holder_is_the_trainers_penalty_and_pulls_back(trained):
     assert np.linalg.norm(held.q - expected) <= 1e-8 * np.linalg.norm(expected)
 
 
-def test_a_holders_rows_are_its_patchs_translation_and_rotation():
-    """On a patch of three vertices or more a holder keeps the mean displacement and the
-    least-squares rotation (times the RMS radius): a basis of a translation along x and a
-    rigid rotation about z (u_i = e_z x r_i) reads back as exactly those; on two vertices,
-    each vertex's rows."""
+def test_a_holders_rows_are_its_patchs_translation_rotation_and_cupping():
+    """On a patch of three nodes or more a holder keeps the mean displacement and the
+    least-squares rotation (times the RMS radius) and, ``flat``, the cupping: a basis of a
+    translation along x, a rigid rotation about z (u_i = e_z x r_i) and a cupping along z
+    (u_i = (|r_i|^2 - their mean) e_z) reads back as exactly those (the translation none
+    of the cupping, the cupping none of the mean, |s - mean s| in its own row); on two
+    nodes, each node's rows."""
     from hapticrom.online.physics import holder_rows
 
     rng = np.random.default_rng(4)
-    vertices = rng.normal(size=(5, 3))
-    r = vertices - vertices.mean(axis=0)
-    basis = np.zeros((5, 3, 2))
+    points = rng.normal(size=(5, 3))
+    r = points - points.mean(axis=0)
+    s = (r**2).sum(axis=1) - (r**2).sum(axis=1).mean()
+    basis = np.zeros((5, 3, 3))
     basis[:, 0, 0] = 1.0
     basis[:, :, 1] = np.cross([0.0, 0.0, 1.0], r)
-    A = holder_rows(basis.reshape(-1, 2), vertices, np.arange(5))
+    basis[:, 2, 2] = s
+    rigid = holder_rows(basis.reshape(-1, 3), points, np.arange(5))
+    flat = holder_rows(basis.reshape(-1, 3), points, np.arange(5), flat=True)
+    assert rigid.shape == (6, 3) and np.array_equal(flat[:6], rigid)
     rms = np.sqrt(np.mean(np.sum(r**2, axis=1)))
-    assert np.allclose(A @ [1.0, 0.0], [1, 0, 0, 0, 0, 0], atol=1e-12)
-    assert np.allclose(A @ [0.0, 1.0], [0, 0, 0, 0, 0, rms], atol=1e-12)
-    two = holder_rows(basis.reshape(-1, 2), vertices, np.array([1, 3]))
-    assert np.array_equal(two, basis[[1, 3]].reshape(-1, 2))
+    assert np.allclose(flat @ [1.0, 0, 0], [1, 0, 0, 0, 0, 0, 0, 0, 0], atol=1e-12)
+    assert np.allclose(rigid @ [0, 1.0, 0], [0, 0, 0, 0, 0, rms], atol=1e-12)
+    cupping = flat @ [0, 0, 1.0]
+    assert np.allclose(cupping[:3], 0, atol=1e-12)
+    assert np.allclose(cupping[6:], [0, 0, np.linalg.norm(s)], atol=1e-12)
+    two = holder_rows(basis.reshape(-1, 3), points, np.array([1, 3]), flat=True)
+    assert np.array_equal(two, basis[[1, 3]].reshape(-1, 3))
 
 
 def test_a_holder_on_two_vertices_holds_each_and_sums_their_reactions(trained):
@@ -253,8 +265,7 @@ def test_a_file_without_grip_nodes_grips_the_loadable_vertices(trained, tmp_path
     """A group 1.0 file (no grip datasets): a holder grips the loadable surface vertices
     within the tool's radius, their surface rows."""
     config, (_, point), _, _, _, _, _ = trained
-    path = tampered(trained, tmp_path, {name: lambda a: None for name in
-                                        ("grip_offsets", "grip_nodes", "grip_rows")})  # fmt: skip
+    path = tampered(trained, tmp_path, WITHOUT_GRIP, AS_1_0)
     model = load(path, isolate=False)
     surface = model.artifact["surface"]
     vertices = surface["vertices"]
@@ -336,35 +347,76 @@ def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
     assert physics.refreshes == 0
 
 
-def test_a_wide_holder_lifts_its_patchs_mean_as_the_trainers_model(trained):
+def test_a_wide_holder_lifts_its_patch_as_the_trainers_model(trained, tmp_path):
     """A grip of three nodes or more (the tool's radius widened 2.5 times in the loaded
-    model: on the coarse mesh a tool grips one node), held by its mean and rotation (6
-    rows), moved 0.05 mm out of the surface: the runtime settles on the trainer's model
-    with that penalty and load (1e-8), the patch's mean displacement (read from the drawn
-    surface) follows the grip to 1e-3 of the lift, and the holder's force is the penalty
-    on that mean's gap, along the lift."""
+    model: on the coarse mesh a tool grips one node), moved 0.05 mm out of the surface: a
+    1.0 file's holder keeps the patch's mean and rotation (6 rows), a 1.1 file's its
+    cupping too (9). Each settles on the trainer's model with its penalty and load (1e-8),
+    its force is the penalty on the mean's gap (read from the drawn surface), along the
+    lift; the rigid hold's mean follows the grip to 1e-3 of the lift, and the flat hold
+    cups the patch less than the rigid one."""
+    from hapticrom.online.physics import flatness_weights
+
     config, (_, point), Phi, models, paths, _, _ = trained
-    model = load(paths["galerkin"], isolate=False)
+    grip_less = tampered(trained, tmp_path, WITHOUT_GRIP, AS_1_0)
     radius = 2.5 * config.load.contact_radius
-    model.artifact.group_attrs["model"]["contact_radius"] = radius  # in memory only
-    vertices = model.artifact["surface"]["vertices"]
-    grip = vertices[np.argmin(np.abs(np.linalg.norm(vertices - point, axis=1) - 1.5))]
-    lift = outward(vertices, grip, 0.05)
-    physics = lifted(model.physics(holders=[grip], slices=1), lift)
-    assert physics.holder_nodes[0] >= 3 and physics.holders[0].shape[0] == 6
-    expected = trainers_lift(models, Phi, physics)
-    assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
-    u = np.zeros_like(vertices)
-    physics.surface_displacement(u)
-    surface = model.artifact["surface"]
-    loadable = np.unique(surface["triangles"][surface["groups"] == 1])
-    patch = loadable[np.linalg.norm(vertices[loadable] - grip, axis=1) <= radius]
-    assert len(patch) == physics.holder_nodes[0]
-    mean = u[patch].mean(axis=0)
-    assert np.linalg.norm(mean - lift) <= 1e-3 * np.linalg.norm(lift)
-    pull = physics.holder_force(0)
-    assert np.allclose(pull, -physics.hold_stiffness * (mean - lift), rtol=1e-9, atol=0)
-    assert np.dot(pull, lift) > 0
+    cupping = {}
+    for rows, path in ((6, grip_less), (9, paths["galerkin"])):
+        model = load(path, isolate=False)
+        model.artifact.group_attrs["model"]["contact_radius"] = radius  # in memory only
+        vertices = model.artifact["surface"]["vertices"]
+        grip = vertices[np.argmin(np.abs(np.linalg.norm(vertices - point, axis=1) - 1.5))]
+        lift = outward(vertices, grip, 0.05)
+        physics = lifted(model.physics(holders=[grip], slices=1), lift)
+        assert physics.holder_nodes[0] >= 3 and physics.holders[0].shape[0] == rows
+        expected = trainers_lift(models, Phi, physics)
+        assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
+        u = np.zeros_like(vertices)
+        physics.surface_displacement(u)
+        surface = model.artifact["surface"]
+        loadable = np.unique(surface["triangles"][surface["groups"] == 1])
+        patch = loadable[np.linalg.norm(vertices[loadable] - grip, axis=1) <= radius]
+        assert len(patch) == physics.holder_nodes[0]
+        mean = u[patch].mean(axis=0)
+        pull = physics.holder_force(0)
+        assert np.allclose(pull, -physics.hold_stiffness * (mean - lift), rtol=1e-9, atol=0)
+        assert np.dot(pull, lift) > 0
+        if rows == 6:
+            assert np.linalg.norm(mean - lift) <= 1e-3 * np.linalg.norm(lift)
+        cupping[rows] = np.linalg.norm(flatness_weights(vertices[patch]) @ u[patch])
+    assert cupping[9] < cupping[6]
+
+
+def test_a_wide_holders_responses_are_the_loads_of_what_the_runtime_holds(trained):
+    """``holder_responses`` on a patch of three nodes or more (the tool's radius widened
+    2.5 times): 9 columns (a force, couples, cupping loads), zero off the free rows, and the
+    loads of the runtime's hold rows: the mean's and the cupping's rows of the responses
+    (A K^-1 F with F = A^T on those blocks) symmetric positive definite. On a patch whose
+    nodes are all as far from their centroid (no cupping): 6 columns."""
+    from hapticrom.offline.reduce.ecsw_model import rest_operators
+    from hapticrom.offline.reduce.ecsw_regions import holder_responses
+    from hapticrom.online.physics import holder_patch, holder_rows
+
+    config, (_, point), Phi, _, _, _, _ = trained
+    mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
+    operators = rest_operators(mesh, rest_tangents(mesh))
+    grip = GripNodes(*group_nodes(config.problem.mesh.file, config.load.surface))
+    free = np.flatnonzero(np.abs(Phi).max(axis=1) > 0)
+    radius = 2.5 * config.load.contact_radius
+    site = grip.points[np.argmin(np.abs(np.linalg.norm(grip.points - point, axis=1) - 1.5))]
+    R = holder_responses(operators, grip, site, radius, free)
+    assert R.shape == (len(Phi), 9) and not R[np.setdiff1d(np.arange(len(Phi)), free)].any()
+    patch = holder_patch(grip.points, np.arange(len(grip.nodes)), site, radius)
+    assert len(patch) >= 3
+    rows = R.reshape(-1, 3, 9)[grip.nodes].reshape(-1, 9)
+    held = holder_rows(rows, grip.points, patch, flat=True)  # (9 rows, 9 responses)
+    blocks = np.r_[0:3, 6:9]
+    M = held[np.ix_(blocks, blocks)]
+    assert np.allclose(M, M.T, rtol=0, atol=1e-9 * np.abs(M).max())
+    assert np.linalg.eigvalsh(0.5 * (M + M.T)).min() > 0
+    square = site + np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]]) * 0.5 * radius
+    ring = GripNodes(grip.nodes[patch[:4]], square)  # four real nodes, placed on a circle
+    assert holder_responses(operators, ring, site, radius, free).shape[1] == 6
 
 
 def test_refused_input_changes_nothing(trained, force_artifact):
@@ -451,7 +503,7 @@ def test_a_small_region_steps_with_fewer_slices(trained, tmp_path):
 
 def tampered(trained, tmp_path, change, attrs=None):
     """The Galerkin region's group with ``change`` (name -> function of the array, or of
-    None: the dataset left out) written
+    None: the dataset left out) and ``attrs`` (None: left out) written
     and read back: the writer's read-back refuses what the reader refuses."""
     _, _, _, _, paths, regions, cell = trained
     group = physics_group([regions["galerkin"]], cell, 1e-4)
@@ -460,6 +512,7 @@ def tampered(trained, tmp_path, change, attrs=None):
         if group[name] is None:  # the dataset left out
             del group[name]
     group["attrs"].update(attrs or {})
+    group["attrs"] = {k: v for k, v in group["attrs"].items() if v is not None}
     content, root = with_group(read_artifact(paths["galerkin"]), "hyperreduced", group)
     write_artifact(tmp_path / "tampered.h5", content, root)
     return tmp_path / "tampered.h5"
@@ -505,7 +558,10 @@ def _set(index, value):
         ({"element_nodes": _set((0, 0, 0), np.nan)}, None, "NaN"),
         ({"grip_offsets": _set(-1, 1)}, None, "grip_offsets must rise"),
         ({"grip_rows": _set((0, 0, 0), 1.5)}, None, "grip_rows has values beyond"),
-        ({"grip_nodes": _set((0, 0), 2e4)}, None, "grip_nodes has values beyond"),
+        ({"grip_nodes": _set((0, 0), 2e4)}, None, "grip_nodes: region 0 has a node .* from its"),
+        ({"grip_nodes": _set((0, 0), 9e3)}, None, "grip_nodes: region 0 has a node .* from its"),
+        ({"grip_nodes": lambda a: np.vstack([a[:1], a[:-1]])}, None, "repeats a node"),
+        ({}, {"holder_cupping": 2}, "holder_cupping"),
         ({"grip_nodes": _set((0, 0), np.nan)}, None, "NaN"),
         ({"grip_rows": lambda a: None}, None, "go together"),
         ({}, {"cell": "tetrahedron"}, "nodes an element"),

@@ -196,3 +196,33 @@ def test_a_pair_region_reproduces_a_two_tool_solve_it_was_built_from(
     physics = model.physics(slices=1)
     u, full = pressed_surface(physics, tools, data, model)
     assert np.linalg.norm(u - full) <= 1e-2 * np.linalg.norm(full)
+
+
+def test_solves_between_nodes_centre_the_tool_on_edge_midpoints(force_campaign):
+    """``--between-nodes``: at half the coarse mesh's node spacing (0.48 of 0.96 mm) no
+    node lies within 25 % of the distance, but edge midpoints do; a solve at one converges,
+    its load centred there (the load's centroid nearer the midpoint than to either end of
+    the edge)."""
+    import hapticrom.offline  # noqa: F401 - h5py and MPI first
+    from hapticrom.offline.reduce.ecsw_model import group_nodes
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.shared.errors import InputError
+
+    config = force_campaign[0]
+    with pytest.raises(InputError, match="free loadable surface nodes"):
+        RegionSolves(config, (0.48,), 3).nodes(np.zeros(3))
+    solves = RegionSolves(config, (0.48,), 3, between_nodes=True)
+    sites = solves.nodes(np.zeros(3))
+    nodes = solves.surface.nodes
+    midpoint = solves.sites[sites[0]]
+    assert abs(np.linalg.norm(midpoint) - 0.48) <= 0.25 * 0.48
+    faces = solves.surface.faces
+    edges = {tuple(sorted(e)) for f in faces for e in zip(f, np.roll(f, -1), strict=True)}
+    ends = [nodes[list(e)] for e in edges if np.allclose(nodes[list(e)].mean(axis=0), midpoint)]
+    assert len(ends) == 1  # the midpoint of one edge of the surface's faces
+    ends = ends[0]
+    data = solves.solve(sites[0])
+    canonical, xyz = group_nodes(config.problem.mesh.file, config.load.surface)
+    weight = np.linalg.norm(data["load_vector"].reshape(-1, 3)[canonical], axis=1)
+    centroid = weight @ xyz / weight.sum()
+    assert np.linalg.norm(centroid - midpoint) < np.linalg.norm(centroid - ends, axis=1).min()

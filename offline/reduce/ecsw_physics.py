@@ -45,7 +45,8 @@ class GripNodes:
 
     def within(self, centre, radius) -> np.ndarray:
         """The rows within ``radius`` (mm) of ``centre``."""
-        return np.flatnonzero(np.linalg.norm(self.points - centre, axis=1) <= radius)
+        slack = 1e-9 * max(radius, 1.0)  # a node the runtime's patch reaches by rounding
+        return np.flatnonzero(np.linalg.norm(self.points - centre, axis=1) <= radius + slack)
 
 
 @dataclass(frozen=True)
@@ -156,7 +157,10 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
     def stack(name):
         return np.concatenate([getattr(r, name) for r in regions])
 
-    attrs = {"cell": cell, "hold_stiffness": max(r.hold_stiffness for r in regions)}
+    # every region's basis carries the responses to its holder's cupping loads
+    # (ecsw_regions.holder_responses): the runtime holds the cupping too
+    attrs = {"cell": cell, "hold_stiffness": max(r.hold_stiffness for r in regions),
+             "holder_cupping": 1}  # fmt: skip
     if tolerance is not None:
         attrs["tolerance"] = float(tolerance)
     return {

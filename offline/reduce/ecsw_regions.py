@@ -40,7 +40,7 @@ from hapticrom.offline.reduce.ecsw_physics import (
     region_arrays,
     region_vertices,
 )
-from hapticrom.online.physics import holder_patch, holder_rows
+from hapticrom.online.physics import flatness_weights, holder_patch, holder_rows
 from hapticrom.shared.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -62,6 +62,7 @@ class RegionRecipe:
     radius: float = 1.0
     second_force: float = 0.5  # a pair region's second tool, of the campaign's force
     lift: float = 0.0  # mm: a held region's holders also lift this far, alone (grasp-and-lift)
+    between_nodes: bool = False  # solves also at the loadable edges' midpoints (a coarse mesh)
 
     def __post_init__(self):
         if not self.distances or min(self.distances) <= 0:
@@ -80,57 +81,68 @@ class RegionRecipe:
 
 
 class RegionSolves:
-    """Full-order solves of a campaign's load path at loadable surface nodes about a point
-    (the organ and its surface read once). Subclassed by ``bench/ecsw_tradeoff.py``."""
+    """Full-order solves of a campaign's load path at sites of the loadable surface about a
+    point (the organ and its surface read once): its nodes, and with ``between_nodes`` the
+    midpoints of its edges too (the tool centred between two nodes, its normal their
+    normals' mean: solves closer together than a coarse mesh's nodes). A site is an index
+    into ``sites``, the nodes first (``nearest`` and ``second_tool`` pick nodes only).
+    Subclassed by ``bench/ecsw_tradeoff.py``."""
 
-    def __init__(self, config, distances, per_distance: int):
+    def __init__(self, config, distances, per_distance: int, between_nodes: bool = False):
         self.config = config
         # a holder: the campaign's tool under displacement control, held where it is
         self.held = replace(config, load=replace(config.load, mode="displacement", magnitude=0.0))
         self.distances, self.per_distance = tuple(distances), int(per_distance)
         self.surface = read_surface(config.problem.mesh.file, config.load.surface)
+        self.sites, self.site_normals = self.surface.nodes, self.surface.normals
+        if between_nodes:
+            self.sites, self.site_normals = edge_midpoints(self.surface)
         self.organ = load_organ(config.problem.mesh.file, MPI.COMM_SELF)
         # a tip on the clamped rim does not move: no snapshot there (as the greedy campaign)
-        self.excluded = near_supports(config, self.surface.nodes)
+        self.excluded = near_supports(config, self.sites)
 
     def nodes(self, point, forbidden=()) -> list[int]:
-        """The surface nodes to solve at: per distance d, those whose distance from ``point``
-        is within 25 % of d, the nearest to d first, then each next the farthest from those
-        chosen (spread round the point); no node twice, none by the supports, none of
+        """The sites to solve at: per distance d, those whose distance from ``point`` is
+        within 25 % of d, the nearest to d first, then each next the farthest from those
+        chosen (spread round the point); no site twice, none by the supports, none of
         ``forbidden``."""
-        distance = np.linalg.norm(self.surface.nodes - point, axis=1)
+        distance = np.linalg.norm(self.sites - point, axis=1)
         chosen: list[int] = []
         for d in self.distances:
             ring = np.flatnonzero(np.abs(distance - d) <= 0.25 * d)
             skip = self.excluded | set(forbidden) | set(chosen)
             ring = np.array([k for k in ring if k not in skip])
             if len(ring) < self.per_distance:
-                raise InputError(f"{len(ring)} free loadable surface nodes lie within 25 % of "
+                kind = "nodes" if len(self.sites) == len(self.surface.nodes) else "sites"
+                raise InputError(f"{len(ring)} free loadable surface {kind} lie within 25 % of "
                                  f"{d:g} mm of {np.round(point, 4).tolist()}, "
                                  f"{self.per_distance} needed")  # fmt: skip
             picks = [int(ring[np.argmin(np.abs(distance[ring] - d))])]
             while len(picks) < self.per_distance:
-                xyz = self.surface.nodes[ring][:, None]
-                gap = np.linalg.norm(xyz - self.surface.nodes[picks][None], axis=2).min(axis=1)
+                xyz = self.sites[ring][:, None]
+                gap = np.linalg.norm(xyz - self.sites[picks][None], axis=2).min(axis=1)
                 picks.append(int(ring[np.argmax(gap)]))
             chosen += picks
         return chosen
 
-    def position(self, node) -> ToolPosition:
-        s = self.surface
-        return ToolPosition(-1, tuple(s.nodes[node]), tuple(s.normals[node]),
-                            int(s.node_tags[node]), "point")  # fmt: skip
+    def position(self, site) -> ToolPosition:
+        """The tool at ``site``; a node's gmsh tag, or -1 for an edge's midpoint."""
+        tags = self.surface.node_tags
+        tag = int(tags[site]) if site < len(tags) else -1
+        return ToolPosition(-1, tuple(self.sites[site]), tuple(self.site_normals[site]), tag,
+                            "point")  # fmt: skip
 
     def solve(self, node, tools=(), config=None) -> dict:
-        """The datasets of the campaign's load path at surface ``node`` (with further force
+        """The datasets of the campaign's load path at site ``node`` (with further force
         ``tools``; ``config``: another load); a failed solve is refused (its converged part
         would bias the basis silently)."""
-        datasets, attrs = solve_position(config or self.config, self.position(node), self.organ,
+        position = self.position(node)
+        datasets, attrs = solve_position(config or self.config, position, self.organ,
                                          MPI.COMM_SELF, tools)  # fmt: skip
         if attrs["status"] != "solved":
             raise SolverError(
-                f"the full-order solve at surface node "
-                f"{self.surface.node_tags[node]} failed: {attrs['message']}"
+                f"the full-order solve at surface point "
+                f"{np.round(position.point, 4).tolist()} mm failed: {attrs['message']}"
             )
         return datasets
 
@@ -148,9 +160,28 @@ class RegionSolves:
         """A second tool ``distance`` mm from ``point`` (the free loadable node nearest to
         that distance, not ``point``'s own): its node and its ``tool``."""
         gap = np.abs(np.linalg.norm(self.surface.nodes - point, axis=1) - distance)
-        gap[list(self.excluded) + [self.nearest(point)]] = np.inf
+        nodes = len(self.surface.nodes)  # the sites' first (the rest: edge midpoints)
+        gap[[k for k in self.excluded if k < nodes] + [self.nearest(point)]] = np.inf
         node = int(np.argmin(gap))
         return node, self.tool(node, fraction)
+
+
+def edge_midpoints(surface) -> tuple[np.ndarray, np.ndarray]:
+    """(points, unit normals) of a surface's nodes followed by the midpoints of its faces'
+    edges (each edge once), a midpoint's normal the mean of its two nodes'."""
+    faces = surface.faces
+    edges = np.sort(np.stack([faces, np.roll(faces, -1, axis=1)], axis=-1).reshape(-1, 2), axis=1)
+    a, b = np.unique(edges, axis=0).T
+    normals = surface.normals[a] + surface.normals[b]
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    if not (length > 1e-6).all():  # a fold: the two nodes' normals opposite
+        k = int(np.argmin(length))
+        raise InputError(f"the loadable surface folds over at the edge of nodes "
+                         f"{surface.node_tags[a[k]]} and {surface.node_tags[b[k]]}: no normal "
+                         "at its midpoint for --between-nodes")  # fmt: skip
+    normals /= length
+    return (np.vstack([surface.nodes, 0.5 * (surface.nodes[a] + surface.nodes[b])]),
+            np.vstack([surface.normals, normals]))  # fmt: skip
 
 
 def pod(columns: np.ndarray) -> np.ndarray:
@@ -206,25 +237,30 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
 
 
 def holder_responses(operators, grip: GripNodes, point, radius, free) -> np.ndarray:
-    """(N, 6, or 3 a node): the linear responses at rest to a unit force along x, y, z
+    """(N, 9, or 3 a node): the linear responses at rest to a unit force along x, y, z
     spread evenly over a holder's patch at ``point`` (mm: the ``grip`` nodes within
-    ``radius``, the runtime's ``holder_patch``) and to unit couples about x, y, z on it; on
-    a patch of one or two nodes (which the runtime holds each) to a unit force at each
-    along x, y, z. Zero outside the ``free`` rows. A held region's basis carries them: the
-    holder's reaction (without them a holder nearly locks a region built from presses
-    alone: README, stop 43)."""
+    ``radius``, the runtime's ``holder_patch``), to unit couples about x, y, z on it and
+    to its cupping loads along x, y, z (``flatness_weights`` at each node; left out where
+    there are none); on a patch of one or two nodes (which the runtime holds each) to a
+    unit force at each along x, y, z. Zero outside the ``free`` rows. A held region's
+    basis carries them: the reactions to what the runtime's holder keeps still (without
+    them a holder nearly locks a region built from presses alone: README, stop 43)."""
     patch = holder_patch(grip.points, np.arange(len(grip.nodes)), point, radius)
     nodes = grip.nodes[patch]
-    F = np.zeros((operators.A.shape[0], 3 * len(nodes) if len(nodes) < 3 else 6))
-    columns = F.reshape(-1, 3, F.shape[1])
     if len(nodes) < 3:
+        F = np.zeros((operators.A.shape[0], 3 * len(nodes)))
         for k, node in enumerate(nodes):
-            columns[node, :, 3 * k : 3 * k + 3] = np.eye(3)
-    else:
-        r = grip.points[patch] - grip.points[patch].mean(axis=0)
-        for axis, e in enumerate(np.eye(3)):
-            columns[nodes, axis, axis] = 1.0 / len(nodes)
-            columns[nodes, :, 3 + axis] = np.cross(e, r) / (r**2).sum()
+            F.reshape(-1, 3, F.shape[1])[node, :, 3 * k : 3 * k + 3] = np.eye(3)
+        return rest_solver(operators, free)(F)
+    w = flatness_weights(grip.points[patch])
+    F = np.zeros((operators.A.shape[0], 6 if w is None else 9))
+    columns = F.reshape(-1, 3, F.shape[1])
+    r = grip.points[patch] - grip.points[patch].mean(axis=0)
+    for axis, e in enumerate(np.eye(3)):
+        columns[nodes, axis, axis] = 1.0 / len(nodes)
+        columns[nodes, :, 3 + axis] = np.cross(e, r) / (r**2).sum()
+        if w is not None:
+            columns[nodes, axis, 6 + axis] = w
     return rest_solver(operators, free)(F)
 
 
@@ -260,7 +296,7 @@ def build_regions(config, mesh, rest, surface, grip: GripNodes, loads, sites,
     ``region_snapshots``; a held site's basis also carries its holder's responses,
     ``holder_responses`` on the ``grip`` nodes; a two-point site's centre is their
     midpoint, its radius ``recipe.radius`` beyond each), logged as it goes."""
-    solves = RegionSolves(config, recipe.distances, recipe.per_distance)
+    solves = RegionSolves(config, recipe.distances, recipe.per_distance, recipe.between_nodes)
     operators = rest_operators(mesh, rest)
     regions: list[PhysicsRegion] = []
     for k, site in enumerate(sites):

@@ -561,7 +561,8 @@ def cmd_physics(args, petsc) -> int:
     recipe = RegionRecipe(distances=args.solves, per_distance=args.solves_per_distance,
                           state_modes=args.state_modes, pressure_modes=args.pressure_modes,
                           tolerance=args.tolerance, radius=args.radius,
-                          second_force=args.second_force, lift=args.lift)  # fmt: skip
+                          second_force=args.second_force, lift=args.lift,
+                          between_nodes=args.between_nodes)  # fmt: skip
     if args.lift and not args.held:
         raise HapticromError("physics --lift lifts the holders of --held regions: give --held")
     petsc.start()
@@ -646,6 +647,10 @@ def add_physics(sub) -> None:
     p.add_argument("--solves", type=distances, default=(0.25, 0.5), metavar="MM,MM",
                    help="distances of a region's full-order solves from its centre "
                    "(default 0.25,0.5)")  # fmt: skip
+    p.add_argument("--between-nodes", action="store_true",
+                   help="a region's solves may also centre the tool on the midpoints of the "
+                   "loadable surface's edges: solves closer than a coarse mesh's nodes "
+                   "(--solves distances under the nodes' spacing)")  # fmt: skip
     number_option(
         p,
         "--solves-per-distance",
