@@ -4,7 +4,7 @@ haptic steps, against the stored full-order solve (not among the region's own so
 
     python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
         [--pair MM [--second-force 0.5]] [--out out/physics.h5] [--frames 100]
-        [--skip-build] [--slices 20] [-- hapticrom physics options]
+        [--skip-build] [--slices 30] [-- hapticrom physics options]
 
 ``--pair MM``: two tools, the position's and a second at the free loadable node nearest MM
 away pressing with ``--second-force`` of the campaign's force, each region a ``--pair``
@@ -52,7 +52,7 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--second-force", type=float, default=0.5)
     parser.add_argument("--held", type=float, default=0.0, help="mm: a holder this far")
     parser.add_argument("--lift", type=float, default=0.0, help="mm: --held's holder lifts")
-    parser.add_argument("--slices", type=int, default=20, help="the tangent's parts (physics')")
+    parser.add_argument("--slices", type=int, default=30, help="the tangent's parts (physics')")
     args, extra = parser.parse_known_args()
     if args.pair and args.held:
         parser.error("--pair or --held, not both")

@@ -233,7 +233,7 @@ class ReducedModel:
         """Modes per sample, n."""
         return self.surface_basis.shape[2]
 
-    def physics(self, region: int = 0, holders=(), iterations: int = 1, slices: int = 20):
+    def physics(self, region: int = 0, holders=(), iterations: int = 1, slices: int = 30):
         """Region ``region`` of the hyper-reduced physics (artifact format 2.5, group
         ``hyperreduced``), ``holders`` gripping the surface at those points (mm): a
         :class:`~hapticrom.online.physics.HyperReducedPhysics`."""

@@ -489,7 +489,7 @@ def test_a_singular_tangent_is_the_files_error(trained, tmp_path):
 
 
 def test_a_small_region_steps_with_fewer_slices(trained, tmp_path):
-    """A region of 5 sampled elements: the default 20 tangent parts become 5."""
+    """A region of 5 sampled elements: the default 30 tangent parts become 5."""
 
     def first(k):
         return lambda a: a[:k]

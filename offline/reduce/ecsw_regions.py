@@ -4,9 +4,10 @@
 A region about a centre is the recipe ``bench/ecsw_tradeoff.py`` measured at held-out
 positions (README, stops 37-42): full-order solves of the campaign's load path at loadable
 surface nodes about the centre (``RegionSolves``: by default three about 0.25 mm and three
-about 0.5 mm away, so that every contact within the region has nonlinear snapshots close
-by), the POD of their states and pressures, supremizers (the mixed basis' inf-sup
-stability), ECSW trained on the solves' own states, then the region's arrays
+about 0.5 mm away, so that every contact within the region has nonlinear snapshots close by;
+on a mesh whose nodes lie farther apart, the edges' midpoints too: ``between_nodes``), the
+POD of their states and pressures, supremizers (the mixed basis' inf-sup stability), ECSW
+trained on the solves' own states, then the region's arrays
 (:func:`~hapticrom.offline.reduce.ecsw_physics.region_arrays`). Steps, as a reductor's:
 :func:`region_snapshots`, :func:`region_bases`, :func:`region_model`; :func:`build_regions`
 runs them for each centre. Serial (one rank), as the bench.
