@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hapticrom.online.physics import loadable_vertices
+from hapticrom.online.physics import holder_patch, loadable_vertices
 from hapticrom.shared.artifact import read_artifact, with_group, write_artifact
 from hapticrom.shared.errors import InputError
 
@@ -47,6 +47,10 @@ class GripNodes:
         """The rows within ``radius`` (mm) of ``centre``."""
         slack = 1e-9 * max(radius, 1.0)  # a node the runtime's patch reaches by rounding
         return np.flatnonzero(np.linalg.norm(self.points - centre, axis=1) <= radius + slack)
+
+    def patch(self, point, radius) -> np.ndarray:
+        """The rows a holder at ``point`` grips: the runtime's ``holder_patch`` on them."""
+        return holder_patch(self.points, np.arange(len(self.nodes)), point, radius)
 
 
 @dataclass(frozen=True)

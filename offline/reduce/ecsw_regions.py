@@ -41,7 +41,7 @@ from hapticrom.offline.reduce.ecsw_physics import (
     region_arrays,
     region_vertices,
 )
-from hapticrom.online.physics import flatness_weights, holder_patch, holder_rows
+from hapticrom.online.physics import flatness_weights, holder_rows
 from hapticrom.shared.errors import InputError, SolverError
 
 log = logging.getLogger(__name__)
@@ -246,23 +246,23 @@ def holder_responses(operators, grip: GripNodes, point, radius, free) -> np.ndar
     unit force at each along x, y, z. Zero outside the ``free`` rows. A held region's
     basis carries them: the reactions to what the runtime's holder keeps still (without
     them a holder nearly locks a region built from presses alone: README, stop 43)."""
-    patch = holder_patch(grip.points, np.arange(len(grip.nodes)), point, radius)
+    patch = grip.patch(point, radius)
     nodes = grip.nodes[patch]
+    w = flatness_weights(grip.points[patch]) if len(nodes) >= 3 else None
+    # each node's 3 forces on one or two nodes, else a force, couples and cupping loads
+    count = 3 * len(nodes) if len(nodes) < 3 else 6 if w is None else 9
+    columns = np.zeros((operators.A.shape[0] // 3, 3, count))
     if len(nodes) < 3:
-        F = np.zeros((operators.A.shape[0], 3 * len(nodes)))
         for k, node in enumerate(nodes):
-            F.reshape(-1, 3, F.shape[1])[node, :, 3 * k : 3 * k + 3] = np.eye(3)
-        return rest_solver(operators, free)(F)
-    w = flatness_weights(grip.points[patch])
-    F = np.zeros((operators.A.shape[0], 6 if w is None else 9))
-    columns = F.reshape(-1, 3, F.shape[1])
-    r = grip.points[patch] - grip.points[patch].mean(axis=0)
-    for axis, e in enumerate(np.eye(3)):
-        columns[nodes, axis, axis] = 1.0 / len(nodes)
-        columns[nodes, :, 3 + axis] = np.cross(e, r) / (r**2).sum()
-        if w is not None:
-            columns[nodes, axis, 6 + axis] = w
-    return rest_solver(operators, free)(F)
+            columns[node, :, 3 * k : 3 * k + 3] = np.eye(3)
+    else:
+        r = grip.points[patch] - grip.points[patch].mean(axis=0)
+        for axis, e in enumerate(np.eye(3)):
+            columns[nodes, axis, axis] = 1.0 / len(nodes)
+            columns[nodes, :, 3 + axis] = np.cross(e, r) / (r**2).sum()
+            if w is not None:
+                columns[nodes, axis, 6 + axis] = w
+    return rest_solver(operators, free)(columns.reshape(operators.A.shape[0], -1))
 
 
 def region_bases(operators, U, P, recipe: RegionRecipe,
@@ -355,8 +355,7 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
         for point in site.points:
             region_vertices(surface, point, recipe.radius)
         if site.kind == "held":  # and a holder's site a patch the runtime can hold
-            patch = holder_patch(grip.points, np.arange(len(grip.nodes)), site.points[1],
-                                 config.load.contact_radius)  # fmt: skip
+            patch = grip.patch(site.points[1], config.load.contact_radius)
             holder_rows(np.zeros((grip.points.size, 1)), grip.points, patch)
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)
