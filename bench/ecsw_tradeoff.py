@@ -96,7 +96,7 @@ from hapticrom.offline.reduce.ecsw_model import (
     training_matrix,
 )
 from hapticrom.offline.reduce.ecsw_physics import HOLD_STIFFNESS, linear_stiffness
-from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+from hapticrom.offline.reduce.ecsw_regions import RegionSolves, region_model
 from hapticrom.online.haptic_newton import HapticNewton
 from hapticrom.online.physics import rotation_rows
 
@@ -311,9 +311,12 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_n
     split = args.split == "linear"
     tolerances = ["galerkin"] + (args.tolerances if states else [])
     G = training_matrix(mesh, Phi, Psi, states, split=split, rest=rest)[0] if states else None
+    galerkin_states = None  # the Galerkin model's along the path (--check-tolerance)
     for tolerance in tolerances:
         if tolerance == "galerkin":
             model = HyperReducedModel(mesh, Phi, Psi, split=split, rest=rest)
+            if args.check_tolerance:
+                galerkin_states = model.solve(Phi.T @ path[2], path[3], 1e-10, partial=True)[0]
         else:
             sampling = ecsw(G, tolerance=tolerance)
             model = HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights,
@@ -333,6 +336,9 @@ def local_rows(mesh, Phi, Psi, path, states, args, rest, enrichment=None, held_n
                "p50_s": p50, "p99_s": p99}  # fmt: skip
         if args.frames:
             row["frames"] = haptic_frames(model, Phi, path, args)
+        if args.check_tolerance and tolerance != "galerkin" and held_nodes is None:
+            check = region_model(mesh, rest, Phi, Psi, G, args.check_tolerance)
+            row["check"] = check_row(model, check, Phi, path, galerkin_states)
         if enrichment is not None:
             bases = (Phi, Psi, enrichment)
             sampled = None if tolerance == "galerkin" else states
@@ -432,6 +438,37 @@ def indicator_row(model, bases, states, path, args, mesh, rest) -> dict:
               f"{error[-1]:.2e}; effectivity {min(ratio):.2f}-{max(ratio):.2f} over "
               f"{len(ratio)} steps; estimate p50/p99 {1e3 * out['p50_s']:.2f}/"
               f"{1e3 * out['p99_s']:.2f} ms", flush=True)  # fmt: skip
+    return out
+
+
+def check_row(model, check, Phi, path, galerkin) -> dict:
+    """The runtime's error indicator (``online/sampling_check.py``) of ``model`` with the
+    ``check`` model's sample along the held-out ``path``: at each step the model converged,
+    eta = |(T^-1 d)_q| / |q|, d the two models' residual difference at the state and T the
+    model's tangent there (the runtime's; and, to compare, the check model's), against
+    the sampling's error (the ``galerkin`` states': |q - q_G| / |q|) and the true one
+    (|Phi q - u| / |Phi q|, u the full order's)."""
+    U, _, f, factors, _, _ = path
+    load = Phi.T @ f
+    Q, Pi, _ = model.solve(load, factors, tolerance=1e-10, partial=True)
+    rows = {"eta": [], "eta_check_tangent": [], "sampling_error": [], "error": []}
+    for k, (q, pi) in enumerate(zip(Q, Pi, strict=True)):
+        r, T = model.residual_tangent(q, pi, factors[k] * load)
+        r_check, T_check = check.residual_tangent(q, pi, factors[k] * load)
+        for name, tangent in (("eta", T), ("eta_check_tangent", T_check)):
+            delta = np.linalg.solve(tangent, r_check - r)[: model.n]
+            rows[name].append(float(np.linalg.norm(delta) / np.linalg.norm(q)))
+        if k < len(galerkin):
+            gap = np.linalg.norm(q - galerkin[k])
+            rows["sampling_error"].append(float(gap / np.linalg.norm(q)))
+        rows["error"].append(float(np.linalg.norm(Phi @ q - U[k]) / np.linalg.norm(q)))
+    out = {"elements": check.sampled_elements, **rows}
+    if len(Q):
+        last = {name: values[-1] for name, values in rows.items() if values}
+        print(f"    check sample ({check.sampled_elements} elements): at the last step eta "
+              f"{last['eta']:.2e} (with the check's tangent {last['eta_check_tangent']:.2e}), "
+              f"sampling error {last.get('sampling_error', np.nan):.2e}, true error "
+              f"{last['error']:.2e}", flush=True)  # fmt: skip
     return out
 
 
@@ -539,13 +576,7 @@ class NearbySolver(RegionSolves):
         (k None) at 45 degrees: a direction no snapshot has)."""
         s = self.surface
         if args.pinch:
-            distance = np.linalg.norm(s.nodes - s.nodes[node], axis=1)
-            distance[list(self.excluded) + [node]] = np.inf
-            nearest = np.argsort(distance)[:8]
-            if not np.isfinite(distance[nearest]).all():
-                raise SystemExit(f"--pinch: fewer than eight free loadable nodes beside "
-                                 f"surface node {s.node_tags[node]}")  # fmt: skip
-            return [self.tool(int(n), 1.0) for n in nearest]
+            return self.pinch_tools(node, args.pinch)  # the product's (hapticrom physics)
         normal = np.asarray(s.normals[node], float)
         e1 = np.eye(3)[0] - normal[0] * normal  # x on the tangent plane
         if np.linalg.norm(e1) < 0.1:  # a normal near x: y's
@@ -725,6 +756,10 @@ def parse_arguments() -> argparse.Namespace:
                         help="--indicator-modes: ECSW's tolerance of its sample")  # fmt: skip
     parser.add_argument("--indicator-apart", action="store_true",
                         help="--indicator-modes: a sample apart from the model's")  # fmt: skip
+    parser.add_argument("--check-tolerance", type=float, default=0.0,
+                        help="--local-solves: the runtime's error indicator (its check sample: "
+                        "ECSW at this tolerance, trained apart) at each ECSW "
+                        "row, against the sampling's and the true error")  # fmt: skip
     frames = parser.add_argument_group("haptic steps (haptic_frames)")
     frames.add_argument("--frame-solver", choices=("haptic", "modified"), default="haptic")
     for flag, kind, default, text in FRAME_OPTIONS:
@@ -776,6 +811,8 @@ def check_arguments(parser, args) -> None:
         parser.error("--indicator-modes needs --local-solves, and a count >= 0")
     if not 0 < args.indicator_tolerance < 1:
         parser.error("--indicator-tolerance: in (0, 1)")
+    if args.check_tolerance and not (args.local_solves and 0 < args.check_tolerance < 1):
+        parser.error("--check-tolerance needs --local-solves, and lies in (0, 1)")
     if args.indicator_apart and not (args.indicator_modes and args.tolerances):
         parser.error("--indicator-apart needs --indicator-modes and ECSW --tolerances")
     if args.held_basis != "held" and not args.held_tool:

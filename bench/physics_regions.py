@@ -3,12 +3,16 @@ positions, each region pressed at its centre with that position's stored load pa
 haptic steps, against the stored full-order solve (not among the region's own solves).
 
     python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
-        [--pair MM [--second-force 0.5]] [--out out/physics.h5] [--frames 100]
-        [--skip-build] [--slices 30] [-- hapticrom physics options]
+        [--pair MM [--second-force 0.5] | --held MM [--lift MM] | --pinch N]
+        [--out out/physics.h5] [--frames 100]
+        [--skip-build] [--slices 30] [--estimate-steps 50] [-- hapticrom physics options]
 
 ``--pair MM``: two tools, the position's and a second at the free loadable node nearest MM
 away pressing with ``--second-force`` of the campaign's force, each region a ``--pair``
 region of the two sites, the reference a full-order solve under both (solved here).
+``--pinch N``: nine forces of N (the position's node and the eight nearest loadable nodes,
+thesis §3.4.3), each region a ``--pinch`` region, the reference the full order under the
+pinch (solved here), the depth the nine forces' load-weighted displacement.
 ``--held MM``: the position's tool presses while a holder MM away grips (``--held``
 regions, ``physics(region, holders=[...])``), the reference the full order with the
 holder's patch held in place (solved here). ``--lift MM`` (with ``--held``): the
@@ -21,8 +25,10 @@ the full order's tool force.
 Per region: the sampled elements, the modes, the depth error (the tool's load-weighted mean
 displacement along its force, as the campaign's) and the surface field's relative L2 error
 at the last load, after ``--frames`` steps of the ramp and as many held; the time of each
-``physics.step()`` (p50, p99, max), its tangent built in ``--slices`` parts; and the
-depth (or, lifted, the field) at the ramp's last step, which lags the load. Writes OUT with
+``physics.step()`` (p50, p99, max), its tangent built in ``--slices`` parts; the depth
+(or, lifted, the field) at the ramp's last step, which lags the load; and the physics' own
+error estimate at the end (``physics.error_estimate()``, over ``--estimate-steps`` steps;
+NaN for a file without check samples). Writes OUT with
 suffix .json. Serial; run alone for the times. Units: mm, N.
 """
 
@@ -51,19 +57,25 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--pair", type=float, default=0.0, help="mm: a second tool this far")
     parser.add_argument("--second-force", type=float, default=0.5)
     parser.add_argument("--held", type=float, default=0.0, help="mm: a holder this far")
+    parser.add_argument("--pinch", type=float, default=0.0,
+                        help="N: a pinch of nine forces this large (thesis: 0.014)")  # fmt: skip
     parser.add_argument("--lift", type=float, default=0.0, help="mm: --held's holder lifts")
     parser.add_argument("--slices", type=int, default=30, help="the tangent's parts (physics')")
+    parser.add_argument("--estimate-steps", type=int, default=50,
+                        help="the steps an error estimate takes (physics')")  # fmt: skip
     args, extra = parser.parse_known_args()
-    if args.pair and args.held:
-        parser.error("--pair or --held, not both")
+    if sum(bool(v) for v in (args.pair, args.held, args.pinch)) > 1:
+        parser.error("--pair, --held or --pinch, one of them")
+    if not (np.isfinite(args.pinch) and 0 <= args.pinch <= 100):
+        parser.error("--pinch: a force in (0, 100] N")
     if args.lift and not (args.held and 0 < args.lift <= 10):
         parser.error("--lift needs --held, and at most 10 mm (hapticrom physics --lift's)")
     try:
         args.positions = [int(v) for v in args.positions.split(",")]
     except ValueError:
         parser.error("--positions: comma-separated campaign position indices")
-    if args.frames < 1 or args.slices < 1:
-        parser.error("--frames and --slices must be at least 1")
+    if min(args.frames, args.slices, args.estimate_steps) < 1:
+        parser.error("--frames, --slices and --estimate-steps must be at least 1")
     return args, [v for v in extra if v != "--"]
 
 
@@ -143,6 +155,28 @@ def held_case(store, point, args) -> tuple:
     return [press], data, data["load_vector"], np.asarray(holder)
 
 
+def pinch_case(store, point, args) -> tuple:
+    """([(point, force)] of a pinch's nine tools about ``point``: the campaign's tool there
+    with ``--pinch`` N and the eight of ``RegionSolves.pinch_tools``, the full order's
+    datasets under them, their load vector)."""
+    from dataclasses import replace
+
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.offline.reduce.inputs import campaign_config
+
+    config = campaign_config(store, store.manifest(), None)
+    solves = RegionSolves(config, (), 1)
+    node = solves.nearest(point)
+    pinching = replace(config, load=replace(config.load, magnitude=args.pinch))
+    tools = [solves.tool(node, args.pinch / config.load.magnitude),
+             *solves.pinch_tools(node, args.pinch)]  # fmt: skip
+    t = time.perf_counter()
+    data = solves.solve(node, tools=tools[1:], config=pinching)
+    print(f"  the full order pinched about {np.round(tools[0][0], 3).tolist()} mm, nine "
+          f"forces of {args.pinch} N ({time.perf_counter() - t:.0f} s)", flush=True)  # fmt: skip
+    return tools, data, data["load_vector"]
+
+
 def lifted(store, model, region, i, holder, args) -> dict:
     """Grasp-and-lift at ``region``: the holder at ``holder`` (mm) moved ``--lift`` mm
     against the campaign's direction over ``--frames`` steps, then held as long, against
@@ -159,7 +193,8 @@ def lifted(store, model, region, i, holder, args) -> dict:
     data = solves.solve(node, config=replace(config, load=load))
     vector = load.magnitude * load.unit_direction(solves.position(node))
     factors = data["load_factor"]
-    physics = model.physics(region=region, holders=[holder], slices=args.slices)
+    physics = model.physics(region=region, holders=[holder], slices=args.slices,
+                            estimate_steps=args.estimate_steps)  # fmt: skip
     ms, ramp_end = ramped(physics, lambda factor: physics.move_holder(0, factor * vector),
                           factors, args.frames)  # fmt: skip
     u = np.zeros_like(physics.vertices)
@@ -172,8 +207,9 @@ def lifted(store, model, region, i, holder, args) -> dict:
            "ramp_end_field_error": float(np.linalg.norm(lagging - full) / np.linalg.norm(full)),
            "force_error": float(np.linalg.norm(pull - reaction) / np.linalg.norm(reaction)),
            "holder_force": pull.tolist(), "full_force": reaction.tolist(), **timing(ms),
-           "refreshes": physics.refreshes}  # fmt: skip
-    print(f"position {i:3d}, lifted {args.lift} mm: field {100 * row['field_error']:.2f} %, "
+           "refreshes": physics.refreshes, "error_estimate": physics.error_estimate()}  # fmt: skip
+    print(f"position {i:3d}, lifted {args.lift} mm: field {100 * row['field_error']:.2f} % "
+          f"(estimated {100 * row['error_estimate']:.2f} %), "
           f"holder force {np.round(pull, 5).tolist()} N against the full order's "
           f"{np.round(reaction, 5).tolist()} ({100 * row['force_error']:.2f} %), step "
           f"p50/p99/max {row['p50_ms']:.2f}/{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms, "
@@ -187,6 +223,7 @@ def main() -> None:
     store = SnapshotStore(args.campaign)
     points = [np.asarray(store.read_position(i)[1]["point"], float) for i in args.positions]
     case_of = two_tools if args.pair else held_case if args.held else None
+    case_of = pinch_case if args.pinch else case_of
     cases = [case_of(store, point, args) if case_of else None for point in points]
     if not args.skip_build:
         from hapticrom.cli import main as hapticrom
@@ -200,6 +237,9 @@ def main() -> None:
             at = ["--held=" + ",".join(f"{v:.9g}" for v in (*p, *case[3]))
                   for p, case in zip(points, cases, strict=True)]  # fmt: skip
             options = ["--lift", str(args.lift), *options] if args.lift else options
+        if args.pinch:
+            at = [a.replace("--at=", "--pinch=") for a in at]
+            options = ["--pinch-force", str(args.pinch), *options]
         t = time.perf_counter()
         if hapticrom(["physics", args.model, args.campaign, *at, "--out", args.out, *options]):
             raise SystemExit("hapticrom physics failed")
@@ -223,25 +263,29 @@ def main() -> None:
             force = np.asarray(tools[0][1])
             f = case[2]  # the first tool's own load vector: its depth, as the campaign's
         holders = [case[3]] if args.held else []
-        physics = model.physics(region=region, holders=holders, slices=args.slices)
+        physics = model.physics(region=region, holders=holders, slices=args.slices,
+                                estimate_steps=args.estimate_steps)  # fmt: skip
         ms, ramp_end = pressed(physics, tools, factors, args.frames)
         u = np.zeros_like(physics.vertices)
         physics.surface_displacement(u)
         full = data["displacement"][-1]
         tool = physics.tool_load(point, force)
+        if args.pinch:  # the pinch's depth: the nine forces' load-weighted displacement
+            tool = physics.load.copy()
         depth, lagging = tool @ physics.q / (f @ full), tool @ ramp_end / (f @ full)
         field = full.reshape(-1, 3)[nodes]
         row = {"position": i, "elements": len(physics.newton.sample[0]), "modes": physics.q.size,
                "pressure_modes": physics.pi.size, "depth_error": float(depth - 1),
                "ramp_end_depth_error": float(lagging - 1),
                "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
-               **timing(ms), "refreshes": physics.refreshes}  # fmt: skip
+               **timing(ms), "refreshes": physics.refreshes,
+               "error_estimate": physics.error_estimate()}  # fmt: skip
         print(f"position {i:3d}: {row['elements']} elements, {row['modes']} + "
               f"{row['pressure_modes']} modes, depth {100 * row['depth_error']:+.2f} %, field "
-              f"{100 * row['field_error']:.2f} %, step p50/p99/max {row['p50_ms']:.2f}/"
-              f"{row['p99_ms']:.2f}/{row['max_ms']:.2f} ms, {physics.refreshes} fresh "
-              f"tangents; at the ramp's last step: depth {100 * lagging - 100:+.2f} %",
-              flush=True)  # fmt: skip
+              f"{100 * row['field_error']:.2f} % (estimated {100 * row['error_estimate']:.2f} "
+              f"%), step p50/p99/max {row['p50_ms']:.2f}/{row['p99_ms']:.2f}/"
+              f"{row['max_ms']:.2f} ms, {physics.refreshes} fresh tangents; at the ramp's last "
+              f"step: depth {100 * lagging - 100:+.2f} %", flush=True)  # fmt: skip
         rows.append(row)
     Path(args.out).with_suffix(".json").write_text(json.dumps(rows, indent=1))
 

@@ -233,13 +233,14 @@ class ReducedModel:
         """Modes per sample, n."""
         return self.surface_basis.shape[2]
 
-    def physics(self, region: int = 0, holders=(), iterations: int = 1, slices: int = 30):
+    def physics(self, region: int = 0, holders=(), iterations: int = 1, slices: int = 30,
+                estimate_steps: int = 50):  # fmt: skip
         """Region ``region`` of the hyper-reduced physics (artifact format 2.5, group
         ``hyperreduced``), ``holders`` gripping the surface at those points (mm): a
         :class:`~hapticrom.online.physics.HyperReducedPhysics`."""
         from hapticrom.online.physics import HyperReducedPhysics
 
-        return HyperReducedPhysics(self, region, holders, iterations, slices)
+        return HyperReducedPhysics(self, region, holders, iterations, slices, estimate_steps)
 
     def simulator(self, interpolation: str | None = None, response: str | None = None, **limits):
         """A new simulator state on this model (models are shared, simulators are not).

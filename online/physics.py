@@ -9,6 +9,7 @@ pressing tools and holders (issue 18).
     physics.surface_displacement(out)   # (V, 3) mm, to draw
     physics.holder_force(0)             # (3,) N: what the holder holds the tissue with
     physics.move_holder(0, lift)        # the holder's grip moved by lift (3,) mm
+    physics.error_estimate()            # the field's relative error the sampling leaves
 
 A pressing tool's load is the campaign's force tool's (its dead load spread over a disk of
 ``contact_radius``), stored per unit force at the region's loadable vertices and blended
@@ -40,6 +41,7 @@ from numba import njit
 from hapticrom.online import element_kernels as ek
 from hapticrom.online.haptic_newton import HapticNewton
 from hapticrom.online.kernels import closest_on_triangle
+from hapticrom.online.sampling_check import SamplingCheck
 from hapticrom.shared.artifact_rules import MAX_FORCE, MAX_LENGTH
 from hapticrom.shared.errors import ArtifactError, InputError
 
@@ -53,8 +55,10 @@ MAX_ITERATIONS = 100  # modified Newton iterations a step: a step's cost is boun
 STEADY, JUMP, FLOOR = 1e-3, 4.0, 1e-6
 
 
-def element_geometry(X: np.ndarray, cell: str, first: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(dN, dV) of the elements X (E, nodes, 3) mm (rows ``first`` on of the group's):
+def element_geometry(X: np.ndarray, cell: str, first: int = 0,
+                     dataset: str = "element_nodes") -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(dN, dV) of the elements X (E, nodes, 3) mm (rows ``first`` on of the group's
+    ``dataset``):
     ``element_kernels.element_geometry``'s, after refusing an element whose Jacobian
     changes sign or nearly vanishes at a quadrature point (a tangled or degenerate element:
     its |det J| would pass as volume)."""
@@ -65,13 +69,25 @@ def element_geometry(X: np.ndarray, cell: str, first: int = 0) -> tuple[np.ndarr
     bad = ~(np.abs(det) > MIN_JACOBIAN * scale).all(axis=1)
     bad |= ~((det > 0).all(axis=1) | (det < 0).all(axis=1))
     if bad.any():
-        raise ArtifactError(f"{GROUP}/element_nodes: element {first + int(np.argmax(bad))} is "
+        raise ArtifactError(f"{GROUP}/{dataset}: element {first + int(np.argmax(bad))} is "
                             "tangled or degenerate (its Jacobian vanishes or changes "
                             "sign)")  # fmt: skip
     dN = np.empty((len(X), len(ref.weights), X.shape[1], 3))
     dV = np.empty((len(X), len(ref.weights)))
     ek.element_geometry(np.ascontiguousarray(X), ref.gradients, ref.weights, dN, dV)
     return dN, dV
+
+
+def region_sample(h, cell: str, region: int, prefix: str = "") -> tuple:
+    """Region ``region``'s sample (dN, dV, basis rows, pressure rows, parameters, weights)
+    from the group ``h``'s datasets ``prefix`` + element_offsets, element_nodes, ... (the
+    model's, or with "check_" the error indicator's check sample), its geometry checked."""
+    first, last = (int(v) for v in h[prefix + "element_offsets"][region : region + 2])
+    dN, dV = element_geometry(np.asarray(h[prefix + "element_nodes"][first:last], np.float64),
+                              cell, first, prefix + "element_nodes")  # fmt: skip
+    e = slice(first, last)
+    return (dN, dV, h[prefix + "basis_rows"][e], h[prefix + "pressure_rows"][e],
+            h[prefix + "parameters"][e], h[prefix + "weights"][e])  # fmt: skip
 
 
 def loadable_vertices(surface) -> np.ndarray:
@@ -245,10 +261,11 @@ class HyperReducedPhysics:
     """Region ``region`` of ``model``'s hyper-reduced physics with ``holders`` (points, mm)
     gripping the surface; ``iterations`` and ``slices`` as ``HapticNewton``'s (slices 30
     here: on the demo's held and two-tool regions the same settled errors and no more lag
-    at a ramp's end than 20, at a p99 0.1 ms lower: README, stop 45)."""
+    at a ramp's end than 20, at a p99 0.1 ms lower: README, stop 45); an error estimate
+    spread over ``estimate_steps`` steps (``error_estimate``)."""
 
     def __init__(self, model, region: int = 0, holders=(), iterations: int = 1,
-                 slices: int = 30):  # fmt: skip
+                 slices: int = 30, estimate_steps: int = 50):  # fmt: skip
         if GROUP not in model.artifact.groups:
             raise InputError(f"{model.artifact.path} has no hyper-reduced physics (group "
                              f"{GROUP}, artifact format 2.5)")  # fmt: skip
@@ -256,16 +273,12 @@ class HyperReducedPhysics:
         region = self.region = _index("region", region, len(h["centres"]))
         _count("iterations", iterations, MAX_ITERATIONS)
         _count("slices", slices, None)
+        _count("estimate_steps", estimate_steps, None)
         self.centre = np.ascontiguousarray(h["centres"][region], np.float64)  # the kernel's
         self.radius = float(h["radii"][region])
         self.contact_radius = float(model.artifact.group_attrs["model"]["contact_radius"])
         self.vertices = np.ascontiguousarray(model.artifact["surface"]["vertices"], np.float64)
-        first, last = (int(v) for v in h["element_offsets"][region : region + 2])
-        dN, dV = element_geometry(np.asarray(h["element_nodes"][first:last], np.float64),
-                                  attrs["cell"], first)  # fmt: skip
-        e = slice(first, last)
-        sample = (dN, dV, h["basis_rows"][e], h["pressure_rows"][e], h["parameters"][e],
-                  h["weights"][e])  # fmt: skip
+        sample = region_sample(h, attrs["cell"], region)
         self.surface_basis = np.ascontiguousarray(h["surface_basis"][region], np.float64)
         n = self.surface_basis.shape[1]
         linear = np.array(h["constant_tangent"][region], np.float64)
@@ -282,7 +295,13 @@ class HyperReducedPhysics:
         for A in self.holders:
             linear[:n, :n] += self.hold_stiffness * (A.T @ A)
         # slices: at most one element a part (a small region has fewer elements than 30)
-        self.newton = self._newton(sample, linear, iterations, min(slices, last - first))
+        self.newton = self._newton(sample, linear, iterations, min(slices, len(sample[5])))
+        self.check = None  # the error indicator (a file with check samples: group 1.2)
+        if "check_element_offsets" in h:
+            check = region_sample(h, attrs["cell"], region, "check_")
+            self.check = SamplingCheck(sample, h["constant_tangent"][region], check,
+                                       h["check_constant_tangent"][region],
+                                       estimate_steps)  # fmt: skip
         self._loads_of(model, h, region)
         self.q, self.pi = np.zeros(n), np.zeros(linear.shape[0] - n)
         self.load = np.zeros(n)  # the pressing tools' and moved holders' reduced loads, summed
@@ -456,12 +475,19 @@ class HyperReducedPhysics:
 
     def step(self) -> bool:
         """One physics step under the tools' loads; False if refused (nothing changed).
+        A taken step also sums its share of the error estimate (``error_estimate``).
 
         Guarded: a step that is refused, or whose update jumps while the load holds
         (``JUMP``, ``STEADY``, ``FLOOR``), is taken again from the state before it on the
         whole tangent at that state (``HapticNewton.refresh``: the cost of the tangent's
         parts at once, 30 steps' worth, about 4.6 ms on the demo, once), and counted in
         ``refreshes``."""
+        taken = self._guarded_step()
+        if taken and self.check is not None:
+            self.check.advance(self.q, self.pi, self.newton.lu, self.newton.pivots)
+        return taken
+
+    def _guarded_step(self) -> bool:
         q0, pi0 = self._before
         np.copyto(q0, self.q)
         np.copyto(pi0, self.pi)
@@ -482,6 +508,14 @@ class HyperReducedPhysics:
             return False
         self.refreshes += 1
         return self.newton.step(self.q, self.pi, self.load)
+
+    def error_estimate(self) -> float:
+        """The relative error of the displacement field (1) that the element sampling
+        leaves, estimated on the region's check sample (``online/sampling_check.py``) at
+        the state of ``estimate_steps`` steps ago, refreshed every ``estimate_steps``
+        steps; NaN before the first estimate or in a file without check samples (group
+        version 1.2). It does not see a load the region's basis does not span."""
+        return np.nan if self.check is None else float(self.check.eta)
 
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:
         """Fill ``out`` (V, 3) float64 C-contiguous with the surface's displacement (mm)."""

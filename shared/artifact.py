@@ -61,8 +61,9 @@ FORMAT = "hapticrom"
 # 2.4: and at the midpoints of the loadable triangles' edges (contact_fields 1.2);
 # 2.5: the hyper-reduced physics of regions of the surface (hyperreduced);
 # 2.6: the nodes its holders grip, P2's mid-side nodes too, and whether a holder keeps its
-# patch's cupping (hyperreduced 1.1).
-FORMAT_VERSION = (2, 6)
+# patch's cupping (hyperreduced 1.1);
+# 2.7: each region's check sample, the runtime's error indicator (hyperreduced 1.2).
+FORMAT_VERSION = (2, 7)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -301,7 +302,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "hyperreduced",
         "ecsw-physics",
-        (1, 1),
+        (1, 2),
         _fields(
             ("centres", "f", ("Hr", 3), "mm", "the centre of each region"),
             ("radii", "f", ("Hr",), "mm", "how far from its centre a region's tools may be",
@@ -334,6 +335,23 @@ SCHEMA: tuple[Group, ...] = (
             ("grip_nodes", "f", ("Hg", 3), "mm", "a node of the loadable facets a holder may grip"),
             ("grip_rows", "f", ("Hg", 3, "Hq"), "1",
              "the region's displacement basis at that node"),
+            required=False,
+        ) + _fields(
+            # group version 1.2 (format 2.7): the error indicator's second sample
+            ("check_element_offsets", "i", ("Hr1",), "1",
+             "region r's check elements: rows offsets[r]:[r+1]", "nonnegative"),
+            ("check_element_nodes", "f", ("Hc", "Hk", 3), "mm",
+             "the check sample's reference nodes (Basix order)"),
+            ("check_weights", "f", ("Hc",), "1", "ECSW's weight of each check element",
+             "positive"),
+            ("check_basis_rows", "f", ("Hc", "3Hk", "Hq"), "1",
+             "the region's displacement basis at each check element's nodes"),
+            ("check_pressure_rows", "f", ("Hc", "Hp"), "1",
+             "the region's pressure basis at each check element's cell"),
+            ("check_parameters", "f", ("Hc", PARAMETER_SIZE), "packed",
+             "each check element's law and parameters"),
+            ("check_constant_tangent", "f", ("Hr", "Hs", "Hs"), "N/mm",
+             "each region's constant tangent with the check sample", "symmetric"),
             required=False,
         ),
         required=False,

@@ -618,6 +618,12 @@ MAX_WEIGHT = 1e6  # an ECSW weight: elements one sampled element stands for
 MAX_TANGENT = 1e15  # N/mm: the constant tangent with a holder's penalty (1e4 x its stiffest)
 
 
+# the error indicator's check sample (hyperreduced 1.2), with check_element_offsets: a second
+# sample's datasets, each as the model's sample's of the name less the prefix
+CHECK_DATASETS = ("check_element_nodes", "check_weights", "check_basis_rows",
+                  "check_pressure_rows", "check_parameters", "check_constant_tangent")  # fmt: skip
+
+
 def _hyperreduced(artifact) -> None:
     """``hyperreduced``: offsets that split the elements, load vertices and (with the other two
     grip datasets) grip nodes into the regions (each at least one of each), n + n_p the
@@ -630,12 +636,12 @@ def _hyperreduced(artifact) -> None:
     if regions < 1:
         raise _fail(artifact, "hyperreduced/centres: the group holds no region")
     offsets = [("element_offsets", sym["He"]), ("load_offsets", sym["Hl"])]
-    grip = [name for name in ("grip_offsets", "grip_nodes", "grip_rows") if name in h]
-    if grip and len(grip) < 3:
-        raise _fail(artifact, "hyperreduced: grip_offsets, grip_nodes and grip_rows go together "
-                              f"(the file has only {', '.join(grip)})")  # fmt: skip
+    grip = _together(artifact, h, ("grip_offsets", "grip_nodes", "grip_rows"))
     if grip:
         offsets.append(("grip_offsets", sym["Hg"]))
+    check = _together(artifact, h, ("check_element_offsets",) + CHECK_DATASETS)
+    if check:
+        offsets.append(("check_element_offsets", sym["Hc"]))
     for name, total in offsets:
         o = h[name].astype(np.int64)  # unsigned offsets would wrap in np.diff
         if len(o) != regions + 1 or o[0] != 0 or o[-1] != total or np.any(np.diff(o) < 1):
@@ -648,9 +654,10 @@ def _hyperreduced(artifact) -> None:
     if sym["Hk"] != ELEMENT_NODES[cell]:
         raise _fail(artifact, f"hyperreduced/element_nodes has {sym['Hk']} nodes an element, "
                               f"a {cell} {ELEMENT_NODES[cell]}")  # fmt: skip
-    problem = packed_problem(h["parameters"])
-    if problem:
-        raise _fail(artifact, f"hyperreduced/parameters {problem}")
+    for name in ("parameters", "check_parameters") if check else ("parameters",):
+        problem = packed_problem(h[name])
+        if problem:
+            raise _fail(artifact, f"hyperreduced/{name} {problem}")
     _hyperreduced_loads(artifact, h)
     if grip:
         _hyperreduced_grip(artifact, h)
@@ -659,11 +666,23 @@ def _hyperreduced(artifact) -> None:
               ("pressure_rows", BASIS_BOUND), ("surface_basis", BASIS_BOUND),
               ("tool_loads", MAX_TOOL_LOAD), ("constant_tangent", MAX_TANGENT))  # fmt: skip
     bounds += (("grip_nodes", MAX_LENGTH), ("grip_rows", BASIS_BOUND)) if grip else ()
+    bounds += (("check_element_nodes", MAX_LENGTH), ("check_weights", MAX_WEIGHT),
+               ("check_basis_rows", BASIS_BOUND), ("check_pressure_rows", BASIS_BOUND),
+               ("check_constant_tangent", MAX_TANGENT)) if check else ()  # fmt: skip
     for name, bound in bounds:
         if np.max(np.abs(h[name]), initial=0.0) > bound:
             raise _fail(artifact, f"hyperreduced/{name} has values beyond +-{bound:g}")
     if artifact.group_attrs["hyperreduced"]["hold_stiffness"] > MAX_TANGENT:
         raise _fail(artifact, f"attribute hold_stiffness of hyperreduced is over {MAX_TANGENT:g}")
+
+
+def _together(artifact, h, names) -> bool:
+    """Whether the optional datasets ``names`` are in the group: all of them or none."""
+    present = [name for name in names if name in h]
+    if present and len(present) < len(names):
+        raise _fail(artifact, f"hyperreduced: {', '.join(names)} go together (the file has "
+                              f"only {', '.join(present)})")  # fmt: skip
+    return bool(present)
 
 
 def _hyperreduced_loads(artifact, h) -> None:

@@ -1,6 +1,6 @@
-"""The artifact's ``hyperreduced`` group (format 2.5): regions of hyper-reduced physics that
-the runtime steps online (``online/physics.py``), written from the trainer's
-:class:`~hapticrom.offline.reduce.ecsw_model.HyperReducedModel` of each region.
+"""The artifact's ``hyperreduced`` group (format 2.5; group 1.2 in 2.7): regions of
+hyper-reduced physics that the runtime steps online (``online/physics.py``), written from the
+trainer's :class:`~hapticrom.offline.reduce.ecsw_model.HyperReducedModel` of each region.
 
 A region is what ``bench/ecsw_tradeoff.py`` measures at one held-out position: a reduced
 mixed model on bases Phi (N, n), Psi (cells, n_p) built about a centre, its internal forces
@@ -11,7 +11,9 @@ nodes a holder may grip (:class:`GripNodes`: every node of the loadable facets w
 the mid-side nodes of P2 too, as the full order's holder holds them); and the reduced load
 of a unit force of the tool centred at each loadable vertex within the region's radius
 (``tool_loads``: Phi^T g / W, g the campaign's force tool's load, exactly as the full order
-spreads it, so a press at a vertex is the full order's load projected).
+spreads it, so a press at a vertex is the full order's load projected); optionally (group
+1.2) a check sample, a second ECSW sample of the same bases at a tighter tolerance, and its
+constant tangent: the runtime's error indicator (``online/sampling_check.py``).
 
 Steps, as a reductor's: :func:`region_arrays` (one region's arrays from its model),
 :func:`tool_loads` (the loads at the region's vertices), :func:`physics_group` (the regions
@@ -27,6 +29,7 @@ import numpy as np
 
 from hapticrom.online.physics import holder_patch, loadable_vertices
 from hapticrom.shared.artifact import read_artifact, with_group, write_artifact
+from hapticrom.shared.artifact_rules import CHECK_DATASETS
 from hapticrom.shared.errors import InputError
 
 HOLD_STIFFNESS = 1e4  # a holder's penalty, of the stiffest tool's linear stiffness
@@ -71,37 +74,48 @@ class PhysicsRegion:
     hold_stiffness: float  # N/mm
     grip_nodes: np.ndarray  # (G, 3) mm: the grip nodes within reach of the region's holders
     grip_rows: np.ndarray  # (G, 3, n)
+    check: dict | None = None  # the error indicator's sample: CHECK_DATASETS' names and arrays
+
+
+def sample_arrays(mesh, model, prefix: str = "") -> dict:
+    """A sampled model's datasets, each name ``prefix`` + element_nodes, weights,
+    basis_rows, pressure_rows, parameters, constant_tangent."""
+    _, _, Phi_e, Psi_e, params, weights = model.sample
+    arrays = {
+        "element_nodes": np.ascontiguousarray(mesh.X[model.elements]),
+        "weights": np.array(weights),
+        "basis_rows": np.array(Phi_e),
+        "pressure_rows": np.array(Psi_e),
+        "parameters": np.array(params),
+        "constant_tangent": 0.5 * (model.linear + model.linear.T),  # symmetric up to rounding
+    }
+    return {prefix + name: a for name, a in arrays.items()}
 
 
 def region_arrays(mesh, model, Phi, surface, centre, radius, loads, grip: GripNodes,
-                  reach: float) -> PhysicsRegion:  # fmt: skip
+                  reach: float, check=None) -> PhysicsRegion:  # fmt: skip
     """A region about ``centre`` (mm) of tools within ``radius`` (mm): ``model`` (a
     HyperReducedModel on ``mesh``'s elements and the basis ``Phi`` (N, n)), ``surface`` the
     artifact's surface group (vertices, triangles, nodes, groups), ``loads`` a
     ``tool_stiffness.ToolLoads`` (the campaign's force tool), ``grip`` the organ's
     :class:`GripNodes`, of which the region keeps those within ``radius + reach`` (mm:
-    the tool's contact radius) of its centre."""
+    the tool's contact radius) of its centre; ``check``: the error indicator's model (a
+    second sample on the same bases), or None."""
     centre = np.asarray(centre, dtype=float)
     near = grip.within(centre, radius + reach)
-    s = model.elements
-    dN, dV, Phi_e, Psi_e, params, weights = model.sample
     vertices = region_vertices(surface, centre, radius)
     tool_loads_ = tool_loads(Phi, surface["vertices"][vertices], loads)
     return PhysicsRegion(
         centre=centre,
         radius=float(radius),
-        element_nodes=np.ascontiguousarray(mesh.X[s]),
-        weights=np.array(weights),
-        basis_rows=np.array(Phi_e),
-        pressure_rows=np.array(Psi_e),
-        parameters=np.array(params),
-        constant_tangent=0.5 * (model.linear + model.linear.T),  # symmetric up to rounding
+        **sample_arrays(mesh, model),
         surface_basis=surface_rows(Phi, surface["nodes"]),
         load_vertices=vertices,
         tool_loads=tool_loads_,
         hold_stiffness=hold_stiffness(model, tool_loads_),
         grip_nodes=np.ascontiguousarray(grip.points[near], dtype=float),
         grip_rows=np.ascontiguousarray(Phi.reshape(-1, 3, Phi.shape[1])[grip.nodes[near]]),
+        check=None if check is None else sample_arrays(mesh, check, "check_"),
     )
 
 
@@ -155,6 +169,9 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
     kind; the penalty the stiffest of theirs)."""
     if not regions:
         raise InputError("no region to write")
+    checked = [r.check is not None for r in regions]
+    if any(checked) and not all(checked):
+        raise InputError("every region or none has a check sample (the error indicator)")
     offsets = [np.cumsum([0] + [len(getattr(r, name)) for r in regions])
                for name in ("weights", "load_vertices", "grip_nodes")]  # fmt: skip
 
@@ -167,7 +184,16 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
              "holder_cupping": 1}  # fmt: skip
     if tolerance is not None:
         attrs["tolerance"] = float(tolerance)
+    check = {}
+    if all(checked):
+        sizes = [len(r.check["check_weights"]) for r in regions]
+        check["check_element_offsets"] = np.cumsum([0] + sizes).astype(np.int64)
+        for name in CHECK_DATASETS:
+            parts = [r.check[name] for r in regions]
+            tangent = name == "check_constant_tangent"  # one a region, the rest stacked
+            check[name] = np.array(parts) if tangent else np.concatenate(parts)
     return {
+        **check,
         "centres": np.array([r.centre for r in regions]),
         "radii": np.array([r.radius for r in regions]),
         "element_offsets": offsets[0].astype(np.int64),

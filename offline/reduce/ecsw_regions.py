@@ -9,8 +9,10 @@ on a mesh whose nodes lie farther apart, the edges' midpoints too: ``between_nod
 POD of their states and pressures, supremizers (the mixed basis' inf-sup stability), ECSW
 trained on the solves' own states, then the region's arrays
 (:func:`~hapticrom.offline.reduce.ecsw_physics.region_arrays`). Steps, as a reductor's:
-:func:`region_snapshots`, :func:`region_bases`, :func:`region_model`; :func:`build_regions`
-runs them for each centre. Serial (one rank), as the bench.
+:func:`region_snapshots`, :func:`region_bases`, :func:`region_training`, :func:`region_model`
+(the model's sample, and a check sample trained apart at a tighter tolerance: the runtime's
+error indicator); :func:`build_regions` runs them for each centre. Serial (one
+rank), as the bench.
 """
 
 from __future__ import annotations
@@ -63,7 +65,10 @@ class RegionRecipe:
     radius: float = 1.0
     second_force: float = 0.5  # a pair region's second tool, of the campaign's force
     lift: float = 0.0  # mm: a held region's holders also lift this far, alone (grasp-and-lift)
+    pinch_force: float = 0.014  # N: each of a pinch region's nine forces (thesis §3.4.3)
     between_nodes: bool = False  # solves also at the loadable edges' midpoints (a coarse mesh)
+    # the error indicator's check sample: ECSW's tolerance, tighter than the model's (0: none)
+    check_tolerance: float = 0.001
 
     def __post_init__(self):
         if not self.distances or min(self.distances) <= 0:
@@ -74,6 +79,12 @@ class RegionRecipe:
                              "pressure mode")  # fmt: skip
         if not 0 <= self.lift <= 10:
             raise InputError(f"a holder's lift must lie in [0, 10] mm, got {self.lift}")
+        if not (self.check_tolerance == 0 or 0 < self.check_tolerance < self.tolerance):
+            raise InputError(f"the check sample's tolerance must lie in (0, {self.tolerance}) "
+                             f"(tighter than the model's), or be 0 for none; got "
+                             f"{self.check_tolerance}")  # fmt: skip
+        if not 0 < self.pinch_force <= 100:
+            raise InputError(f"a pinch's force must lie in (0, 100] N, got {self.pinch_force}")
         if not (0 < self.tolerance < 1 and self.radius > 0 and 0 < self.second_force <= 10):
             raise InputError(
                 "ECSW's tolerance must lie in (0, 1), the radius be positive and "
@@ -157,6 +168,21 @@ class RegionSolves:
         force = fraction * self.config.load.magnitude * self.config.load.unit_direction(position)
         return position.point, tuple(float(v) for v in force)
 
+    def pinch_tools(self, site, force) -> list[tuple]:
+        """The further tools of a pinch at ``site`` (the campaign's tool there is its
+        first force): the eight free loadable nodes nearest to it, each pressing with
+        ``force`` (N) along the campaign's direction there (thesis §3.4.3: nine
+        neighbouring nodes, 0.014 N each)."""
+        distance = np.linalg.norm(self.surface.nodes - self.sites[site], axis=1)
+        distance[[k for k in self.excluded if k < len(distance)]] = np.inf
+        if site < len(distance):
+            distance[site] = np.inf  # the first tool's own node
+        nearest = np.argsort(distance)[:8]
+        if not np.isfinite(distance[nearest]).all():
+            raise InputError(f"a pinch at {np.round(self.sites[site], 4).tolist()} mm needs "
+                             "eight free loadable nodes beside it")  # fmt: skip
+        return [self.tool(int(n), force / self.config.load.magnitude) for n in nearest]
+
     def second_tool(self, point, distance, fraction) -> tuple[int, tuple]:
         """A second tool ``distance`` mm from ``point`` (the free loadable node nearest to
         that distance, not ``point``'s own): its node and its ``tool``."""
@@ -193,22 +219,24 @@ def pod(columns: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class RegionSite:
-    """Where a region's tools go: ``kind`` "at" (one site: presses about it), "pair" (two
-    tools pressing at once) or "held" (the first presses while a holder grips the
-    second); ``points`` (1 or 2, 3) mm."""
+    """Where a region's tools go: ``kind`` "at" (one site: presses about it), "pinch" (nine
+    forces at neighbouring nodes about one site), "pair" (two tools pressing at once) or
+    "held" (the first presses while a holder grips the second); ``points`` (1 or 2, 3) mm."""
 
     kind: str
     points: np.ndarray
 
     def __post_init__(self):
-        count = {"at": 1, "pair": 2, "held": 2}.get(self.kind)
+        count = {"at": 1, "pinch": 1, "pair": 2, "held": 2}.get(self.kind)
         if count is None or np.shape(self.points) != (count, 3):
-            raise InputError(f"a region site is 'at' one point or a 'pair' / 'held' two, got "
-                             f"{self.kind!r} with shape {np.shape(self.points)}")  # fmt: skip
+            raise InputError(f"a region site is 'at' or 'pinch' one point or 'pair' or 'held' "
+                             f"two, got {self.kind!r} with shape "
+                             f"{np.shape(self.points)}")  # fmt: skip
 
 
 def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float = 0.5,
-                     lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                     lift: float = 0.0,
+                     pinch_force: float = 0.014) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """(states (N, k), pressures (cells, k)) of the solves about the site's first point;
     for a pair, of pairs: the k-th node about the first pressed with the campaign's force
     while the k-th about the second presses with ``second_force`` of it (never both on one
@@ -217,10 +245,17 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
     a holder keeps its patch at the k-th about the second in place (``solves.held``), and
     with a ``lift`` (mm) each of those holders also lifts its patch that far against the
     campaign's direction (out of the surface along its normal for "normal"), nothing
-    pressing (grasp-and-lift's states)."""
+    pressing (grasp-and-lift's states); a pinch, at the k-th site about the point the
+    campaign's tool and eight more at the nearest nodes, each pressing ``pinch_force`` N
+    (``RegionSolves.pinch_tools``)."""
     first = solves.nodes(site.points[0])
     if site.kind == "at":
         solved = [solves.solve(node) for node in first]
+    elif site.kind == "pinch":
+        load = replace(solves.config.load, magnitude=pinch_force)
+        pinching = replace(solves.config, load=load)
+        solved = [solves.solve(node, tools=solves.pinch_tools(node, pinch_force), config=pinching)
+                  for node in first]  # fmt: skip
     else:
         pairs = zip(first, solves.nodes(site.points[1], forbidden=first), strict=True)
         if site.kind == "pair":
@@ -284,10 +319,15 @@ def region_bases(operators, U, P, recipe: RegionRecipe,
     return np.linalg.qr(np.hstack(parts))[0], Psi
 
 
-def region_model(mesh, rest, Phi, Psi, U, P, tolerance) -> HyperReducedModel:
-    """ECSW at ``tolerance`` trained on the states (U, P) reduced, and its model."""
+def region_training(mesh, rest, Phi, Psi, U, P) -> np.ndarray:
+    """ECSW's training matrix of the bases at the states (U, P) reduced."""
     states = [(Phi.T @ u, Psi.T @ p) for u, p in zip(U.T, P.T, strict=True)]
-    sampling = ecsw(training_matrix(mesh, Phi, Psi, states, rest=rest)[0], tolerance=tolerance)
+    return training_matrix(mesh, Phi, Psi, states, rest=rest)[0]
+
+
+def region_model(mesh, rest, Phi, Psi, G, tolerance) -> HyperReducedModel:
+    """The model of ECSW's sample at ``tolerance`` on the training matrix ``G``."""
+    sampling = ecsw(G, tolerance=tolerance)
     return HyperReducedModel(mesh, Phi, Psi, sampling.elements, sampling.weights, rest=rest)
 
 
@@ -302,21 +342,27 @@ def build_regions(config, mesh, rest, surface, grip: GripNodes, loads, sites,
     regions: list[PhysicsRegion] = []
     for k, site in enumerate(sites):
         t0 = time.perf_counter()
-        U, P = region_snapshots(solves, site, recipe.second_force, recipe.lift)
+        U, P = region_snapshots(solves, site, recipe.second_force, recipe.lift,
+                                recipe.pinch_force)  # fmt: skip
         extra = None
         if site.kind == "held":
             free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
             extra = holder_responses(operators, grip, site.points[1],
                                      config.load.contact_radius, free)  # fmt: skip
         Phi, Psi = region_bases(operators, U, P, recipe, extra)
-        model = region_model(mesh, rest, Phi, Psi, U, P, recipe.tolerance)
+        G = region_training(mesh, rest, Phi, Psi, U, P)
+        model = region_model(mesh, rest, Phi, Psi, G, recipe.tolerance)
+        check = None
+        if recipe.check_tolerance:
+            check = region_model(mesh, rest, Phi, Psi, G, recipe.check_tolerance)
         centre = site.points.mean(axis=0)  # two points' midpoint: tools within radius of each
         radius = recipe.radius + float(np.linalg.norm(site.points[-1] - site.points[0])) / 2
         regions.append(region_arrays(mesh, model, Phi, surface, centre, radius, loads, grip,
-                                     config.load.contact_radius))  # fmt: skip
+                                     config.load.contact_radius, check))  # fmt: skip
         log.info("region %d of %d (%s) at %s mm: %d states, %d + %d modes, %d of %d elements "
-                 "(%.0f s)", k + 1, len(sites), site.kind, np.round(site.points, 3).tolist(),
-                 U.shape[1], Phi.shape[1], Psi.shape[1], model.sampled_elements, len(mesh.X),
+                 "(the check sample %d; %.0f s)", k + 1, len(sites), site.kind,
+                 np.round(site.points, 3).tolist(), U.shape[1], Phi.shape[1], Psi.shape[1],
+                 model.sampled_elements, len(mesh.X), check.sampled_elements if check else 0,
                  time.perf_counter() - t0)  # fmt: skip
     return regions
 

@@ -553,16 +553,17 @@ def cmd_physics(args, petsc) -> int:
     )
 
     sites = [RegionSite(kind, np.array(points, dtype=float).reshape(-1, 3))
-             for kind in ("at", "pair", "held")
+             for kind in ("at", "pinch", "pair", "held")
              for points in getattr(args, kind) or []]  # fmt: skip
     if not sites:
-        raise HapticromError("physics: give a region with --at=X,Y,Z, --pair=X1,Y1,Z1,X2,Y2,Z2 "
-                             "or --held=X1,Y1,Z1,X2,Y2,Z2")  # fmt: skip
+        raise HapticromError("physics: give a region with --at=X,Y,Z, --pinch=X,Y,Z, "
+                             "--pair=X1,Y1,Z1,X2,Y2,Z2 or --held=X1,Y1,Z1,X2,Y2,Z2")  # fmt: skip
     recipe = RegionRecipe(distances=args.solves, per_distance=args.solves_per_distance,
                           state_modes=args.state_modes, pressure_modes=args.pressure_modes,
                           tolerance=args.tolerance, radius=args.radius,
                           second_force=args.second_force, lift=args.lift,
-                          between_nodes=args.between_nodes)  # fmt: skip
+                          between_nodes=args.between_nodes, pinch_force=args.pinch_force,
+                          check_tolerance=args.check_tolerance)  # fmt: skip
     if args.lift and not args.held:
         raise HapticromError("physics --lift lifts the holders of --held regions: give --held")
     petsc.start()
@@ -575,8 +576,8 @@ def add_physics(sub) -> None:
     """``hapticrom physics MODEL CAMPAIGN_DIR --at X,Y,Z --out FILE``."""
     p = new_command(sub, "physics", cmd_physics, HELP["physics"], description=(
         "Build regions of hyper-reduced physics (issue 18: the reduced mixed model solved "
-        "online on the few elements ECSW samples: one press, two tools at once, or a press "
-        "beside a holder) "
+        "online on the few elements ECSW samples: one press, a pinch, two tools at once, or "
+        "a press beside a holder) "
         "about points of a model's trained surface, and write them with the model to a "
         "new file (artifact group hyperreduced). Each region takes full-order solves of "
         "the campaign's load path about its centre (on the demo cornea 2 minutes a "
@@ -593,12 +594,20 @@ def add_physics(sub) -> None:
         "for more regions (a negative first coordinate: --at=-1.2,0.5,0.1)",
     )
     p.add_argument(
+        "--pinch",
+        type=centre_point,
+        action="append",
+        metavar="X,Y,Z",
+        help="a region for a pinch about this point (mm): nine forces at neighbouring "
+        "nodes (thesis §3.4.3), its solves pinches about it; after the --at regions",
+    )
+    p.add_argument(
         "--pair",
         type=pair_points,
         action="append",
         metavar="X1,Y1,Z1,X2,Y2,Z2",
         help="a region for two tools at these sites (mm), its solves pairs of "
-        "presses about them; after the --at regions",
+        "presses about them; after the --pinch regions",
     )
     p.add_argument(
         "--held",
@@ -616,6 +625,14 @@ def add_physics(sub) -> None:
         0.5,
         "F",
         "a --pair region's second tool in its solves, of the campaign's force (default 0.5)",
+    )
+    number_option(
+        p,
+        "--pinch-force",
+        float_in(0.0, 100.0, "N"),
+        0.014,
+        "N",
+        "each of a --pinch region's nine forces in its solves (default 0.014 N, the thesis')",
     )
     number_option(
         p,
@@ -643,6 +660,15 @@ def add_physics(sub) -> None:
         0.004,
         "T",
         "ECSW's tolerance (default 0.004: the two-tool target, README)",
+    )
+    number_option(
+        p,
+        "--check-tolerance",
+        float_in(1e-9, 0.5),
+        0.001,
+        "T",
+        "ECSW's tolerance of each region's check sample, the runtime's error indicator "
+        "(trained apart from the model's sample; below --tolerance; default 0.001)",
     )
     p.add_argument("--solves", type=distances, default=(0.25, 0.5), metavar="MM,MM",
                    help="distances of a region's full-order solves from its centre "
