@@ -271,7 +271,7 @@ def main() -> None:
         full = data["displacement"][-1]
         tool = physics.tool_load(point, force)
         if args.pinch:  # the pinch's depth: the nine forces' load-weighted displacement
-            tool = physics.load.copy()
+            tool = physics.load / factors[-1]  # per unit factor, as f
         depth, lagging = tool @ physics.q / (f @ full), tool @ ramp_end / (f @ full)
         field = full.reshape(-1, 3)[nodes]
         row = {"position": i, "elements": len(physics.newton.sample[0]), "modes": physics.q.size,

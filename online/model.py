@@ -237,7 +237,9 @@ class ReducedModel:
                 estimate_steps: int = 50):  # fmt: skip
         """Region ``region`` of the hyper-reduced physics (artifact format 2.5, group
         ``hyperreduced``), ``holders`` gripping the surface at those points (mm): a
-        :class:`~hapticrom.online.physics.HyperReducedPhysics`."""
+        :class:`~hapticrom.online.physics.HyperReducedPhysics` (``iterations`` and
+        ``slices`` its Newton's, ``estimate_steps`` the steps an error estimate is spread
+        over: ``physics.error_estimate()``)."""
         from hapticrom.online.physics import HyperReducedPhysics
 
         return HyperReducedPhysics(self, region, holders, iterations, slices, estimate_steps)

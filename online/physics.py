@@ -41,7 +41,7 @@ from numba import njit
 from hapticrom.online import element_kernels as ek
 from hapticrom.online.haptic_newton import HapticNewton
 from hapticrom.online.kernels import closest_on_triangle
-from hapticrom.online.sampling_check import SamplingCheck
+from hapticrom.online.sampling_check import MAX_PARTS, SamplingCheck
 from hapticrom.shared.artifact_rules import MAX_FORCE, MAX_LENGTH
 from hapticrom.shared.errors import ArtifactError, InputError
 
@@ -273,7 +273,7 @@ class HyperReducedPhysics:
         region = self.region = _index("region", region, len(h["centres"]))
         _count("iterations", iterations, MAX_ITERATIONS)
         _count("slices", slices, None)
-        _count("estimate_steps", estimate_steps, None)
+        _count("estimate_steps", estimate_steps, MAX_PARTS)
         self.centre = np.ascontiguousarray(h["centres"][region], np.float64)  # the kernel's
         self.radius = float(h["radii"][region])
         self.contact_radius = float(model.artifact.group_attrs["model"]["contact_radius"])
@@ -299,7 +299,7 @@ class HyperReducedPhysics:
         self.check = None  # the error indicator (a file with check samples: group 1.2)
         if "check_element_offsets" in h:
             check = region_sample(h, attrs["cell"], region, "check_")
-            self.check = SamplingCheck(sample, h["constant_tangent"][region], check,
+            self.check = SamplingCheck(self.newton.sample, h["constant_tangent"][region], check,
                                        h["check_constant_tangent"][region],
                                        estimate_steps)  # fmt: skip
         self._loads_of(model, h, region)
@@ -511,10 +511,12 @@ class HyperReducedPhysics:
 
     def error_estimate(self) -> float:
         """The relative error of the displacement field (1) that the element sampling
-        leaves, estimated on the region's check sample (``online/sampling_check.py``) at
-        the state of ``estimate_steps`` steps ago, refreshed every ``estimate_steps``
-        steps; NaN before the first estimate or in a file without check samples (group
-        version 1.2). It does not see a load the region's basis does not span."""
+        leaves, estimated on the region's check sample (``online/sampling_check.py``):
+        each estimate is summed over ``estimate_steps`` taken steps at the state of the
+        first of them (so the value read is up to 2 x ``estimate_steps`` - 1 steps old);
+        NaN before the first estimate, if the check's sums were not finite, or in a file
+        without check samples (group version 1.2). It does not see a load the region's
+        basis does not span."""
         return np.nan if self.check is None else float(self.check.eta)
 
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:

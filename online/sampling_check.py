@@ -114,6 +114,8 @@ def check_part(dN, dV, Phi, Psi, params, weights, dN2, dV2, Phi2, Psi2, params2,
     if lu.shape[1] != size or pivots.shape[0] != 2 or pivots.shape[1] != size:
         raise ValueError("lu must be square of n + n_p and pivots (2, n + n_p)")
     parts = bounds.shape[0] - 1
+    if parts < 1:
+        raise ValueError("bounds must hold at least one part")
     _check_bounds(bounds, S, parts)
     _check_bounds(bounds2, Phi2.shape[0], parts)
     if not 0 <= part < parts:
@@ -133,17 +135,33 @@ def check_part(dN, dV, Phi, Psi, params, weights, dN2, dV2, Phi2, Psi2, params2,
     return _finish(difference, lu, pivots, xq, xp, sums)
 
 
+MAX_PARTS = 100_000  # an estimate's parts: 100 s of steps at 1 kHz
+
+
+def _shared(a) -> np.ndarray:
+    """``a`` itself if it is already a read-only C float64 array (HapticNewton's sample:
+    not held twice), else a read-only copy."""
+    if isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous \
+            and not a.flags.writeable:  # fmt: skip
+        return a
+    return _readonly(a)
+
+
 class SamplingCheck:
     """The error indicator of a region's physics (the module's): ``sample`` its model's
     (dN, dV, Phi, Psi, params, weights) and ``linear`` its constant tangent, ``check`` and
     ``check_linear`` the check sample's; an estimate over ``parts`` calls of
-    :meth:`advance`. ``eta`` is the last finished estimate (NaN before the first)."""
+    :meth:`advance` (the state read at the first). ``eta`` is the last finished estimate
+    (NaN before the first, or if the check's sums were not finite)."""
 
     def __init__(self, sample, linear, check, check_linear, parts: int):
-        if not isinstance(parts, int | np.integer) or isinstance(parts, bool) or parts < 1:
-            raise InputError(f"the indicator's parts must be a positive integer, got {parts!r}")
-        self.sample = tuple(_readonly(a) for a in sample)
-        self.check = tuple(_readonly(a) for a in check)
+        integer = isinstance(parts, int | np.integer) and not isinstance(parts, bool)
+        if not integer or not 1 <= parts <= MAX_PARTS:
+            raise InputError(f"an estimate's steps must be an integer from 1 to {MAX_PARTS}, "
+                             f"got {parts!r}")  # fmt: skip
+        parts = int(parts)
+        self.sample = tuple(_shared(a) for a in sample)
+        self.check = tuple(_shared(a) for a in check)
         self.difference = _readonly(np.asarray(check_linear) - np.asarray(linear))
         S, S2 = len(self.sample[5]), len(self.check[5])
         self.bounds = _readonly(np.linspace(0, S, parts + 1), np.int64)
@@ -164,4 +182,4 @@ class SamplingCheck:
                          s.u, s.r_u, s.scalars)  # fmt: skip
         self.part = (self.part + 1) % (len(self.bounds) - 1)
         if eta != UNFINISHED:
-            self.eta = eta
+            self.eta = eta if np.isfinite(eta) else np.nan

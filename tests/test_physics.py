@@ -790,8 +790,25 @@ def test_a_tangled_check_element_is_refused(trained, tmp_path):
         model.physics()
 
 
-@pytest.mark.parametrize("steps", [0, -1, 1.5, True, "5"])
+@pytest.mark.parametrize("steps", [0, -1, 1.5, True, "5", 10**6, np.uint64(2**64 - 1)])
 def test_estimate_steps_must_be_a_positive_integer(trained, steps):
     model = load(trained[4]["coarse"], isolate=False)
     with pytest.raises(InputError, match="estimate_steps"):
         model.physics(estimate_steps=steps)
+
+
+def test_the_check_kernel_refuses_bounds_without_a_part(trained):
+    """Bounds of no part (a caller's SamplingCheck with its parts wrapped round) raise
+    ValueError before anything is read or written."""
+    from hapticrom.online.sampling_check import check_part
+
+    physics = load(trained[4]["coarse"], isolate=False).physics()
+    c, s, n = physics.check, physics.check.scratch, len(physics.q)
+    empty = np.zeros(1, np.int64)
+    empty.flags.writeable = False
+    before = c.sums.copy()
+    with pytest.raises(ValueError, match="at least one part"):
+        check_part(*c.sample, *c.check, c.difference, empty, empty, 0, physics.q, physics.pi,
+                   physics.newton.lu, physics.newton.pivots, c.xq, c.xp, c.sums, c.r, s.u,
+                   s.r_u, s.scalars)  # fmt: skip
+    assert np.array_equal(c.sums, before) and n == len(c.xq)

@@ -153,7 +153,8 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
         (["--at", "0,0,nan"], "X,Y,Z"),
         (["--at", "0,0,0", "--solves", "0,1"], "positive distances"),
         (["--at", "0,0,0", "--tolerance", "2"], "tolerance"),
-        (["--at", "0,0,0", "--tolerance", "1e-3"], "check sample's tolerance must lie in"),
+        (["--at", "0,0,0", "--check-tolerance", "0.004"], "check sample's tolerance must lie in"),
+        (["--at", "0,0,0", "--check-tolerance", "-1"], "--check-tolerance"),
         (["--at", "0,0,0", "--solves", "0.25"], "free loadable surface nodes"),
         (["--at", "0,0,40"], "no loadable surface vertex"),
         (["--at=-40,0,0"], "no loadable surface vertex"),  # a negative first coordinate

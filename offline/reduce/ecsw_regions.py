@@ -49,6 +49,9 @@ from hapticrom.shared.errors import InputError, SolverError
 log = logging.getLogger(__name__)
 
 
+CHECK_FRACTION = 0.25  # the check sample's default tolerance, of the model's
+
+
 @dataclass(frozen=True)
 class RegionRecipe:
     """How a region is built: the solves' distances (mm) and count at each, the modes kept
@@ -67,10 +70,13 @@ class RegionRecipe:
     lift: float = 0.0  # mm: a held region's holders also lift this far, alone (grasp-and-lift)
     pinch_force: float = 0.014  # N: each of a pinch region's nine forces (thesis §3.4.3)
     between_nodes: bool = False  # solves also at the loadable edges' midpoints (a coarse mesh)
-    # the error indicator's check sample: ECSW's tolerance, tighter than the model's (0: none)
-    check_tolerance: float = 0.001
+    # the error indicator's check sample: ECSW's tolerance, tighter than the model's (None: a
+    # quarter of it; 0: no check sample)
+    check_tolerance: float | None = None
 
     def __post_init__(self):
+        if self.check_tolerance is None:
+            object.__setattr__(self, "check_tolerance", CHECK_FRACTION * self.tolerance)
         if not self.distances or min(self.distances) <= 0:
             raise InputError("a region's solves need positive distances (mm)")
         counts = (self.per_distance, self.state_modes, self.pressure_modes)
@@ -178,7 +184,7 @@ class RegionSolves:
         if site < len(distance):
             distance[site] = np.inf  # the first tool's own node
         nearest = np.argsort(distance)[:8]
-        if not np.isfinite(distance[nearest]).all():
+        if len(nearest) < 8 or not np.isfinite(distance[nearest]).all():
             raise InputError(f"a pinch at {np.round(self.sites[site], 4).tolist()} mm needs "
                              "eight free loadable nodes beside it")  # fmt: skip
         return [self.tool(int(n), force / self.config.load.magnitude) for n in nearest]

@@ -55,8 +55,8 @@ def int_in(low: int, high: int):
     return parse
 
 
-def float_in(low: float, high: float, unit: str = ""):
-    """An argparse type: a finite float in (low, high]."""
+def float_in(low: float, high: float, unit: str = "", low_inclusive: bool = False):
+    """An argparse type: a finite float in (low, high] ([low, high] with ``low_inclusive``)."""
 
     def parse(text: str) -> float:
         """The number, or ArgumentTypeError."""
@@ -64,9 +64,11 @@ def float_in(low: float, high: float, unit: str = ""):
             value = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if not (math.isfinite(value) and low < value <= high):
+        above = low <= value if low_inclusive else low < value
+        if not (math.isfinite(value) and above and value <= high):
+            least = "at least" if low_inclusive else "above"
             raise argparse.ArgumentTypeError(
-                f"must be above {low:g} and at most {high:g} {unit}".rstrip() + f", got {text}"
+                f"must be {least} {low:g} and at most {high:g} {unit}".rstrip() + f", got {text}"
             )
         return value
 

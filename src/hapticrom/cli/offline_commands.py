@@ -664,11 +664,12 @@ def add_physics(sub) -> None:
     number_option(
         p,
         "--check-tolerance",
-        float_in(1e-9, 0.5),
-        0.001,
+        float_in(0.0, 0.5, low_inclusive=True),
+        None,
         "T",
         "ECSW's tolerance of each region's check sample, the runtime's error indicator "
-        "(trained apart from the model's sample; below --tolerance; default 0.001)",
+        "(trained apart from the model's sample; below --tolerance; 0: none; default a "
+        "quarter of --tolerance)",
     )
     p.add_argument("--solves", type=distances, default=(0.25, 0.5), metavar="MM,MM",
                    help="distances of a region's full-order solves from its centre "
