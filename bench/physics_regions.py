@@ -5,7 +5,8 @@ haptic steps, against the stored full-order solve (not among the region's own so
     python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
         [--pair MM [--second-force 0.5] | --held MM [--lift MM] | --pinch N]
         [--out out/physics.h5] [--frames 100]
-        [--skip-build] [--slices 30] [--estimate-steps 50] [-- hapticrom physics options]
+        [--skip-build] [--slices 30] [--estimate-steps 50 [--estimate-cost]]
+        [-- hapticrom physics options]
 
 ``--pair MM``: two tools, the position's and a second at the free loadable node nearest MM
 away pressing with ``--second-force`` of the campaign's force, each region a ``--pair``
@@ -28,8 +29,9 @@ at the last load, after ``--frames`` steps of the ramp and as many held; the tim
 ``physics.step()`` (p50, p99, max), its tangent built in ``--slices`` parts; the depth
 (or, lifted, the field) at the ramp's last step, which lags the load; and the physics' own
 error estimate at the end (``physics.error_estimate()``, over ``--estimate-steps`` steps;
-NaN for a file without check samples). Writes OUT with
-suffix .json. Serial; run alone for the times. Units: mm, N.
+NaN for a file without check samples); with ``--estimate-cost`` the step's p50 and p99
+with and without the estimate, stepped alternately in the same run, and their ratios.
+Writes OUT with suffix .json. Serial; run alone for the times. Units: mm, N.
 """
 
 from __future__ import annotations
@@ -63,6 +65,9 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--slices", type=int, default=30, help="the tangent's parts (physics')")
     parser.add_argument("--estimate-steps", type=int, default=50,
                         help="the steps an error estimate takes (physics')")  # fmt: skip
+    parser.add_argument("--estimate-cost", action="store_true",
+                        help="also step each region with and without the estimate, "
+                        "alternately: the step's cost of it (not with --lift)")  # fmt: skip
     args, extra = parser.parse_known_args()
     if sum(bool(v) for v in (args.pair, args.held, args.pinch)) > 1:
         parser.error("--pair, --held or --pinch, one of them")
@@ -103,6 +108,33 @@ def pressed(physics, tools, factors, frames) -> tuple[np.ndarray, np.ndarray]:
             physics.press(k, point, factor * np.asarray(force))
 
     return ramped(physics, press, factors, frames)
+
+
+def estimate_cost(model, region, holders, tools, factors, args) -> dict:
+    """The step's cost with and without the error estimate, measured in one run: two
+    physics of the region (``--estimate-steps`` and 0) pressed alike, their steps taken
+    alternately (each timed), ``--frames`` of the ramp and as many held, three times."""
+    both = [model.physics(region=region, holders=holders, slices=args.slices,
+                          estimate_steps=steps) for steps in (args.estimate_steps, 0)]  # fmt: skip
+    times: list[list[int]] = [[], []]
+    ramp = list(np.linspace(0.0, factors[-1], args.frames + 1)[1:]) + [factors[-1]] * args.frames
+    for factor in ramp * 3:
+        for physics, spent in zip(both, times, strict=True):
+            for k, (point, force) in enumerate(tools):
+                physics.press(k, point, factor * np.asarray(force))
+            t0 = time.perf_counter_ns()
+            if not physics.step():
+                raise SystemExit("a physics step was refused")
+            spent.append(time.perf_counter_ns() - t0)
+    out = {name: timing(np.array(spent[1:]) / 1e6)
+           for name, spent in zip(("with", "without"), times, strict=True)}  # fmt: skip
+    out["p99_ratio"] = out["with"]["p99_ms"] / out["without"]["p99_ms"]
+    out["p50_ratio"] = out["with"]["p50_ms"] / out["without"]["p50_ms"]
+    print(f"  the estimate's cost: step p50/p99 {out['with']['p50_ms']:.3f}/"
+          f"{out['with']['p99_ms']:.3f} ms with it, {out['without']['p50_ms']:.3f}/"
+          f"{out['without']['p99_ms']:.3f} without (ratios {out['p50_ratio']:.3f}, "
+          f"{out['p99_ratio']:.3f})", flush=True)  # fmt: skip
+    return out
 
 
 def timing(ms) -> dict:
@@ -280,6 +312,8 @@ def main() -> None:
                "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
                **timing(ms), "refreshes": physics.refreshes,
                "error_estimate": physics.error_estimate()}  # fmt: skip
+        if args.estimate_cost:
+            row["estimate_cost"] = estimate_cost(model, region, holders, tools, factors, args)
         print(f"position {i:3d}: {row['elements']} elements, {row['modes']} + "
               f"{row['pressure_modes']} modes, depth {100 * row['depth_error']:+.2f} %, field "
               f"{100 * row['field_error']:.2f} % (estimated {100 * row['error_estimate']:.2f} "

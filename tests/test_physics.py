@@ -727,9 +727,11 @@ def test_the_error_estimate_is_a_newton_step_on_the_samples_difference(trained):
     assert 0.5 * gap <= eta <= 2 * gap, (eta, gap)
 
 
-def test_the_estimate_is_nan_without_a_check_sample(trained):
+def test_the_estimate_is_nan_without_a_check_sample_or_with_none_asked(trained):
     physics = settled(trained, trained[4]["sampled"], 5, hold=5)
     assert np.isnan(physics.error_estimate())
+    physics = settled(trained, trained[4]["coarse"], 0, hold=5)
+    assert physics.check is None and np.isnan(physics.error_estimate())
 
 
 def own_check(group):
@@ -790,7 +792,7 @@ def test_a_tangled_check_element_is_refused(trained, tmp_path):
         model.physics()
 
 
-@pytest.mark.parametrize("steps", [0, -1, 1.5, True, "5", 10**6, np.uint64(2**64 - 1)])
+@pytest.mark.parametrize("steps", [-1, 1.5, True, False, "5", 10**6, np.uint64(2**64 - 1)])
 def test_estimate_steps_must_be_a_positive_integer(trained, steps):
     model = load(trained[4]["coarse"], isolate=False)
     with pytest.raises(InputError, match="estimate_steps"):
