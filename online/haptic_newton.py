@@ -225,6 +225,11 @@ class HapticNewton:
         if not lu_factor(self.lu, self.pivots[0]):
             raise InputError("the model's tangent at rest is singular: no first step")
         self.last_update = np.inf  # the last step's |delta q| / |q|
+        # keep / undo: the counters before a step, and the factors and the tangent being
+        # built before a step that finishes a tangent (copied then only)
+        self._kept_counters = np.zeros(COUNTER_SIZE, np.int64)
+        self._kept_lu, self._kept_building = np.empty((size, size)), np.empty((size, size))
+        self._kept_pivots = np.zeros(size, np.int64)
 
     def refresh(self, q, pi) -> bool:
         """The whole tangent at (q, pi), factorised now (one call of every part: the cost of
@@ -239,6 +244,28 @@ class HapticNewton:
         self.building[:] = self.linear
         self.counters[PART] = 0
         return bool(factored)
+
+    def keep(self) -> None:
+        """Remember the tangent's state before a step, for :meth:`undo` (the factors and
+        the tangent being built copied only before a step that finishes a tangent)."""
+        np.copyto(self._kept_counters, self.counters)
+        if self.counters[PART] == len(self.bounds) - 2:
+            np.copyto(self._kept_lu, self.lu)
+            np.copyto(self._kept_pivots, self.pivots[0])
+            np.copyto(self._kept_building, self.building)
+
+    def undo(self) -> None:
+        """Take back the tangent part of the one step taken since :meth:`keep` (its part
+        out of the tangent being built, or the factors and sum it replaced); the state is
+        the caller's to restore. A caller that drops a step's state drops its part too:
+        else a tangent at a state thrown away would steer the next steps."""
+        if self._kept_counters[PART] == len(self.bounds) - 2:
+            np.copyto(self.lu, self._kept_lu)
+            np.copyto(self.pivots[0], self._kept_pivots)
+            np.copyto(self.building, self._kept_building)
+        else:
+            self.building -= self.K  # the part the step added, still in K
+        np.copyto(self.counters, self._kept_counters)
 
     @property
     def part(self) -> int:

@@ -53,6 +53,12 @@ MAX_ITERATIONS = 100  # modified Newton iterations a step: a step's cost is boun
 # and above FLOOR (of the state) is the lagging tangent diverging (measured on the test
 # cornea's 201-element sample: 0.016 -> 0.146 -> 0.51, then every step refused).
 STEADY, JUMP, FLOOR = 1e-3, 4.0, 1e-6
+# Under a changing load a step that moves the state by more than LEAP times the larger of
+# the states before and after it is taken again towards a half, a quarter, ... of the
+# change (at most HALVINGS times): the demo's two-tool region released at once leapt 1.85
+# times its state, then 1.15, then every step was refused. (1.01: a step from rest, or to
+# it, is 1 up to rounding.)
+LEAP, HALVINGS = 1.01, 8
 
 
 def element_geometry(X: np.ndarray, cell: str, first: int = 0,
@@ -316,6 +322,9 @@ class HyperReducedPhysics:
         self._weights = np.zeros(3)  # the blend of the last tool's triangle corners
         self._point, self._force = np.zeros(3), np.zeros(3)  # press's slower path: copies
         self.refreshes = 0  # steps the divergence guard took again on a fresh tangent
+        self.shortened = 0  # steps that leapt under a changing load, taken shorter
+        self._applied = np.zeros(n)  # the load the last step was taken under
+        self._load_gap, self._trial_load = np.zeros(n), np.zeros(n)
         self._before = (np.zeros(n), np.zeros(linear.shape[0] - n))  # q, pi before a step
         # the guard's steady test reads the pressing tools' loads alone (a moved holder's
         # load k A^T t is some 1e4 times theirs: beside it any press would pass as steady)
@@ -485,7 +494,11 @@ class HyperReducedPhysics:
         (``JUMP``, ``STEADY``, ``FLOOR``), is taken again from the state before it on the
         whole tangent at that state (``HapticNewton.refresh``: the cost of the tangent's
         parts at once, 30 steps' worth, about 4.6 ms on the demo, once), and counted in
-        ``refreshes``."""
+        ``refreshes``. Under a load that changed, a step that leaps (moves the state by more
+        than ``LEAP`` times the larger of the states before and after it) is taken again
+        towards a half, a quarter,
+        ... of the change (``shortened``): the physics reaches a large change (a release)
+        over a few steps instead of diverging."""
         taken = self._guarded_step()
         if taken and self.check is not None:
             self.check.advance(self.q, self.pi, self.newton.lu, self.newton.pivots)
@@ -501,17 +514,59 @@ class HyperReducedPhysics:
         steady = steady and not self._holders_moved
         np.copyto(self._last_load, pressing)
         self._holders_moved = False
+        gap = np.subtract(self.load, self._applied, out=self._load_gap)
+        moving = gap.dot(gap) > 0.0  # the load to reach is not the last step's
+        steady = steady and not moving
         previous = self.newton.last_update
+        self.newton.keep()
         taken = self.newton.step(self.q, self.pi, self.load)
         update = self.newton.last_update
-        if taken and not (steady and update > FLOOR and update > JUMP * previous):
+        if moving and (not taken or self._leapt(q0)):
+            if taken:
+                self.newton.undo()  # its tangent part at a state dropped
+            if self._shorter_steps(q0, pi0, previous):
+                return True  # else (the state restored) a fresh tangent, below
+        elif taken and not (steady and update > FLOOR and update > JUMP * previous):
+            np.copyto(self._applied, self.load)
             return True
         self.q[:], self.pi[:] = q0, pi0
         self.newton.last_update = previous
         if not self.newton.refresh(self.q, self.pi):
             return False
         self.refreshes += 1
-        return self.newton.step(self.q, self.pi, self.load)
+        taken = self.newton.step(self.q, self.pi, self.load)
+        if taken:
+            np.copyto(self._applied, self.load)
+        return taken
+
+    def _leapt(self, q0) -> bool:
+        """Whether the last step, from q0, moved q by more than ``LEAP`` times the larger of
+        the states before and after it (a step from rest, or to it, moves it by exactly
+        one of them)."""
+        after = np.sqrt(self.q.dot(self.q))
+        return self.newton.last_update * after > LEAP * max(after, np.sqrt(q0.dot(q0)))
+
+    def _shorter_steps(self, q0, pi0, previous) -> bool:
+        """The step again from (q0, pi0) towards the last applied load plus a half, a
+        quarter, ... of the change (``HALVINGS`` at most) until it no longer leaps
+        (``_leapt``) nor is refused: the later steps go on towards the load asked (a load
+        released at once, two tools at full force, diverged in one Newton iteration:
+        README, stop 46). Counted in ``shortened``; False (nothing changed) if none."""
+        for _ in range(HALVINGS):
+            self.q[:], self.pi[:] = q0, pi0
+            self.newton.last_update = previous
+            self._load_gap *= 0.5
+            trial = np.add(self._applied, self._load_gap, out=self._trial_load)
+            self.newton.keep()
+            if self.newton.step(self.q, self.pi, trial):
+                if not self._leapt(q0):
+                    np.copyto(self._applied, trial)
+                    self.shortened += 1
+                    return True
+                self.newton.undo()
+        self.q[:], self.pi[:] = q0, pi0
+        self.newton.last_update = previous
+        return False
 
     def error_estimate(self) -> float:
         """The relative error of the displacement field (1) that the element sampling

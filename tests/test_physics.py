@@ -814,3 +814,19 @@ def test_the_check_kernel_refuses_bounds_without_a_part(trained):
                    physics.newton.lu, physics.newton.pivots, c.xq, c.xp, c.sums, c.r, s.u,
                    s.r_u, s.scalars)  # fmt: skip
     assert np.array_equal(c.sums, before) and n == len(c.xq)
+
+
+@pytest.mark.parametrize("name", ["sampled", "coarse"])
+def test_a_release_at_once_returns_to_rest(trained, name):
+    """Pressed, settled, then released in one step: the physics takes every step back to
+    rest (a leap under the change is taken shorter, ``shortened``) and, pressed again,
+    settles where it did (the demo's two-tool region released at once had diverged:
+    README, stop 46)."""
+    physics = settled(trained, trained[4][name], 0)
+    loaded = physics.q.copy()
+    physics.release(0)
+    assert all(physics.step() for _ in range(200))
+    assert np.linalg.norm(physics.q) <= 1e-6 * np.linalg.norm(loaded), physics.shortened
+    _, (data, point), _, _, _, _, _ = trained
+    pressed(physics, point, data["load_vector"].reshape(-1, 3).sum(axis=0), data["load_factor"])
+    assert np.linalg.norm(physics.q - loaded) <= 1e-8 * np.linalg.norm(loaded)
