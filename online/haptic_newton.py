@@ -230,6 +230,7 @@ class HapticNewton:
         self._kept_counters = np.zeros(COUNTER_SIZE, np.int64)
         self._kept_lu, self._kept_building = np.empty((size, size)), np.empty((size, size))
         self._kept_pivots = np.zeros(size, np.int64)
+        self._kept = False  # a keep() that undo() may take back
 
     def refresh(self, q, pi) -> bool:
         """The whole tangent at (q, pi), factorised now (one call of every part: the cost of
@@ -246,26 +247,29 @@ class HapticNewton:
         return bool(factored)
 
     def keep(self) -> None:
-        """Remember the tangent's state before a step, for :meth:`undo` (the factors and
-        the tangent being built copied only before a step that finishes a tangent)."""
+        """Remember the tangent's state before a step, for :meth:`undo`: the counters and
+        the tangent being built (one copy of it), and before a step that finishes a
+        tangent the factors too."""
         np.copyto(self._kept_counters, self.counters)
+        np.copyto(self._kept_building, self.building)
+        self._kept = True
         if self.counters[PART] == len(self.bounds) - 2:
             np.copyto(self._kept_lu, self.lu)
             np.copyto(self._kept_pivots, self.pivots[0])
-            np.copyto(self._kept_building, self.building)
 
     def undo(self) -> None:
-        """Take back the tangent part of the one step taken since :meth:`keep` (its part
-        out of the tangent being built, or the factors and sum it replaced); the state is
-        the caller's to restore. A caller that drops a step's state drops its part too:
-        else a tangent at a state thrown away would steer the next steps."""
+        """Take back, bit for bit, the tangent's change by the one step taken since
+        :meth:`keep`; the state is the caller's to restore. A caller that drops a step's
+        state drops its part too: else a tangent at a state thrown away would steer the
+        next steps. InputError without a :meth:`keep` before it."""
+        if not self._kept:
+            raise InputError("undo takes back a step taken after keep(); none was kept")
         if self._kept_counters[PART] == len(self.bounds) - 2:
             np.copyto(self.lu, self._kept_lu)
             np.copyto(self.pivots[0], self._kept_pivots)
-            np.copyto(self.building, self._kept_building)
-        else:
-            self.building -= self.K  # the part the step added, still in K
+        np.copyto(self.building, self._kept_building)
         np.copyto(self.counters, self._kept_counters)
+        self._kept = False
 
     @property
     def part(self) -> int:

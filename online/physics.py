@@ -496,9 +496,11 @@ class HyperReducedPhysics:
         parts at once, 30 steps' worth, about 4.6 ms on the demo, once), and counted in
         ``refreshes``. Under a load that changed, a step that leaps (moves the state by more
         than ``LEAP`` times the larger of the states before and after it) is taken again
-        towards a half, a quarter,
-        ... of the change (``shortened``): the physics reaches a large change (a release)
-        over a few steps instead of diverging."""
+        towards a half, a quarter, ... of the change (``shortened``): the physics reaches a
+        large change (a release) over a few steps instead of diverging. Such a step costs
+        up to ``HALVINGS`` + 2 steps and a whole tangent (12.3 ms once on the demo's
+        two-tool release); a large load applied at once from rest is not shortened (a step
+        from rest moves the state by exactly the state it reaches)."""
         taken = self._guarded_step()
         if taken and self.check is not None:
             self.check.advance(self.q, self.pi, self.newton.lu, self.newton.pivots)
@@ -515,10 +517,12 @@ class HyperReducedPhysics:
         np.copyto(self._last_load, pressing)
         self._holders_moved = False
         gap = np.subtract(self.load, self._applied, out=self._load_gap)
-        moving = gap.dot(gap) > 0.0  # the load to reach is not the last step's
+        # the load to reach moved since the last step beyond a held tool's wobble (STEADY)
+        moving = gap.dot(gap) > STEADY**2 * self.load.dot(self.load)
         steady = steady and not moving
         previous = self.newton.last_update
-        self.newton.keep()
+        if moving:
+            self.newton.keep()  # a leap's tangent part is taken back (undo)
         taken = self.newton.step(self.q, self.pi, self.load)
         update = self.newton.last_update
         if moving and (not taken or self._leapt(q0)):
@@ -534,24 +538,40 @@ class HyperReducedPhysics:
         if not self.newton.refresh(self.q, self.pi):
             return False
         self.refreshes += 1
+        return self._fresh_step(q0, pi0, previous, moving)
+
+    def _fresh_step(self, q0, pi0, previous, moving) -> bool:
+        """The step on the fresh tangent; under a moving load one that leaps or is refused
+        is taken shorter again (``_shorter_steps`` from the whole change); False if
+        nothing was taken (q, pi restored)."""
+        if moving:
+            self.newton.keep()
         taken = self.newton.step(self.q, self.pi, self.load)
-        if taken:
+        if taken and not (moving and self._leapt(q0)):
             np.copyto(self._applied, self.load)
-        return taken
+            return True
+        if not moving:
+            return False
+        if taken:
+            self.newton.undo()
+        np.subtract(self.load, self._applied, out=self._load_gap)
+        return self._shorter_steps(q0, pi0, previous)
 
     def _leapt(self, q0) -> bool:
-        """Whether the last step, from q0, moved q by more than ``LEAP`` times the larger of
-        the states before and after it (a step from rest, or to it, moves it by exactly
-        one of them)."""
-        after = np.sqrt(self.q.dot(self.q))
-        return self.newton.last_update * after > LEAP * max(after, np.sqrt(q0.dot(q0)))
+        """Whether the step from q0 moved q by more than ``LEAP`` times the larger of the
+        states before and after it (a step from rest, or to it, moves it by exactly one
+        of them; measured on q - q0, whatever the iterations)."""
+        qq, q0q0 = self.q.dot(self.q), q0.dot(q0)
+        moved = qq - 2.0 * self.q.dot(q0) + q0q0
+        return moved > LEAP * LEAP * max(qq, q0q0)
 
     def _shorter_steps(self, q0, pi0, previous) -> bool:
         """The step again from (q0, pi0) towards the last applied load plus a half, a
-        quarter, ... of the change (``HALVINGS`` at most) until it no longer leaps
-        (``_leapt``) nor is refused: the later steps go on towards the load asked (a load
-        released at once, two tools at full force, diverged in one Newton iteration:
-        README, stop 46). Counted in ``shortened``; False (nothing changed) if none."""
+        quarter, ... of the change in ``_load_gap`` (``HALVINGS`` at most) until it
+        neither leaps (``_leapt``) nor is refused: the later steps go on towards the load
+        asked (a load released at once, two tools at full force, diverged in one Newton
+        iteration: README, stop 46). Counted in ``shortened``; False (q, pi restored) if
+        none."""
         for _ in range(HALVINGS):
             self.q[:], self.pi[:] = q0, pi0
             self.newton.last_update = previous

@@ -198,6 +198,33 @@ def test_a_step_meeting_nan_is_refused_and_changes_nothing(model):
     assert solver.last_update == update
 
 
+@pytest.mark.parametrize("slices", [1, 3])
+def test_undo_takes_a_step_back_bit_for_bit(model, slices):
+    """keep, step, undo: the counters, factors, pivots and the tangent being built are
+    those before the step, bit for bit, at a part in the middle of a tangent and at the
+    part that finishes one; undo without keep is refused."""
+    _, elements, _, inputs, linear, stiffness = model
+    reseed(RNG, f"undo-{slices}")
+    slices = min(slices, len(elements))
+    solver = HapticNewton(inputs, linear, 1, slices)
+    q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
+    with pytest.raises(InputError, match="keep"):
+        solver.undo()
+    path = loads(stiffness, 2 * slices + 2)
+
+    def kept(s):  # pivots' row 1 is the factorisation's scratch
+        return [a.copy() for a in (s.counters, s.lu, s.pivots[0], s.building)]
+
+    for load in path[:-1]:
+        assert solver.step(q, pi, load)
+        before = kept(solver)
+        solver.keep()
+        assert solver.step(q.copy(), pi.copy(), path[-1])
+        solver.undo()
+        for a, b in zip(before, kept(solver), strict=True):
+            assert np.array_equal(a, b)
+
+
 def test_a_step_whose_tangent_part_is_not_finite_is_refused(model):
     """A load a thousand times the ramp's: the update is finite but inverts elements, so
     the tangent part at the new state is not (on the step that would factorise)."""
