@@ -5,7 +5,7 @@ haptic steps, against the stored full-order solve (not among the region's own so
     python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
         [--pair MM [--second-force 0.5] | --held MM [--lift MM] | --pinch N]
         [--out out/physics.h5] [--frames 100]
-        [--skip-build] [--slices 30] [--estimate-steps 50 [--estimate-cost]]
+        [--skip-build] [--slices 30] [--estimate-steps 100 [--estimate-cost]]
         [-- hapticrom physics options]
 
 ``--pair MM``: two tools, the position's and a second at the free loadable node nearest MM
@@ -63,7 +63,7 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
                         help="N: a pinch of nine forces this large (thesis: 0.014)")  # fmt: skip
     parser.add_argument("--lift", type=float, default=0.0, help="mm: --held's holder lifts")
     parser.add_argument("--slices", type=int, default=30, help="the tangent's parts (physics')")
-    parser.add_argument("--estimate-steps", type=int, default=50,
+    parser.add_argument("--estimate-steps", type=int, default=100,
                         help="the steps an error estimate takes (physics')")  # fmt: skip
     parser.add_argument("--estimate-cost", action="store_true",
                         help="also step each region with and without the estimate, "

@@ -234,7 +234,7 @@ class ReducedModel:
         return self.surface_basis.shape[2]
 
     def physics(self, region: int = 0, holders=(), iterations: int = 1, slices: int = 30,
-                estimate_steps: int = 50):  # fmt: skip
+                estimate_steps: int = 100):  # fmt: skip
         """Region ``region`` of the hyper-reduced physics (artifact format 2.5, group
         ``hyperreduced``), ``holders`` gripping the surface at those points (mm): a
         :class:`~hapticrom.online.physics.HyperReducedPhysics` (``iterations`` and

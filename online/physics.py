@@ -272,7 +272,7 @@ class HyperReducedPhysics:
     cheaper)."""
 
     def __init__(self, model, region: int = 0, holders=(), iterations: int = 1,
-                 slices: int = 30, estimate_steps: int = 50):  # fmt: skip
+                 slices: int = 30, estimate_steps: int = 100):  # fmt: skip
         if GROUP not in model.artifact.groups:
             raise InputError(f"{model.artifact.path} has no hyper-reduced physics (group "
                              f"{GROUP}, artifact format 2.5)")  # fmt: skip
