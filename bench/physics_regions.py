@@ -84,12 +84,17 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     return args, [v for v in extra if v != "--"]
 
 
+def ramp_factors(factors, frames) -> list[float]:
+    """The load factors of ``frames`` steps to the last of ``factors``, then as many held."""
+    return list(np.linspace(0.0, factors[-1], frames + 1)[1:]) + [factors[-1]] * frames
+
+
 def ramped(physics, load, factors, frames) -> tuple[np.ndarray, np.ndarray]:
     """The region ramped to the last of the load ``factors`` in ``frames`` steps, then held
     as long, ``load(factor)`` applying the loads before each step: each step's time (ms),
     the first left out, and the state q at the ramp's last step (what lags the load)."""
     times, ramp_end = [], None
-    for factor in list(np.linspace(0.0, factors[-1], frames + 1)[1:]) + [factors[-1]] * frames:
+    for factor in ramp_factors(factors, frames):
         load(factor)
         t0 = time.perf_counter_ns()
         if not physics.step():
@@ -117,8 +122,7 @@ def estimate_cost(model, region, holders, tools, factors, args) -> dict:
     both = [model.physics(region=region, holders=holders, slices=args.slices,
                           estimate_steps=steps) for steps in (args.estimate_steps, 0)]  # fmt: skip
     times: list[list[int]] = [[], []]
-    ramp = list(np.linspace(0.0, factors[-1], args.frames + 1)[1:]) + [factors[-1]] * args.frames
-    for factor in ramp * 3:
+    for factor in ramp_factors(factors, args.frames) * 3:
         for physics, spent in zip(both, times, strict=True):
             for k, (point, force) in enumerate(tools):
                 physics.press(k, point, factor * np.asarray(force))
@@ -191,17 +195,12 @@ def pinch_case(store, point, args) -> tuple:
     """([(point, force)] of a pinch's nine tools about ``point``: the campaign's tool there
     with ``--pinch`` N and the eight of ``RegionSolves.pinch_tools``, the full order's
     datasets under them, their load vector)."""
-    from dataclasses import replace
-
     from hapticrom.offline.reduce.ecsw_regions import RegionSolves
     from hapticrom.offline.reduce.inputs import campaign_config
 
-    config = campaign_config(store, store.manifest(), None)
-    solves = RegionSolves(config, (), 1)
+    solves = RegionSolves(campaign_config(store, store.manifest(), None), (), 1)
     node = solves.nearest(point)
-    pinching = replace(config, load=replace(config.load, magnitude=args.pinch))
-    tools = [solves.tool(node, args.pinch / config.load.magnitude),
-             *solves.pinch_tools(node, args.pinch)]  # fmt: skip
+    tools, pinching = solves.pinch(node, args.pinch)
     t = time.perf_counter()
     data = solves.solve(node, tools=tools[1:], config=pinching)
     print(f"  the full order pinched about {np.round(tools[0][0], 3).tolist()} mm, nine "

@@ -174,6 +174,14 @@ class RegionSolves:
         force = fraction * self.config.load.magnitude * self.config.load.unit_direction(position)
         return position.point, tuple(float(v) for v in force)
 
+    def pinch(self, site, force) -> tuple[list[tuple], object]:
+        """A pinch at ``site`` of nine forces of ``force`` N: its tools (the campaign's tool
+        at the site first, then ``pinch_tools``) and the config whose load is the first
+        (``solve(site, tools[1:], config)`` solves it)."""
+        config = replace(self.config, load=replace(self.config.load, magnitude=force))
+        return [self.tool(site, force / self.config.load.magnitude),
+                *self.pinch_tools(site, force)], config  # fmt: skip
+
     def pinch_tools(self, site, force) -> list[tuple]:
         """The further tools of a pinch at ``site`` (the campaign's tool there is its
         first force): the eight free loadable nodes nearest to it, each pressing with
@@ -258,10 +266,9 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
     if site.kind == "at":
         solved = [solves.solve(node) for node in first]
     elif site.kind == "pinch":
-        load = replace(solves.config.load, magnitude=pinch_force)
-        pinching = replace(solves.config, load=load)
-        solved = [solves.solve(node, tools=solves.pinch_tools(node, pinch_force), config=pinching)
-                  for node in first]  # fmt: skip
+        pinches = [(node, *solves.pinch(node, pinch_force)) for node in first]
+        solved = [solves.solve(node, tools=tools[1:], config=config)
+                  for node, tools, config in pinches]  # fmt: skip
     else:
         pairs = zip(first, solves.nodes(site.points[1], forbidden=first), strict=True)
         if site.kind == "pair":
