@@ -1,6 +1,6 @@
-"""Physics solved online: a region of an artifact's ``hyperreduced`` group (format 2.5)
-stepped by :class:`~hapticrom.online.haptic_newton.HapticNewton` under any number of
-pressing tools and holders (issue 18).
+"""Physics solved online: a region of an artifact's ``hyperreduced`` group (format 2.5;
+group 1.3 in 2.8) stepped by :class:`~hapticrom.online.haptic_newton.HapticNewton` under
+any number of pressing tools and holders (issue 18).
 
     physics = model.physics(region=0, holders=[grip_point])   # a ReducedModel's
     physics.press(0, point, force)      # tool 0 pushes with force (N) at a surface point (mm)
@@ -17,7 +17,8 @@ linearly over the surface triangle nearest the point; a holder keeps the rigid m
 mean displacement and the least-squares rotation) and the cupping of the loadable surface's
 nodes within ``contact_radius`` of its point (each of them if fewer than three; the
 region's grip nodes, P2's mid-side nodes too, or in a format 2.5 file the vertices and no
-cupping: ``holder_rows``), by a penalty in the
+cupping: ``holder_rows``; the holder a held region was built for, the force patterns the
+full order holds its patch in: ``pattern_rows``), by a penalty in the
 constant tangent (fixed for the physics' life: a holder that grips elsewhere is a new
 physics); a moved holder's penalty pulls those rows towards its moved grip (a load). A
 region is built for its holders (``hapticrom physics --held``, ``--lift``): on a region of
@@ -133,6 +134,46 @@ def holder_rows(basis, points, patch, flat: bool = False) -> np.ndarray:
     if w is not None:
         held.append(np.einsum("p,pcn->cn", w, rows))
     return np.vstack(held)
+
+
+def holder_map(nodes: int, rows: int) -> np.ndarray:
+    """(rows, 3): what ``holder_rows`` of a patch of ``nodes`` read when it moves by d
+    (times d): each node's d on one or two, else the mean's d, no rotation, no cupping."""
+    if nodes < 3:
+        return np.tile(np.eye(3), (nodes, 1))
+    out = np.zeros((rows, 3))
+    out[:3] = np.eye(3)
+    return out
+
+
+def pattern_rows(basis, patch, patterns) -> tuple[np.ndarray, np.ndarray]:
+    """(rows (m, n), map (m, 3)): a held region's holder (ARTIFACT.md, group 1.3): the
+    patch's displacement (``basis`` (3G, n) rows of the grip nodes ``patch``) read in
+    its force ``patterns`` (3P, m, orthonormal), s L^T A, s = P^-1/2 (a translation d
+    then reads about |d|, as the mean's rows), and what they read when it moves by d
+    (s L^T (d at each node)). With patterns that span the full order's reactions, its
+    held state (every node moved by the same vector) solves the reduced equations: the
+    hold is neither softer (the mean and rotation alone let the patch cup) nor locked
+    (each node held: more rows than modes)."""
+    n = basis.shape[1]
+    scale = 1.0 / np.sqrt(len(patch))
+    A = basis.reshape(-1, 3, n)[patch].reshape(-1, n)
+    rows = scale * (patterns.T @ A)
+    return rows, np.ascontiguousarray(scale * (patterns.T @ np.tile(np.eye(3), (len(patch), 1))))
+
+
+def stored_hold(h, region: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(its patch, rows of the region's grip nodes; its patterns (3P, m)) of region
+    ``region``'s held holder (group 1.3, ``hold_*``), or None."""
+    if "hold_offsets" not in h:
+        return None
+    first, last = (int(v) for v in h["hold_offsets"][region : region + 2])
+    if first == last:
+        return None
+    rank = int(h["hold_ranks"][region])
+    patterns = np.asarray(h["hold_reactions"][first:last], np.float64)
+    patterns = patterns.reshape(3 * (last - first), -1)[:, :rank]
+    return np.asarray(h["hold_nodes"][first:last], np.int64), np.ascontiguousarray(patterns)
 
 
 def flatness_weights(points) -> np.ndarray | None:
@@ -296,8 +337,10 @@ class HyperReducedPhysics:
         patches = [self._holder_patch(p) for p in holders]
         # the file's regions were built for a hold of the patch's cupping too (ARTIFACT.md)
         self.holds_flat = bool(attrs.get("holder_cupping", 0))
-        self.holders = [holder_rows(self.grip_basis, self.grip_points, q, self.holds_flat)
-                        for q in patches]  # fmt: skip
+        self.stored_hold = stored_hold(h, region)  # a held region's holder (group 1.3)
+        held = [self._hold_rows(q) for q in patches]
+        self.holders = [rows for rows, _ in held]  # (rows, n) each: what a holder keeps
+        self.holder_maps = [m for _, m in held]  # (rows, 3): their values, the grip moved
         self.holder_nodes = [len(q) for q in patches]  # under 3: each node held
         for A in self.holders:
             linear[:n, :n] += self.hold_stiffness * (A.T @ A)
@@ -358,6 +401,15 @@ class HyperReducedPhysics:
         points = np.ascontiguousarray(h["grip_nodes"][first:last], np.float64)
         rows = np.ascontiguousarray(h["grip_rows"][first:last], np.float64)
         return points, rows.reshape(-1, rows.shape[-1]), np.arange(last - first)
+
+    def _hold_rows(self, patch) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, map) of a holder gripping ``patch``: the region's hold patterns if it is
+        the patch the region was built to hold, else ``holder_rows``."""
+        stored = self.stored_hold
+        if stored is not None and np.array_equal(np.sort(patch), np.sort(stored[0])):
+            return pattern_rows(self.grip_basis, *self.stored_hold)
+        rows = holder_rows(self.grip_basis, self.grip_points, patch, self.holds_flat)
+        return rows, holder_map(len(patch), len(rows))
 
     def _holder_patch(self, point) -> np.ndarray:
         point = _vector("a holder's point", point)
@@ -461,8 +513,9 @@ class HyperReducedPhysics:
     def move_holder(self, holder: int, displacement) -> None:
         """Holder ``holder`` moves its grip by ``displacement`` (3,) mm from where it
         gripped (grasp-and-lift; zero: held in place), without turning it, from the next
-        step on: the penalty's rest point moves, a load k A^T t (t the held rows' target:
-        the patch's mean at ``displacement``, no rotation and no cupping, or each node
+        step on: the penalty's rest point moves, a load k A^T t (t = M d the held rows'
+        target, M its ``holder_maps``: the patch's mean at ``displacement``, no rotation
+        and no cupping, or each node there, or the patterns' reading of every node
         there)."""
         holder = _index("holder", holder, len(self.holders))
         d = displacement  # a 1-D float64 array within bounds is read as is (no copy)
@@ -474,10 +527,7 @@ class HyperReducedPhysics:
         ):
             d = _vector("a holder's displacement (mm)", d, MAX_LENGTH, self._point)
         t = self.holder_targets[holder]
-        if self.holder_nodes[holder] < 3:
-            t.reshape(-1, 3)[:] = d
-        else:
-            t[:3], t[3:] = d, 0.0
+        np.dot(self.holder_maps[holder], d, out=t)
         np.dot(self.holders[holder].T, t, out=self.holder_loads[holder])
         self.holder_loads[holder] *= self.hold_stiffness
         self._holders_moved = True
@@ -606,11 +656,10 @@ class HyperReducedPhysics:
         return out
 
     def holder_force(self, holder: int) -> np.ndarray:
-        """(3,) N: the force holder ``holder`` exerts on the tissue (its penalty's: minus
-        the stiffness times the patch's mean displacement less the grip's move; on a
-        patch of one or two vertices, the sum of each vertex's)."""
+        """(3,) N: the force holder ``holder`` exerts on the tissue, its penalty's summed
+        over the patch's nodes: -k M^T (A q - t) with M its ``holder_maps`` (the mean's
+        gap on three nodes or more, the rotation's and cupping's summing to 0; each
+        node's on one or two; the patterns' nodal forces summed for a held region's)."""
         holder = _index("holder", holder, len(self.holders))
         gap = self.holders[holder] @ self.q - self.holder_targets[holder]
-        if self.holder_nodes[holder] < 3:  # each node held: the sum of their reactions
-            return -self.hold_stiffness * gap.reshape(-1, 3).sum(axis=0)
-        return -self.hold_stiffness * gap[:3]  # the mean's (rotation's, cupping's sum to 0)
+        return -self.hold_stiffness * (self.holder_maps[holder].T @ gap)

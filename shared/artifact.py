@@ -63,7 +63,8 @@ FORMAT = "hapticrom"
 # 2.6: the nodes its holders grip, P2's mid-side nodes too, and whether a holder keeps its
 # patch's cupping (hyperreduced 1.1);
 # 2.7: each region's check sample, the runtime's error indicator (hyperreduced 1.2).
-FORMAT_VERSION = (2, 7)
+# 2.8: a held region's holder patch and the force patterns it holds it in (hyperreduced 1.3).
+FORMAT_VERSION = (2, 8)
 # What a reader says about a file of another major version.
 REREDUCE = (
     "re-reduce its campaign with this version: hapticrom reduce CAMPAIGN_DIR --out MODEL.h5 "
@@ -302,7 +303,7 @@ SCHEMA: tuple[Group, ...] = (
     Group(
         "hyperreduced",
         "ecsw-physics",
-        (1, 2),
+        (1, 3),
         _fields(
             ("centres", "f", ("Hr", 3), "mm", "the centre of each region"),
             ("radii", "f", ("Hr",), "mm", "how far from its centre a region's tools may be",
@@ -352,6 +353,19 @@ SCHEMA: tuple[Group, ...] = (
              "each check element's law and parameters"),
             ("check_constant_tangent", "f", ("Hr", "Hs", "Hs"), "N/mm",
              "each region's constant tangent with the check sample", "symmetric"),
+            required=False,
+        ) + _fields(
+            # group version 1.3 (format 2.8): a held region's holder and its hold patterns
+            ("hold_offsets", "i", ("Hr1",), "1",
+             "region r's hold nodes: rows offsets[r]:[r+1] (none: no held holder)",
+             "nonnegative"),
+            ("hold_nodes", "i", ("Hh",), "1",
+             "a node the region's holder grips: a row of the region's grip nodes",
+             "nonnegative"),
+            ("hold_reactions", "f", ("Hh", 3, "Hm"), "1",
+             "the force patterns the holder holds its patch in, orthonormal over its DOFs"),
+            ("hold_ranks", "i", ("Hr",), "1", "how many of hold_reactions' columns are the "
+             "region's (the rest zero)", "nonnegative"),  # fmt: skip
             required=False,
         ),
         required=False,

@@ -624,6 +624,11 @@ CHECK_DATASETS = ("check_element_nodes", "check_weights", "check_basis_rows",
                   "check_pressure_rows", "check_parameters", "check_constant_tangent")  # fmt: skip
 
 
+# a held region's holder (hyperreduced 1.3): its patch and the force patterns it holds it in
+HOLD_DATASETS = ("hold_offsets", "hold_nodes", "hold_reactions", "hold_ranks")
+ORTHONORMAL = 1e-6  # the hold patterns' Gram matrix off the identity, at most
+
+
 def _hyperreduced(artifact) -> None:
     """``hyperreduced``: offsets that split the elements, load vertices and (with the other two
     grip datasets) grip nodes into the regions (each at least one of each), n + n_p the
@@ -661,6 +666,11 @@ def _hyperreduced(artifact) -> None:
     _hyperreduced_loads(artifact, h)
     if grip:
         _hyperreduced_grip(artifact, h)
+    if _together(artifact, h, HOLD_DATASETS):
+        if not grip:
+            raise _fail(artifact, "hyperreduced/hold_nodes: a holder's patch is of grip nodes, "
+                                  "and the file has none")  # fmt: skip
+        _hyperreduced_hold(artifact, h)
     bounds = (("centres", MAX_LENGTH), ("radii", MAX_LENGTH), ("element_nodes", MAX_LENGTH),
               ("weights", MAX_WEIGHT), ("basis_rows", BASIS_BOUND),
               ("pressure_rows", BASIS_BOUND), ("surface_basis", BASIS_BOUND),
@@ -711,6 +721,35 @@ def _hyperreduced_grip(artifact, h) -> None:
                                   "from its centre, beyond its radius plus the tool's")  # fmt: skip
         if len(np.unique(nodes, axis=0)) != len(nodes):
             raise _fail(artifact, f"hyperreduced/grip_nodes repeats a node in region {r}")
+
+
+def _hyperreduced_hold(artifact, h) -> None:
+    """Each region's hold nodes (possibly none) distinct rows of its grip nodes, its rank
+    within 1..3P (0 without nodes) and the hold patterns' columns up to it orthonormal over
+    the patch's DOFs, the rest zero."""
+    regions, rows, width = (artifact.symbols[k] for k in ("Hr", "Hh", "Hm"))
+    o, grips = h["hold_offsets"].astype(np.int64), h["grip_offsets"].astype(np.int64)
+    if len(o) != regions + 1 or o[0] != 0 or o[-1] != rows or np.any(np.diff(o) < 0):
+        raise _fail(artifact, f"hyperreduced/hold_offsets must rise from 0 to {rows} in "
+                              f"{regions} steps")  # fmt: skip
+    nodes, ranks = h["hold_nodes"].astype(np.int64), h["hold_ranks"].astype(np.int64)
+    for r in range(regions):
+        patch, rank = nodes[o[r] : o[r + 1]], int(ranks[r])
+        if np.any(patch >= grips[r + 1] - grips[r]) or len(np.unique(patch)) != len(patch):
+            raise _fail(artifact, f"hyperreduced/hold_nodes: region {r}'s are not distinct "
+                                  "rows of its grip nodes")  # fmt: skip
+        if not (rank == 0 if not len(patch) else 1 <= rank <= min(3 * len(patch), width)):
+            raise _fail(artifact, f"hyperreduced/hold_ranks: region {r}'s {rank} does not fit "
+                                  f"its {len(patch)} hold nodes")  # fmt: skip
+        patterns = np.asarray(h["hold_reactions"][o[r] : o[r + 1]], np.float64)
+        patterns = patterns.reshape(3 * len(patch), -1)
+        if np.any(patterns[:, rank:]):
+            raise _fail(artifact, f"hyperreduced/hold_reactions: region {r}'s columns beyond "
+                                  f"its rank {rank} are not zero")  # fmt: skip
+        gram = patterns[:, :rank].T @ patterns[:, :rank]
+        if not np.all(np.abs(gram - np.eye(rank)) <= ORTHONORMAL):
+            raise _fail(artifact, f"hyperreduced/hold_reactions: region {r}'s patterns are "
+                                  "not orthonormal")  # fmt: skip
 
 
 CROSS_RULES = (

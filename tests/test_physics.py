@@ -396,36 +396,136 @@ def test_a_wide_holder_lifts_its_patch_as_the_trainers_model(trained, tmp_path):
     assert cupping[9] < cupping[6]
 
 
-def test_a_wide_holders_responses_are_the_loads_of_what_the_runtime_holds(trained):
-    """``holder_responses`` on a patch of three nodes or more (the tool's radius widened
-    2.5 times): 9 columns (a force, couples, cupping loads), zero off the free rows, and the
-    loads of the runtime's hold rows: the mean's and the cupping's rows of the responses
-    (A K^-1 F with F = A^T on those blocks) symmetric positive definite. On a patch whose
-    nodes are all as far from their centroid (no cupping): 6 columns."""
+@pytest.fixture(scope="module")
+def held(trained, tmp_path_factory):
+    """A held region (group 1.3) on the coarse cornea: a holder 1.5 mm from the centre
+    gripping the grip nodes within 2.5 tools' radii (on this mesh a tool grips one node),
+    the trainer's basis with the responses with that patch held (its rigid motions, and
+    the centre position's press with the patch at rest), its Galerkin model, the hold
+    patterns of the responses' reactions; and the same region without them (a holder
+    that keeps its patch's mean and rotation). A dict of what the tests read."""
     from hapticrom.offline.reduce.ecsw_model import rest_operators
-    from hapticrom.offline.reduce.ecsw_regions import holder_responses
-    from hapticrom.online.physics import holder_patch, holder_rows
+    from hapticrom.offline.reduce.ecsw_regions import held_patch_responses, hold_patterns
 
-    config, (_, point), Phi, _, _, _, _ = trained
+    config, (data, point), Phi, _, paths, _, cell = trained
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
-    operators = rest_operators(mesh, rest_tangents(mesh))
+    rest = rest_tangents(mesh)
+    operators = rest_operators(mesh, rest)
     grip = GripNodes(*group_nodes(config.problem.mesh.file, config.load.surface))
-    free = np.flatnonzero(np.abs(Phi).max(axis=1) > 0)
-    radius = 2.5 * config.load.contact_radius
+    wide = 2.5 * config.load.contact_radius
     site = grip.points[np.argmin(np.abs(np.linalg.norm(grip.points - point, axis=1) - 1.5))]
-    R = holder_responses(operators, grip, site, radius, free)
-    assert R.shape == (len(Phi), 9) and not R[np.setdiff1d(np.arange(len(Phi)), free)].any()
-    patch = holder_patch(grip.points, np.arange(len(grip.nodes)), site, radius)
-    assert len(patch) >= 3
-    rows = R.reshape(-1, 3, 9)[grip.nodes].reshape(-1, 9)
-    held = holder_rows(rows, grip.points, patch, flat=True)  # (9 rows, 9 responses)
-    blocks = np.r_[0:3, 6:9]
-    M = held[np.ix_(blocks, blocks)]
-    assert np.allclose(M, M.T, rtol=0, atol=1e-9 * np.abs(M).max())
-    assert np.linalg.eigvalsh(0.5 * (M + M.T)).min() > 0
-    square = site + np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]]) * 0.5 * radius
-    ring = GripNodes(grip.nodes[patch[:4]], square)  # four real nodes, placed on a circle
-    assert holder_responses(operators, ring, site, radius, free).shape[1] == 6
+    free = np.flatnonzero(np.abs(Phi).max(axis=1) > 0)
+    loads = data["load_vector"][:, None]
+    columns, reactions = held_patch_responses(operators, grip, site, wide, free, loads)
+    basis = np.linalg.qr(np.hstack([Phi, columns]))[0]
+    condensed = (operators.Bt.T @ columns / operators.compliance[:, None]).T  # their pressures
+    Psi = np.linalg.qr(np.vstack([data["pressure"], condensed]).T)[0]
+    model = HyperReducedModel(mesh, basis, Psi, rest=rest)
+    patch = grip.patch(site, wide)
+    patterns = hold_patterns(reactions)
+    surface = read_artifact(paths["galerkin"])["surface"]
+    root = tmp_path_factory.mktemp("held")
+    out = {}
+    for name, hold in (("held", (patch, patterns)), ("moments", None)):
+        region = region_arrays(mesh, model, basis, surface, point, RADIUS, ToolLoads(config),
+                               grip, config.load.contact_radius, None, hold)  # fmt: skip
+        out[name] = add_physics(paths["galerkin"], root / f"{name}.h5", [region], cell, 1e-4)
+        out[name + "_region"] = region
+    return {**out, "model": model, "basis": basis, "site": site, "wide": wide, "grip": grip,
+            "patch": patch, "patterns": patterns, "columns": columns, "reactions": reactions,
+            "operators": operators, "free": free, "loads": loads}  # fmt: skip
+
+
+def test_held_patch_responses_are_the_linear_full_orders_hold(held):
+    """``held_patch_responses``: on the patch, each column is its motion (unit translations
+    and rotations) or zero (the press); off it, the free rows are in equilibrium (K x = g)
+    and the rest zero; the reactions are K x - g there. Betti's reciprocity: the motions'
+    work matrix m_j^T R_k is symmetric positive definite, and the press's reactions do on
+    a motion the work the motion's response does against the press, m_j^T R_g =
+    -x_j^T g. The hold patterns are orthonormal and span the reactions to their
+    tolerance."""
+    from hapticrom.offline.reduce.ecsw_regions import HOLD_PATTERNS, patch_motions
+
+    grip, patch, X, R = held["grip"], held["patch"], held["columns"], held["reactions"]
+    K, g, free = held["operators"].condensed(), held["loads"][:, 0], held["free"]
+    assert len(patch) >= 3 and X.shape[1] == 7
+    rows = (3 * grip.nodes[patch][:, None] + np.arange(3)).ravel()
+    motions = patch_motions(grip.points[patch]).reshape(len(rows), 6)
+    assert np.array_equal(X[rows, :6], motions) and not X[rows, 6].any()
+    inner = np.setdiff1d(free, rows)
+    assert not X[np.setdiff1d(np.arange(len(X)), free)].any()
+    loads = np.zeros_like(X)
+    loads[:, 6] = g
+    residual = (K @ X - loads)[inner]
+    # to rounding of the near-incompressible K's largest terms times the columns'
+    rounding = 1e-12 * np.abs(K).max() * np.abs(X).max()
+    assert np.abs(residual).max() <= rounding
+    assert np.allclose(R, (K @ X - loads)[rows], rtol=0, atol=rounding)
+    work = motions.T @ R[:, :6]
+    assert np.allclose(work, work.T, rtol=0, atol=1e-9 * np.abs(work).max())
+    assert np.linalg.eigvalsh(0.5 * (work + work.T)).min() > 0
+    betti = -X[:, :6].T @ g
+    assert np.allclose(motions.T @ R[:, 6], betti, rtol=0, atol=1e-8 * np.abs(betti).max())
+    L = held["patterns"]
+    assert np.allclose(L.T @ L, np.eye(L.shape[1]), rtol=0, atol=1e-12)
+    unit = R / np.linalg.norm(R, axis=0)
+    assert np.linalg.norm(unit - L @ (L.T @ unit)) <= HOLD_PATTERNS * np.linalg.norm(unit, 2) * 3
+
+
+def trainers_hold(model, physics) -> np.ndarray:
+    """``model`` (a trainer's) with ``physics``' holder penalty k A^T A and its load k A^T
+    t solved (Newton, 1e-10): the state the runtime must settle on."""
+    A, t = physics.holders[0], physics.holder_targets[0]
+    n = A.shape[1]
+    constant = model.linear.copy()
+    try:
+        model.linear[:n, :n] += physics.hold_stiffness * (A.T @ A)
+        pull = physics.hold_stiffness * (A.T @ t)
+        return model.solve(pull, np.linspace(0.1, 1.0, 10), tolerance=1e-10)[0][-1]
+    finally:
+        model.linear[:] = constant
+
+
+def test_a_held_regions_holder_holds_its_patch_in_its_patterns(held):
+    """The holder the region was built for holds s L^T A (s = P^-1/2; built again here
+    from the trainer's basis at the patch's nodes), settles on the trainer's model with
+    that penalty and load (1e-8), pulls with the patterns' nodal forces summed, and lifted
+    by 1 um moves the surface as the full order's linear hold (the patch translated, the
+    rest free: 2e-3), where the same region holding the patch's mean, rotation and cupping
+    (a file without the hold patterns, as 1.1's) is off by over ten times as much; a
+    holder elsewhere keeps its patch's mean and rotation (a 1.3 file's bases carry no
+    cupping responses)."""
+    fields, errors = {}, {}
+    for name in ("held", "moments"):
+        model = load(held[name], isolate=False)
+        model.artifact.group_attrs["model"]["contact_radius"] = held["wide"]  # in memory only
+        nodes = model.artifact["surface"]["nodes"]
+        vertices = model.artifact["surface"]["vertices"]
+        lift = outward(vertices, held["site"], 1e-3)
+        physics = lifted(model.physics(holders=[held["site"]], slices=1), lift)
+        u = np.zeros_like(vertices)
+        physics.surface_displacement(u)
+        linear = (held["columns"][:, :3] @ lift).reshape(-1, 3)[nodes]
+        errors[name] = np.linalg.norm(u - linear) / np.linalg.norm(linear)
+        fields[name] = physics
+    physics = fields["held"]
+    patch, L, basis = held["patch"], held["patterns"], held["basis"]
+    n = basis.shape[1]
+    rows = basis.reshape(-1, 3, n)[held["grip"].nodes[patch]].reshape(-1, n)
+    s = 1.0 / np.sqrt(len(patch))
+    assert np.allclose(physics.holders[0], s * L.T @ rows, rtol=0, atol=1e-12)
+    expected = trainers_hold(held["model"], physics)
+    assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
+    gap = physics.holders[0] @ physics.q - physics.holder_targets[0]
+    nodal = -physics.hold_stiffness * s * (L @ gap)
+    assert np.allclose(physics.holder_force(0), nodal.reshape(-1, 3).sum(axis=0), rtol=1e-12,
+                       atol=0)  # fmt: skip
+    assert fields["moments"].holders[0].shape[0] == 9  # mean, rotation, cupping (1.1's hold)
+    assert errors["held"] <= 2e-3 and errors["moments"] >= 10 * errors["held"]
+    elsewhere = held["site"] + np.array([0.3, 0.0, 0.0])
+    other = load(held["held"], isolate=False)
+    other.artifact.group_attrs["model"]["contact_radius"] = held["wide"]
+    assert other.physics(holders=[elsewhere], slices=1).holders[0].shape[0] == 6
 
 
 def test_refused_input_changes_nothing(trained, force_artifact):
@@ -580,6 +680,42 @@ def _set(index, value):
 def test_the_reader_refuses_a_tampered_group(trained, tmp_path, change, attrs, message):
     with pytest.raises(ArtifactError, match=message):
         tampered(trained, tmp_path, change, attrs)
+    assert not (tmp_path / "tampered.h5").exists()
+
+
+def _scaled(a):
+    a[..., 0] *= 1.01
+    return a
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"hold_offsets": _set(-1, 1)}, "hold_offsets must rise"),
+        ({"hold_nodes": lambda a: np.r_[a[:1], a[:-1]]}, "not distinct rows"),
+        ({"hold_nodes": _set(0, 10**6)}, "not distinct rows"),
+        ({"hold_nodes": _set(0, -1)}, "hold_nodes"),
+        ({"hold_ranks": _set(0, 0)}, "hold_ranks: region 0's 0 does not fit"),
+        ({"hold_ranks": _set(0, 10**6)}, "hold_ranks"),
+        ({"hold_ranks": lambda a: a - 1}, "beyond its rank"),
+        ({"hold_reactions": _scaled}, "not orthonormal"),
+        ({"hold_reactions": _set((0, 0, 0), np.nan)}, "NaN"),
+        ({"hold_ranks": lambda a: None}, "go together"),
+        (
+            {name: lambda a: None for name in ("grip_offsets", "grip_nodes", "grip_rows")},
+            "the file has none",
+        ),
+    ],
+)
+def test_the_reader_refuses_tampered_hold_patterns(trained, held, tmp_path, change, message):
+    group = physics_group([held["held_region"]], trained[6], 1e-4)
+    for name, edit in change.items():
+        group[name] = edit(np.array(group[name]))
+        if group[name] is None:
+            del group[name]
+    content, root = with_group(read_artifact(held["held"]), "hyperreduced", group)
+    with pytest.raises(ArtifactError, match=message):
+        write_artifact(tmp_path / "tampered.h5", content, root)
     assert not (tmp_path / "tampered.h5").exists()
 
 

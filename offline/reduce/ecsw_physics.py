@@ -1,4 +1,4 @@
-"""The artifact's ``hyperreduced`` group (format 2.5; group 1.2 in 2.7): regions of
+"""The artifact's ``hyperreduced`` group (format 2.5; group 1.3 in 2.8): regions of
 hyper-reduced physics that the runtime steps online (``online/physics.py``), written from the
 trainer's :class:`~hapticrom.offline.reduce.ecsw_model.HyperReducedModel` of each region.
 
@@ -13,7 +13,8 @@ of a unit force of the tool centred at each loadable vertex within the region's 
 (``tool_loads``: Phi^T g / W, g the campaign's force tool's load, exactly as the full order
 spreads it, so a press at a vertex is the full order's load projected); optionally (group
 1.2) a check sample, a second ECSW sample of the same bases at a tighter tolerance, and its
-constant tangent: the runtime's error indicator (``online/sampling_check.py``).
+constant tangent: the runtime's error indicator (``online/sampling_check.py``); (1.3) a
+held region's holder patch and the force patterns it holds it in (``hold_datasets``).
 
 Steps, as a reductor's: :func:`region_arrays` (one region's arrays from its model),
 :func:`tool_loads` (the loads at the region's vertices), :func:`physics_group` (the regions
@@ -75,6 +76,10 @@ class PhysicsRegion:
     grip_nodes: np.ndarray  # (G, 3) mm: the grip nodes within reach of the region's holders
     grip_rows: np.ndarray  # (G, 3, n)
     check: dict | None = None  # the error indicator's sample: CHECK_DATASETS' names and arrays
+    # a held region's holder (group 1.3): its patch (rows of grip_nodes) and the force
+    # patterns it holds the patch in, (P, 3, m) orthonormal over the patch's DOFs
+    hold_nodes: np.ndarray | None = None
+    hold_reactions: np.ndarray | None = None
 
 
 def sample_arrays(mesh, model, prefix: str = "") -> dict:
@@ -93,16 +98,25 @@ def sample_arrays(mesh, model, prefix: str = "") -> dict:
 
 
 def region_arrays(mesh, model, Phi, surface, centre, radius, loads, grip: GripNodes,
-                  reach: float, check=None) -> PhysicsRegion:  # fmt: skip
+                  reach: float, check=None, hold=None) -> PhysicsRegion:  # fmt: skip
     """A region about ``centre`` (mm) of tools within ``radius`` (mm): ``model`` (a
     HyperReducedModel on ``mesh``'s elements and the basis ``Phi`` (N, n)), ``surface`` the
     artifact's surface group (vertices, triangles, nodes, groups), ``loads`` a
     ``tool_stiffness.ToolLoads`` (the campaign's force tool), ``grip`` the organ's
     :class:`GripNodes`, of which the region keeps those within ``radius + reach`` (mm:
     the tool's contact radius) of its centre; ``check``: the error indicator's model (a
-    second sample on the same bases), or None."""
+    second sample on the same bases), or None; ``hold``: a held region's (its holder's
+    patch, rows of ``grip``; its hold patterns (3P, m): ``ecsw_regions.hold_patterns``),
+    or None."""
     centre = np.asarray(centre, dtype=float)
     near = grip.within(centre, radius + reach)
+    hold_nodes = hold_reactions = None
+    if hold is not None:
+        patch, patterns = hold
+        hold_nodes = np.searchsorted(near, patch)  # near rises: rows of the region's grip
+        if not np.array_equal(near[np.minimum(hold_nodes, len(near) - 1)], patch):
+            raise InputError("a held region's holder grips nodes beyond the region's reach")
+        hold_reactions = np.ascontiguousarray(patterns.reshape(len(patch), 3, -1))
     vertices = region_vertices(surface, centre, radius)
     tool_loads_ = tool_loads(Phi, surface["vertices"][vertices], loads)
     return PhysicsRegion(
@@ -116,6 +130,8 @@ def region_arrays(mesh, model, Phi, surface, centre, radius, loads, grip: GripNo
         grip_nodes=np.ascontiguousarray(grip.points[near], dtype=float),
         grip_rows=np.ascontiguousarray(Phi.reshape(-1, 3, Phi.shape[1])[grip.nodes[near]]),
         check=None if check is None else sample_arrays(mesh, check, "check_"),
+        hold_nodes=hold_nodes,
+        hold_reactions=hold_reactions,
     )
 
 
@@ -178,12 +194,13 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
     def stack(name):
         return np.concatenate([getattr(r, name) for r in regions])
 
-    # every region's basis carries the responses to its holder's cupping loads
-    # (ecsw_regions.holder_responses): the runtime holds the cupping too
-    attrs = {"cell": cell, "hold_stiffness": max(r.hold_stiffness for r in regions),
-             "holder_cupping": 1}  # fmt: skip
+    attrs = {"cell": cell, "hold_stiffness": max(r.hold_stiffness for r in regions)}
     if tolerance is not None:
         attrs["tolerance"] = float(tolerance)
+    hold = hold_datasets(regions)
+    # a file of held regions (1.3): their bases carry no responses to cupping loads, so a
+    # holder elsewhere keeps its patch's mean and rotation alone (1.1's held regions did)
+    attrs["holder_cupping"] = 0 if hold else 1
     check = {}
     if all(checked):
         sizes = [len(r.check["check_weights"]) for r in regions]
@@ -194,6 +211,7 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
             check[name] = np.array(parts) if tangent else np.concatenate(parts)
     return {
         **check,
+        **hold,
         "centres": np.array([r.centre for r in regions]),
         "radii": np.array([r.radius for r in regions]),
         "element_offsets": offsets[0].astype(np.int64),
@@ -216,6 +234,31 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
         "constant_tangent": np.array([r.constant_tangent for r in regions]),
         "surface_basis": np.array([r.surface_basis for r in regions]),
         "attrs": attrs,
+    }
+
+
+def hold_datasets(regions: list[PhysicsRegion]) -> dict:
+    """The hold datasets (group 1.3) of the regions with a held holder (none: {}), each
+    region's patterns padded with zero columns to the widest's, its own count in
+    ``hold_ranks``."""
+    held = [r for r in regions if r.hold_nodes is not None]
+    if not held:
+        return {}
+    width = max(r.hold_reactions.shape[2] for r in held)
+    nodes, reactions, ranks = [], [], []
+    for r in regions:
+        count = 0 if r.hold_nodes is None else len(r.hold_nodes)
+        nodes.append(np.zeros(0, np.int64) if r.hold_nodes is None else r.hold_nodes)
+        padded = np.zeros((count, 3, width))
+        if count:
+            padded[:, :, : r.hold_reactions.shape[2]] = r.hold_reactions
+        reactions.append(padded)
+        ranks.append(0 if r.hold_nodes is None else r.hold_reactions.shape[2])
+    return {
+        "hold_offsets": np.cumsum([0] + [len(n) for n in nodes]).astype(np.int64),
+        "hold_nodes": np.concatenate(nodes).astype(np.int64),
+        "hold_reactions": np.concatenate(reactions),
+        "hold_ranks": np.array(ranks, np.int64),
     }
 
 
