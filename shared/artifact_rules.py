@@ -725,7 +725,7 @@ def _hyperreduced_grip(artifact, h) -> None:
 
 def _hyperreduced_hold(artifact, h) -> None:
     """Each region's hold nodes (possibly none) distinct rows of its grip nodes, its rank
-    within 1..3P (0 without nodes) and the hold patterns' columns up to it orthonormal over
+    within 1..min(3P, Hm) (0 without nodes) and the hold patterns' columns up to it orthonormal over
     the patch's DOFs, the rest zero."""
     regions, rows, width = (artifact.symbols[k] for k in ("Hr", "Hh", "Hm"))
     o, grips = h["hold_offsets"].astype(np.int64), h["grip_offsets"].astype(np.int64)
@@ -741,6 +741,8 @@ def _hyperreduced_hold(artifact, h) -> None:
         if not (rank == 0 if not len(patch) else 1 <= rank <= min(3 * len(patch), width)):
             raise _fail(artifact, f"hyperreduced/hold_ranks: region {r}'s {rank} does not fit "
                                   f"its {len(patch)} hold nodes")  # fmt: skip
+        if not len(patch):
+            continue  # a region without a held holder
         patterns = np.asarray(h["hold_reactions"][o[r] : o[r + 1]], np.float64)
         patterns = patterns.reshape(3 * len(patch), -1)
         if np.any(patterns[:, rank:]):

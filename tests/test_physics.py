@@ -368,9 +368,10 @@ def test_a_wide_holder_lifts_its_patch_as_the_trainers_model(trained, tmp_path):
 
     config, (_, point), Phi, models, paths, _, _ = trained
     grip_less = tampered(trained, tmp_path, WITHOUT_GRIP, AS_1_0)
+    as_1_1 = tampered(trained, tmp_path, {}, {"holder_cupping": 1}, name="cupping.h5")
     radius = 2.5 * config.load.contact_radius
     cupping = {}
-    for rows, path in ((6, grip_less), (9, paths["galerkin"])):
+    for rows, path in ((6, grip_less), (9, as_1_1)):
         model = load(path, isolate=False)
         model.artifact.group_attrs["model"]["contact_radius"] = radius  # in memory only
         vertices = model.artifact["surface"]["vertices"]
@@ -444,7 +445,11 @@ def test_held_patch_responses_are_the_linear_full_orders_hold(held):
     a motion the work the motion's response does against the press, m_j^T R_g =
     -x_j^T g. The hold patterns are orthonormal and span the reactions to their
     tolerance."""
-    from hapticrom.offline.reduce.ecsw_regions import HOLD_PATTERNS, patch_motions
+    from hapticrom.offline.reduce.ecsw_regions import (
+        HOLD_PATTERNS,
+        held_patch_responses,
+        patch_motions,
+    )
 
     grip, patch, X, R = held["grip"], held["patch"], held["columns"], held["reactions"]
     K, g, free = held["operators"].condensed(), held["loads"][:, 0], held["free"]
@@ -468,6 +473,11 @@ def test_held_patch_responses_are_the_linear_full_orders_hold(held):
     assert np.allclose(motions.T @ R[:, 6], betti, rtol=0, atol=1e-8 * np.abs(betti).max())
     L = held["patterns"]
     assert np.allclose(L.T @ L, np.eye(L.shape[1]), rtol=0, atol=1e-12)
+    supported = np.flatnonzero(~np.isin(3 * grip.nodes, free))  # grip nodes the supports hold
+    assert len(supported)
+    with pytest.raises(InputError, match="grips a supported node"):
+        held_patch_responses(held["operators"], grip, grip.points[supported[0]], held["wide"],
+                             free, held["loads"])  # fmt: skip
     unit = R / np.linalg.norm(R, axis=0)
     assert np.linalg.norm(unit - L @ (L.T @ unit)) <= HOLD_PATTERNS * np.linalg.norm(unit, 2) * 3
 
@@ -491,14 +501,17 @@ def test_a_held_regions_holder_holds_its_patch_in_its_patterns(held):
     from the trainer's basis at the patch's nodes), settles on the trainer's model with
     that penalty and load (1e-8), pulls with the patterns' nodal forces summed, and lifted
     by 1 um moves the surface as the full order's linear hold (the patch translated, the
-    rest free: 2e-3), where the same region holding the patch's mean, rotation and cupping
-    (a file without the hold patterns, as 1.1's) is off by over ten times as much; a
-    holder elsewhere keeps its patch's mean and rotation (a 1.3 file's bases carry no
-    cupping responses)."""
+    rest free: 2e-3) and pulls with its reactions summed (2e-3), where the same region
+    holding the patch's mean and rotation (a file without the hold patterns), or its
+    cupping too (as a 1.1 file's holder), is off by over ten times as much; a holder
+    elsewhere keeps its patch's mean and rotation (a 1.3 file's bases carry no cupping
+    responses)."""
     fields, errors = {}, {}
-    for name in ("held", "moments"):
-        model = load(held[name], isolate=False)
+    for name in ("held", "moments", "cupping"):
+        model = load(held["moments" if name == "cupping" else name], isolate=False)
         model.artifact.group_attrs["model"]["contact_radius"] = held["wide"]  # in memory only
+        if name == "cupping":  # as a 1.1 file's holder, on the same basis
+            model.artifact.group_attrs["hyperreduced"]["holder_cupping"] = 1
         nodes = model.artifact["surface"]["nodes"]
         vertices = model.artifact["surface"]["vertices"]
         lift = outward(vertices, held["site"], 1e-3)
@@ -516,12 +529,18 @@ def test_a_held_regions_holder_holds_its_patch_in_its_patterns(held):
     assert np.allclose(physics.holders[0], s * L.T @ rows, rtol=0, atol=1e-12)
     expected = trainers_hold(held["model"], physics)
     assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
-    gap = physics.holders[0] @ physics.q - physics.holder_targets[0]
-    nodal = -physics.hold_stiffness * s * (L @ gap)
-    assert np.allclose(physics.holder_force(0), nodal.reshape(-1, 3).sum(axis=0), rtol=1e-12,
-                       atol=0)  # fmt: skip
-    assert fields["moments"].holders[0].shape[0] == 9  # mean, rotation, cupping (1.1's hold)
-    assert errors["held"] <= 2e-3 and errors["moments"] >= 10 * errors["held"]
+    lift = outward(vertices, held["site"], 1e-3)
+    target = s * L.T @ np.tile(lift, len(patch))
+    assert np.allclose(physics.holder_targets[0], target, rtol=0, atol=1e-15)
+    load_ = physics.hold_stiffness * physics.holders[0].T @ target
+    assert np.allclose(physics.holder_loads[0], load_, rtol=0, atol=1e-12 * np.abs(load_).max())
+    # the full order's linear hold pulls with its patch's reactions summed (K x on the patch)
+    reaction = (held["reactions"][:, :3] @ lift).reshape(-1, 3).sum(axis=0)
+    pull = physics.holder_force(0)
+    assert np.linalg.norm(pull - reaction) <= 2e-3 * np.linalg.norm(reaction)
+    assert [fields[k].holders[0].shape[0] for k in ("moments", "cupping")] == [6, 9]
+    assert errors["held"] <= 2e-3
+    assert min(errors["moments"], errors["cupping"]) >= 10 * errors["held"]
     elsewhere = held["site"] + np.array([0.3, 0.0, 0.0])
     other = load(held["held"], isolate=False)
     other.artifact.group_attrs["model"]["contact_radius"] = held["wide"]
@@ -610,7 +629,7 @@ def test_a_small_region_steps_with_fewer_slices(trained, tmp_path):
     assert len(physics.newton.bounds) == 6
 
 
-def tampered(trained, tmp_path, change, attrs=None, region="galerkin"):
+def tampered(trained, tmp_path, change, attrs=None, region="galerkin", name="tampered.h5"):
     """The ``region``'s group with ``change`` (name -> function of the array, or of
     None: the dataset left out) and ``attrs`` (None: left out) written
     and read back: the writer's read-back refuses what the reader refuses."""
@@ -623,8 +642,8 @@ def tampered(trained, tmp_path, change, attrs=None, region="galerkin"):
     group["attrs"].update(attrs or {})
     group["attrs"] = {k: v for k, v in group["attrs"].items() if v is not None}
     content, root = with_group(read_artifact(paths["galerkin"]), "hyperreduced", group)
-    write_artifact(tmp_path / "tampered.h5", content, root)
-    return tmp_path / "tampered.h5"
+    write_artifact(tmp_path / name, content, root)
+    return tmp_path / name
 
 
 def _set(index, value):
@@ -681,6 +700,20 @@ def test_the_reader_refuses_a_tampered_group(trained, tmp_path, change, attrs, m
     with pytest.raises(ArtifactError, match=message):
         tampered(trained, tmp_path, change, attrs)
     assert not (tmp_path / "tampered.h5").exists()
+
+
+def test_held_and_unheld_regions_share_a_file(trained, held, tmp_path):
+    """A file of a held region and one without a holder (hold datasets of an empty slice):
+    written, read back, the first's holder holds its patterns, the second's its mean and
+    rotation."""
+    group = physics_group([held["held_region"], held["moments_region"]], trained[6], 1e-4)
+    assert list(group["hold_offsets"]) == [0, len(held["patch"]), len(held["patch"])]
+    content, root = with_group(read_artifact(held["held"]), "hyperreduced", group)
+    write_artifact(tmp_path / "two.h5", content, root)
+    model = load(tmp_path / "two.h5", isolate=False)
+    model.artifact.group_attrs["model"]["contact_radius"] = held["wide"]
+    rows = [model.physics(region=r, holders=[held["site"]]).holders[0].shape[0] for r in (0, 1)]
+    assert rows == [held["patterns"].shape[1], 6]
 
 
 def _scaled(a):

@@ -175,6 +175,28 @@ def test_bad_input_gives_one_clear_line(force_campaign, force_artifact, tmp_path
     assert not out.exists()
 
 
+def test_a_holder_on_a_support_is_refused_before_any_solve(
+    force_campaign, force_artifact, tmp_path
+):
+    """A held region's holder gripping a node the organ's supports hold (the full order
+    could not move it): refused, naming the holder, before the region's solves."""
+    import hapticrom.offline  # noqa: F401 - h5py and MPI first
+    from hapticrom.offline.reduce.ecsw_model import group_nodes
+    from hapticrom.offline.reduce.ecsw_physics import GripNodes
+
+    config, store = force_campaign[0], force_campaign[1]
+    supported = store.read_operators()[0]["supported_nodes"]
+    grip = GripNodes(*group_nodes(config.problem.mesh.file, config.load.surface))
+    rim = grip.points[np.isin(grip.nodes, supported)]
+    assert len(rim)
+    out = tmp_path / "physics.h5"
+    holder = ",".join(f"{v:.9g}" for v in rim[0])
+    proc = run_cli("physics", force_artifact, store.root, "--out", out, "--state-modes", "8",
+                   "--pressure-modes", "4", f"--held=0,0,0,{holder}")  # fmt: skip
+    assert proc.returncode != 0 and "grips a supported node" in proc.stderr, proc.stderr
+    assert not out.exists()
+
+
 def test_a_model_of_another_campaign_is_refused(small_artifact, force_campaign, tmp_path):
     out = tmp_path / "physics.h5"
     proc = run_cli("physics", small_artifact, force_campaign[1].root, "--at", "0,0,0",

@@ -198,9 +198,10 @@ def physics_group(regions: list[PhysicsRegion], cell: str, tolerance: float | No
     if tolerance is not None:
         attrs["tolerance"] = float(tolerance)
     hold = hold_datasets(regions)
-    # a file of held regions (1.3): their bases carry no responses to cupping loads, so a
-    # holder elsewhere keeps its patch's mean and rotation alone (1.1's held regions did)
-    attrs["holder_cupping"] = 0 if hold else 1
+    # no basis carries the responses to cupping loads any more (1.1's held regions did: their
+    # holders kept the cupping too); a holder other than a held region's keeps its patch's
+    # mean and rotation (cupping rows on a basis without their responses stiffen it: README)
+    attrs["holder_cupping"] = 0
     check = {}
     if all(checked):
         sizes = [len(r.check["check_weights"]) for r in regions]

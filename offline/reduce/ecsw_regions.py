@@ -316,6 +316,9 @@ def held_patch_responses(operators, grip: GripNodes, point, radius, free,
     stop 47, on the liver's grasp-and-lift (7.6 -> 0.9 % in field)."""
     patch = grip.patch(point, radius)
     held = (3 * grip.nodes[patch][:, None] + np.arange(3)).ravel()
+    if not np.isin(held, free).all():
+        raise InputError(f"a holder at {np.round(point, 4).tolist()} mm grips a supported "
+                         "node (the organ's supports hold it): grip farther from them")  # fmt: skip
     motions = patch_motions(grip.points[patch])
     motions = motions.reshape(len(held), -1)
     inner = np.setdiff1d(free, held)
@@ -454,12 +457,17 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
                          "modes: more solves, or fewer modes")  # fmt: skip
     surface = artifact["surface"]
     grip = GripNodes(*group_nodes(config.problem.mesh.file, config.load.surface))
+    supported = store.read_operators()[0]["supported_nodes"]
     for site in sites:  # before any solve: each site has loadable surface within the radius
         for point in site.points:
             region_vertices(surface, point, recipe.radius)
         if site.kind == "held":  # and a holder's site a patch the runtime can hold
             patch = grip.patch(site.points[1], config.load.contact_radius)
             holder_rows(np.zeros((grip.points.size, 1)), grip.points, patch)
+            if np.isin(grip.nodes[patch], supported).any():
+                raise InputError(f"a holder at {np.round(site.points[1], 4).tolist()} mm "
+                                 "grips a supported node (the organ's supports hold it): grip "
+                                 "farther from them")  # fmt: skip
     mesh = mesh_elements(config.problem.mesh.file, config.problem.material)
     rest = rest_tangents(mesh)
     regions = build_regions(config, mesh, rest, surface, grip, ToolLoads(config), sites,
