@@ -60,6 +60,11 @@ STEADY, JUMP, FLOOR = 1e-3, 4.0, 1e-6
 # times its state, then 1.15, then every step was refused. (1.01: a step from rest, or to
 # it, is 1 up to rounding.)
 LEAP, HALVINGS = 1.01, 8
+# Under a steady ramp (the load changed by what it changed the step before, to RAMP of
+# it) a converging step's update changes little from step to step; RAMP_JUMP times the
+# last is the lagging tangent diverging (the demo's pinch in 30 parts: updates of 0.04-0.06
+# of the state, then 0.114, 0.281, 1.40, and every step refused at 43-58 % of the load).
+RAMP, RAMP_JUMP = 0.1, 2.0
 
 
 def element_geometry(X: np.ndarray, cell: str, first: int = 0,
@@ -371,6 +376,7 @@ class HyperReducedPhysics:
         self._pressing_load = np.zeros(n)  # the pressing tools' loads, summed
         self._last_load = np.zeros(n)  # the pressing load of the last step
         self._load_change = np.zeros(n)
+        self._last_change = np.zeros(n)  # the pressing load's change the step before
         self._holders_moved = False  # a holder moved since the last step: not steady
 
     def _newton(self, sample, linear, iterations, slices) -> HapticNewton:
@@ -561,6 +567,10 @@ class HyperReducedPhysics:
         change = np.subtract(pressing, self._last_load, out=self._load_change)
         steady = change.dot(change) <= STEADY**2 * pressing.dot(pressing)  # dot: no norm's cost
         steady = steady and not self._holders_moved
+        # a steady ramp: the load changed by what it changed the step before
+        drift = np.subtract(change, self._last_change, out=self._last_change)
+        ramping = not steady and drift.dot(drift) <= RAMP**2 * change.dot(change)
+        np.copyto(self._last_change, change)
         np.copyto(self._last_load, pressing)
         self._holders_moved = False
         gap = np.subtract(self.load, self._applied, out=self._load_gap)
@@ -568,6 +578,7 @@ class HyperReducedPhysics:
         moving = gap.dot(gap) > STEADY**2 * self.load.dot(self.load)
         steady = steady and not moving
         previous = self.newton.last_update
+        limit = JUMP if steady else RAMP_JUMP if ramping else np.inf  # an update's jump
         if moving:
             self.newton.keep()  # a leap's tangent part is taken back (undo)
         taken = self.newton.step(self.q, self.pi, self.load)
@@ -577,7 +588,7 @@ class HyperReducedPhysics:
                 self.newton.undo()  # its tangent part at a state dropped
             if self._shorter_steps(q0, pi0, previous):
                 return True  # else (the state restored) a fresh tangent, below
-        elif taken and not (steady and update > FLOOR and update > JUMP * previous):
+        elif taken and not (update > FLOOR and update > limit * previous):
             np.copyto(self._applied, self.load)
             return True
         self.q[:], self.pi[:] = q0, pi0

@@ -786,6 +786,37 @@ def test_a_tangled_element_is_refused_when_stepped(trained, tmp_path):
         model.physics()
 
 
+def test_a_tangent_diverging_under_a_steady_ramp_is_taken_again_fresh(trained, monkeypatch):
+    """The coarse region (ECSW 1e-3) pressed to three times the campaign's force in 100
+    equal steps, the tangent in 10 parts, then held: the lagging tangent diverges during
+    the ramp (the schedule alone refuses steps; without the ramp's guard, RAMP_JUMP
+    infinite, the physics refuses its 43rd step for good). With it every step is taken, a
+    few on a fresh tangent, and the state settles on the trainer's model's equilibrium."""
+    import hapticrom.online.physics as physics_module
+
+    config, (data, point), Phi, models, paths, _, _ = trained
+    f, factors = 3.0 * data["load_vector"], data["load_factor"]
+    force = f.reshape(-1, 3).sum(axis=0)
+    ramp = list(np.linspace(0.0, factors[-1], 101)[1:]) + [factors[-1]] * 50
+    taken = {}
+    for jump in (np.inf, physics_module.RAMP_JUMP):
+        monkeypatch.setattr(physics_module, "RAMP_JUMP", jump)
+        physics = load(paths["coarse"], isolate=False).physics(slices=10)
+        bare = HapticNewton(physics.newton.sample, physics.newton.linear, 1, 10)
+        q, pi, refused = np.zeros_like(physics.q), np.zeros_like(physics.pi), 0
+        steps = []
+        for factor in ramp:
+            physics.press(0, point, factor * force)
+            steps.append(physics.step())
+            refused += not bare.step(q, pi, physics.load)
+        assert refused > 0  # the schedule alone diverges
+        taken[jump] = all(steps)
+    assert taken == {np.inf: False, physics_module.RAMP_JUMP: True}
+    assert 0 < physics.refreshes <= 10
+    expected = models["coarse"].solve(Phi.T @ f, factors, tolerance=1e-12)[0][-1]
+    assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
+
+
 def test_the_guard_takes_a_diverging_step_again_on_a_fresh_tangent(trained):
     """The haptic schedule (a tangent part a step, 3 parts) on the sampled region, pressed
     as the campaign in 40 steps, then held for 60. Without the guard (HapticNewton alone)

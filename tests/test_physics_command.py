@@ -92,9 +92,10 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
     force_campaign, force_artifact, tmp_path
 ):
     """``--held``: a press beside a holder. Its solves are presses each beside a holder
-    about the second site, its basis carries the holder's responses; with the holder at
-    one of those solves' holder nodes and pressed as that solve, it reproduces the full
-    order (whose held patch does not move at all; the runtime holds its rigid motion),
+    about the second site, its basis carries the responses with the holder's patch held;
+    with the holder at one of those solves' holder nodes and pressed as that solve, it
+    reproduces the full order (whose held patch does not move at all; the runtime holds
+    it in the force patterns the region stores for its holder, or elsewhere its nodes),
     and the patch stays in place. With ``--lift``, grasp-and-lift: the same holder moved
     out of the surface (``move_holder``) reproduces the full order's lift solve, field and
     the holder's force."""
