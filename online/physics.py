@@ -544,7 +544,8 @@ class HyperReducedPhysics:
         A taken step also sums its share of the error estimate (``error_estimate``).
 
         Guarded: a step that is refused, or whose update jumps while the load holds
-        (``JUMP``, ``STEADY``, ``FLOOR``), is taken again from the state before it on the
+        (``JUMP``, ``STEADY``, ``FLOOR``) or under a steady ramp (``RAMP``,
+        ``RAMP_JUMP``), is taken again from the state before it on the
         whole tangent at that state (``HapticNewton.refresh``: the cost of the tangent's
         parts at once, 30 steps' worth, about 4.6 ms on the demo, once), and counted in
         ``refreshes``. Under a load that changed, a step that leaps (moves the state by more
