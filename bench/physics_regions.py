@@ -3,7 +3,8 @@ positions, each region pressed at its centre with that position's stored load pa
 haptic steps, against the stored full-order solve (not among the region's own solves).
 
     python bench/physics_regions.py MODEL.h5 CAMPAIGN_DIR [--positions 6,18,30]
-        [--pair MM [--second-force 0.5] | --held MM [--lift MM] | --pinch N]
+        [--pair MM [--second-force 0.5] | --held MM [--lift MM] | --pinch N
+         | --oblique FRACTION]
         [--out out/physics.h5] [--frames 100]
         [--skip-build] [--slices 30] [--estimate-steps 100 [--estimate-cost]]
         [-- hapticrom physics options]
@@ -14,6 +15,11 @@ region of the two sites, the reference a full-order solve under both (solved her
 ``--pinch N``: nine forces of N (the position's node and the eight nearest loadable nodes,
 thesis §3.4.3), each region a ``--pinch`` region, the reference the full order under the
 pinch (solved here), the depth the nine forces' load-weighted displacement.
+``--oblique FRACTION``: the position's tool with a tangential force of FRACTION of its own
+on the same point at 45 degrees from the tangent nearest x (a direction none of the
+region's solves has: they are at 0, 120 and 240), each region an ``--oblique`` region
+(``--oblique-force FRACTION``), the reference the full order under both (solved here),
+the runtime pressing one tool with their sum, the depth the load-weighted displacement.
 ``--held MM``: the position's tool presses while a holder MM away grips (``--held``
 regions, ``physics(region, holders=[...])``), the reference the full order with the
 holder's patch held in place (solved here). ``--lift MM`` (with ``--held``): the
@@ -61,6 +67,12 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
     parser.add_argument("--held", type=float, default=0.0, help="mm: a holder this far")
     parser.add_argument("--pinch", type=float, default=0.0,
                         help="N: a pinch of nine forces this large (thesis: 0.014)")  # fmt: skip
+    parser.add_argument(
+        "--oblique",
+        type=float,
+        default=0.0,
+        help="a tangential force, of the campaign's (the stop-40 bench: 0.5)",
+    )
     parser.add_argument("--lift", type=float, default=0.0, help="mm: --held's holder lifts")
     parser.add_argument("--slices", type=int, default=30, help="the tangent's parts (physics')")
     parser.add_argument("--estimate-steps", type=int, default=100,
@@ -69,8 +81,10 @@ def parse_arguments() -> tuple[argparse.Namespace, list[str]]:
                         help="also step each region with and without the estimate, "
                         "alternately: the step's cost of it (not with --lift)")  # fmt: skip
     args, extra = parser.parse_known_args()
-    if sum(bool(v) for v in (args.pair, args.held, args.pinch)) > 1:
-        parser.error("--pair, --held or --pinch, one of them")
+    if sum(bool(v) for v in (args.pair, args.held, args.pinch, args.oblique)) > 1:
+        parser.error("--pair, --held, --pinch or --oblique, one of them")
+    if not (np.isfinite(args.oblique) and 0 <= args.oblique <= 10):
+        parser.error("--oblique: a fraction in (0, 10] of the campaign's force")
     if not (np.isfinite(args.pinch) and 0 <= args.pinch <= 100):
         parser.error("--pinch: a force in (0, 100] N")
     if args.lift and not (args.held and 0 < args.lift <= 10):
@@ -208,6 +222,24 @@ def pinch_case(store, point, args) -> tuple:
     return tools, data, data["load_vector"]
 
 
+def oblique_case(store, point, args) -> tuple:
+    """([(point, force)]: the campaign's tool at ``point`` and the ``--oblique`` tangential
+    force at 45 degrees, as one tool, the full order's datasets under both, their load
+    vector)."""
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.offline.reduce.inputs import campaign_config
+
+    solves = RegionSolves(campaign_config(store, store.manifest(), None), (), 1)
+    node = solves.nearest(point)
+    press, tangential = solves.tool(node, 1.0), solves.oblique_tool(node, 45.0, args.oblique)
+    t = time.perf_counter()
+    data = solves.solve(node, tools=[tangential])
+    print(f"  the full order pressed obliquely at {np.round(press[0], 3).tolist()} mm "
+          f"({time.perf_counter() - t:.0f} s)", flush=True)  # fmt: skip
+    force = np.asarray(press[1]) + np.asarray(tangential[1])
+    return [(press[0], tuple(force))], data, data["load_vector"]
+
+
 def lifted(store, model, region, i, holder, args) -> dict:
     """Grasp-and-lift at ``region``: the holder at ``holder`` (mm) moved ``--lift`` mm
     against the campaign's direction over ``--frames`` steps, then held as long, against
@@ -254,7 +286,7 @@ def main() -> None:
     store = SnapshotStore(args.campaign)
     points = [np.asarray(store.read_position(i)[1]["point"], float) for i in args.positions]
     case_of = two_tools if args.pair else held_case if args.held else None
-    case_of = pinch_case if args.pinch else case_of
+    case_of = pinch_case if args.pinch else oblique_case if args.oblique else case_of
     cases = [case_of(store, point, args) if case_of else None for point in points]
     if not args.skip_build:
         from hapticrom.cli import main as hapticrom
@@ -271,6 +303,9 @@ def main() -> None:
         if args.pinch:
             at = [a.replace("--at=", "--pinch=") for a in at]
             options = ["--pinch-force", str(args.pinch), *options]
+        if args.oblique:
+            at = [a.replace("--at=", "--oblique=") for a in at]
+            options = ["--oblique-force", str(args.oblique), *options]
         t = time.perf_counter()
         if hapticrom(["physics", args.model, args.campaign, *at, "--out", args.out, *options]):
             raise SystemExit("hapticrom physics failed")
@@ -301,7 +336,7 @@ def main() -> None:
         physics.surface_displacement(u)
         full = data["displacement"][-1]
         tool = physics.tool_load(point, force)
-        if args.pinch:  # the pinch's depth: the nine forces' load-weighted displacement
+        if args.pinch or args.oblique:  # the forces' load-weighted displacement
             tool = physics.load / factors[-1]  # per unit factor, as f
         depth, lagging = tool @ physics.q / (f @ full), tool @ ramp_end / (f @ full)
         field = full.reshape(-1, 3)[nodes]

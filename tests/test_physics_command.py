@@ -162,6 +162,9 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
         (["--at", "0,0,0", "--state-modes", "40"], "give 24 states"),
         (["--held=0,0,0,0,0,0"], "the two sites must differ"),
         (["--pinch=0,0,0", "--pinch-force", "0"], "--pinch-force"),
+        (["--oblique=0,0,0", "--oblique-force", "0"], "--oblique-force"),
+        (["--oblique=0,0,0", "--linear-modes", "0"], "--linear-modes"),
+        (["--oblique=0,0,0", "--linear-modes", "900"], "for 900 linear modes"),
         (["--at", "0,0,0", "--lift", "0.1"], "give --held"),
         (["--held=0,0,0,0,0,40"], "no loadable surface vertex"),
     ],
@@ -276,6 +279,41 @@ def test_a_pinch_region_reproduces_a_pinch_it_was_built_from(
     u, full = pressed_surface(physics, tools, data, model)
     assert np.linalg.norm(u - full) <= 1e-2 * np.linalg.norm(full)
     assert physics.error_estimate() > 0
+
+
+def test_an_oblique_region_presses_at_a_direction_it_was_not_built_from(
+    force_campaign, force_artifact, physics_file, tmp_path
+):
+    """``--oblique``: a region whose solves are the campaign's tool with a tangential force
+    of half its own at 0, 120 and 240 degrees about the site, its basis the tool's linear
+    responses too; pressed as one of them (one tool, their sum) it reproduces that solve
+    (1e-2), and at 45 degrees (no solve's direction) it is within 5 % of the full order on
+    this coarse mesh, under half the error of the region of normal presses at the same
+    site (``physics_file``)."""
+    import hapticrom.offline  # noqa: F401 - h5py and MPI first
+    from hapticrom.offline.reduce.ecsw_regions import RegionSolves
+    from hapticrom.online.model import load
+
+    config = force_campaign[0]
+    out = tmp_path / "oblique.h5"
+    proc = run_cli("physics", force_artifact, force_campaign[1].root, "--out", out,
+                   "--oblique=0,0,0", "--oblique-force", "0.5", "--linear-modes", "6",
+                   *OPTIONS, "--solves-per-distance", "3", "--pressure-modes", "12")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    solves = RegionSolves(config, (0.95,), 3)
+    errors = {}
+    for name, path, k, azimuth in (("own", out, 1, 120.0), ("held-out", out, 0, 45.0),
+                                   ("presses", physics_file, 0, 45.0)):  # fmt: skip
+        model = load(path, isolate=False)
+        node = solves.nodes(np.zeros(3))[k]
+        press, tangential = solves.tool(node, 1.0), solves.oblique_tool(node, azimuth, 0.5)
+        assert np.isclose(np.dot(press[1], tangential[1]), 0, atol=1e-12)  # tangential
+        data = solves.solve(node, tools=[tangential])
+        force = tuple(np.add(press[1], tangential[1]))
+        u, full = pressed_surface(model.physics(slices=1), [(press[0], force)], data, model)
+        errors[name] = np.linalg.norm(u - full) / np.linalg.norm(full)
+    assert errors["own"] <= 1e-2 and errors["held-out"] <= 5e-2
+    assert errors["held-out"] <= 0.5 * errors["presses"]
 
 
 def test_solves_between_nodes_centre_the_tool_on_edge_midpoints(force_campaign):

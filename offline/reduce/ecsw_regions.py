@@ -34,6 +34,7 @@ from hapticrom.offline.reduce.ecsw import ecsw
 from hapticrom.offline.reduce.ecsw_model import (
     HyperReducedModel,
     rest_operators,
+    rest_solver,
     supremizers,
     training_matrix,
 )
@@ -59,8 +60,9 @@ HOLD_PATTERNS = 1e-2
 class RegionRecipe:
     """How a region is built: the solves' distances (mm) and count at each, the modes kept
     (displacement states, pressures; supremizers add one displacement mode a pressure
-    mode), ECSW's tolerance, the radius (mm) about a site where tools may press, and a
-    pair region's second force. The defaults are the bench's figures at ECSW 0.004
+    mode), ECSW's tolerance, the radius (mm) about a site where tools may press, a pair
+    region's second force, a pinch's forces, an oblique region's tangential force and
+    linear modes. The defaults are the bench's figures at ECSW 0.004
     (README, stop 42)."""
 
     distances: tuple[float, ...] = (0.25, 0.5)
@@ -72,6 +74,8 @@ class RegionRecipe:
     second_force: float = 0.5  # a pair region's second tool, of the campaign's force
     lift: float = 0.0  # mm: a held region's holders also lift this far, alone (grasp-and-lift)
     pinch_force: float = 0.014  # N: each of a pinch region's nine forces (thesis §3.4.3)
+    oblique: float = 0.5  # an oblique region's tangential force in its solves, of the campaign's
+    linear_modes: int = 20  # an oblique region's modes of the tool's linear responses
     between_nodes: bool = False  # solves also at the loadable edges' midpoints (a coarse mesh)
     # the error indicator's check sample: ECSW's tolerance, tighter than the model's (None: a
     # quarter of it; 0: no check sample)
@@ -92,6 +96,10 @@ class RegionRecipe:
             raise InputError(f"the check sample's tolerance must lie in (0, {self.tolerance}) "
                              f"(tighter than the model's), or be 0 for none; got "
                              f"{self.check_tolerance}")  # fmt: skip
+        if not (0 < self.oblique <= 10 and 1 <= self.linear_modes <= 1000):
+            raise InputError(f"an oblique region's tangential force must lie in (0, 10] of "
+                             f"the campaign's and its linear modes in 1..1000, got "
+                             f"{self.oblique}, {self.linear_modes}")  # fmt: skip
         if not 0 < self.pinch_force <= 100:
             raise InputError(f"a pinch's force must lie in (0, 100] N, got {self.pinch_force}")
         if not (0 < self.tolerance < 1 and self.radius > 0 and 0 < self.second_force <= 10):
@@ -200,6 +208,21 @@ class RegionSolves:
                              "eight free loadable nodes beside it")  # fmt: skip
         return [self.tool(int(n), force / self.config.load.magnitude) for n in nearest]
 
+    def oblique_tool(self, site, azimuth: float, fraction) -> tuple:
+        """A tangential force on ``site``'s point, ``fraction`` of the campaign's force
+        along the surface at ``azimuth`` (degrees) from the tangent nearest x (nearest y
+        where the normal is near x): beside the campaign's tool there, an oblique press
+        (``bench/ecsw_tradeoff.py --oblique``: README, stop 40)."""
+        normal = np.asarray(self.site_normals[site], float)
+        e1 = np.eye(3)[0] - normal[0] * normal
+        if np.linalg.norm(e1) < 0.1:
+            e1 = np.eye(3)[1] - normal[1] * normal
+        e1 /= np.linalg.norm(e1)
+        angle = np.radians(azimuth)
+        tangent = np.cos(angle) * e1 + np.sin(angle) * np.cross(normal, e1)
+        force = fraction * self.config.load.magnitude * tangent
+        return self.position(site).point, tuple(float(v) for v in force)
+
     def second_tool(self, point, distance, fraction) -> tuple[int, tuple]:
         """A second tool ``distance`` mm from ``point`` (the free loadable node nearest to
         that distance, not ``point``'s own): its node and its ``tool``."""
@@ -237,23 +260,24 @@ def pod(columns: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class RegionSite:
     """Where a region's tools go: ``kind`` "at" (one site: presses about it), "pinch" (nine
-    forces at neighbouring nodes about one site), "pair" (two tools pressing at once) or
+    forces at neighbouring nodes about one site), "oblique" (presses with a tangential
+    force about one site), "pair" (two tools pressing at once) or
     "held" (the first presses while a holder grips the second); ``points`` (1 or 2, 3) mm."""
 
     kind: str
     points: np.ndarray
 
     def __post_init__(self):
-        count = {"at": 1, "pinch": 1, "pair": 2, "held": 2}.get(self.kind)
+        count = {"at": 1, "pinch": 1, "oblique": 1, "pair": 2, "held": 2}.get(self.kind)
         if count is None or np.shape(self.points) != (count, 3):
-            raise InputError(f"a region site is 'at' or 'pinch' one point or 'pair' or 'held' "
-                             f"two, got {self.kind!r} with shape "
+            raise InputError(f"a region site is 'at', 'pinch' or 'oblique' one point or "
+                             f"'pair' or 'held' two, got {self.kind!r} with shape "
                              f"{np.shape(self.points)}")  # fmt: skip
 
 
 def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float = 0.5,
-                     lift: float = 0.0,
-                     pinch_force: float = 0.014) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                     lift: float = 0.0, pinch_force: float = 0.014,
+                     oblique: float = 0.5) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """(states (N, k), pressures (cells, k)) of the solves about the site's first point;
     for a pair, of pairs: the k-th node about the first pressed with the campaign's force
     while the k-th about the second presses with ``second_force`` of it (never both on one
@@ -264,10 +288,15 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
     campaign's direction (out of the surface along its normal for "normal"), nothing
     pressing (grasp-and-lift's states); a pinch, at the k-th site about the point the
     campaign's tool and eight more at the nearest nodes, each pressing ``pinch_force`` N
-    (``RegionSolves.pinch_tools``)."""
+    (``RegionSolves.pinch_tools``); oblique, the campaign's tool at the k-th site with a
+    tangential force of ``oblique`` of its own on the same point at azimuth 120 k degrees
+    (``RegionSolves.oblique_tool``: three directions about the site)."""
     first = solves.nodes(site.points[0])
     if site.kind == "at":
         solved = [solves.solve(node) for node in first]
+    elif site.kind == "oblique":
+        solved = [solves.solve(node, tools=[solves.oblique_tool(node, 120.0 * k, oblique)])
+                  for k, node in enumerate(first)]  # fmt: skip
     elif site.kind == "pinch":
         pinches = [(node, *solves.pinch(node, pinch_force)) for node in first]
         solved = [solves.solve(node, tools=tools[1:], config=config)
@@ -343,6 +372,24 @@ def hold_patterns(reactions: np.ndarray, tolerance: float = HOLD_PATTERNS) -> np
     return np.ascontiguousarray(U[:, s > tolerance * s[0]])
 
 
+def linear_modes(operators, loads, points, free, count: int) -> np.ndarray:
+    """(N, count): the leading POD modes of the linear responses at rest to a unit force
+    of the tool along x, y and z at each of ``points`` (mm; ``loads`` a ``ToolLoads``),
+    zero outside the ``free`` rows: what an oblique region's basis needs beside its solves
+    (three tangential directions at other nodes do not span a fourth at this one: the
+    bench's oblique press 2.9-4.2 % off without them, 1.7-2.5 % with 20; README, stop 40)."""
+    columns = []
+    for point in points:
+        for push in np.eye(3):
+            g, W = loads.at(point, push)
+            columns.append(g / W)
+    responses = rest_solver(operators, free)(np.array(columns).T)
+    if responses.shape[1] < count:
+        raise InputError(f"{responses.shape[1]} linear responses for {count} linear modes: "
+                         "a larger --radius, or fewer --linear-modes")  # fmt: skip
+    return pod(responses)[:, :count]
+
+
 def press_loads(solves: RegionSolves, loads, sites) -> np.ndarray:
     """(N, L): the loads g / W (per N) of the campaign's tool pressing a unit force along
     the campaign's direction at each of ``sites`` (``RegionSolves`` sites)."""
@@ -388,7 +435,9 @@ def region_model(mesh, rest, Phi, Psi, G, tolerance) -> HyperReducedModel:
 def build_regions(config, mesh, rest, surface, grip: GripNodes, loads, sites,
                   recipe: RegionRecipe):  # fmt: skip
     """The :class:`PhysicsRegion` of each of ``sites`` (:class:`RegionSite`; solves as
-    ``region_snapshots``; a held site's basis also carries the responses with its holder's
+    ``region_snapshots``; an oblique site's basis also carries ``recipe.linear_modes`` of
+    the tool's linear responses at its loadable vertices (``linear_modes``); a held
+    site's basis also carries the responses with its holder's
     patch held, ``held_patch_responses`` on the ``grip`` nodes to its moves and the
     region's presses, and its holder holds their reactions' ``hold_patterns``; a two-point
     site's centre is their midpoint, its radius ``recipe.radius`` beyond each), logged as
@@ -399,8 +448,13 @@ def build_regions(config, mesh, rest, surface, grip: GripNodes, loads, sites,
     for k, site in enumerate(sites):
         t0 = time.perf_counter()
         U, P = region_snapshots(solves, site, recipe.second_force, recipe.lift,
-                                recipe.pinch_force)  # fmt: skip
+                                recipe.pinch_force, recipe.oblique)  # fmt: skip
         extra, hold = None, None
+        if site.kind == "oblique":
+            free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
+            near = region_vertices(surface, site.points[0], recipe.radius)
+            extra = linear_modes(operators, loads, surface["vertices"][near], free,
+                                 recipe.linear_modes)  # fmt: skip
         if site.kind == "held":
             free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
             presses = press_loads(solves, loads, solves.nodes(site.points[0]))
@@ -461,6 +515,12 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
     for site in sites:  # before any solve: each site has loadable surface within the radius
         for point in site.points:
             region_vertices(surface, point, recipe.radius)
+        responses = 3 * len(region_vertices(surface, site.points[0], recipe.radius))
+        if site.kind == "oblique" and responses < recipe.linear_modes:
+            raise InputError(f"an oblique region at {np.round(site.points[0], 4).tolist()} mm "
+                             f"has {responses} linear responses (3 a loadable vertex within "
+                             f"its radius) for {recipe.linear_modes} linear modes: a larger "
+                             "--radius, or fewer --linear-modes")  # fmt: skip
         if site.kind == "held":  # and a holder's site a patch the runtime can hold
             patch = grip.patch(site.points[1], config.load.contact_radius)
             holder_rows(np.zeros((grip.points.size, 1)), grip.points, patch)

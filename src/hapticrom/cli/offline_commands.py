@@ -553,17 +553,19 @@ def cmd_physics(args, petsc) -> int:
     )
 
     sites = [RegionSite(kind, np.array(points, dtype=float).reshape(-1, 3))
-             for kind in ("at", "pinch", "pair", "held")
+             for kind in ("at", "pinch", "oblique", "pair", "held")
              for points in getattr(args, kind) or []]  # fmt: skip
     if not sites:
         raise HapticromError("physics: give a region with --at=X,Y,Z, --pinch=X,Y,Z, "
-                             "--pair=X1,Y1,Z1,X2,Y2,Z2 or --held=X1,Y1,Z1,X2,Y2,Z2")  # fmt: skip
+                             "--oblique=X,Y,Z, --pair=X1,Y1,Z1,X2,Y2,Z2 or "
+                             "--held=X1,Y1,Z1,X2,Y2,Z2")  # fmt: skip
     recipe = RegionRecipe(distances=args.solves, per_distance=args.solves_per_distance,
                           state_modes=args.state_modes, pressure_modes=args.pressure_modes,
                           tolerance=args.tolerance, radius=args.radius,
                           second_force=args.second_force, lift=args.lift,
                           between_nodes=args.between_nodes, pinch_force=args.pinch_force,
-                          check_tolerance=args.check_tolerance)  # fmt: skip
+                          check_tolerance=args.check_tolerance, oblique=args.oblique_force,
+                          linear_modes=args.linear_modes)  # fmt: skip
     if args.lift and not args.held:
         raise HapticromError("physics --lift lifts the holders of --held regions: give --held")
     petsc.start()
@@ -602,12 +604,21 @@ def add_physics(sub) -> None:
         "nodes (thesis §3.4.3), its solves pinches about it; after the --at regions",
     )
     p.add_argument(
+        "--oblique",
+        type=centre_point,
+        action="append",
+        metavar="X,Y,Z",
+        help="a region for presses with a tangential force about this point (mm), its "
+        "solves such presses in three directions, its basis the tool's linear responses "
+        "too; after the --pinch regions",
+    )
+    p.add_argument(
         "--pair",
         type=pair_points,
         action="append",
         metavar="X1,Y1,Z1,X2,Y2,Z2",
         help="a region for two tools at these sites (mm), its solves pairs of "
-        "presses about them; after the --pinch regions",
+        "presses about them; after the --oblique regions",
     )
     p.add_argument(
         "--held",
@@ -633,6 +644,24 @@ def add_physics(sub) -> None:
         0.014,
         "N",
         "each of a --pinch region's nine forces in its solves (default 0.014 N, the thesis')",
+    )
+    number_option(
+        p,
+        "--oblique-force",
+        float_in(0.0, 10.0),
+        0.5,
+        "F",
+        "an --oblique region's tangential force in its solves, of the campaign's (default "
+        "0.5: 27 degrees off the normal)",
+    )
+    number_option(
+        p,
+        "--linear-modes",
+        int_in(1, 1000),
+        20,
+        "N",
+        "an --oblique region's modes of the tool's linear responses at its loadable "
+        "vertices (default 20)",
     )
     number_option(
         p,
