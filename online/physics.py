@@ -60,10 +60,13 @@ STEADY, JUMP, FLOOR = 1e-3, 4.0, 1e-6
 # times its state, then 1.15, then every step was refused. (1.01: a step from rest, or to
 # it, is 1 up to rounding.)
 LEAP, HALVINGS = 1.01, 8
-# Under a steady ramp (the load changed by what it changed the step before, to RAMP of
-# it) a converging step's update changes little from step to step; RAMP_JUMP times the
-# last is the lagging tangent diverging (the demo's pinch in 30 parts: updates of 0.04-0.06
-# of the state, then 0.114, 0.281, 1.40, and every step refused at 43-58 % of the load).
+# Under a steady ramp of the pressing tools (the load changed by what it changed the step
+# before, to RAMP of it) a converging step's update changes little from step to step;
+# RAMP_JUMP times the last is the lagging tangent diverging (the demo's pinch in 30 parts:
+# updates of 0.04-0.06 of the state, then 0.114, 0.281, 1.40, and every step refused at
+# 43-58 % of the load). Its price: a step right after a new tangent takes over can move
+# little and the next much more, and a ramp down to rest grows its updates relative to the
+# shrinking state: a few fresh tangents where nothing diverged (README, stop 47).
 RAMP, RAMP_JUMP = 0.1, 2.0
 
 
@@ -566,11 +569,13 @@ class HyperReducedPhysics:
         np.copyto(pi0, self.pi)
         pressing = self._pressing_load
         change = np.subtract(pressing, self._last_load, out=self._load_change)
-        steady = change.dot(change) <= STEADY**2 * pressing.dot(pressing)  # dot: no norm's cost
-        steady = steady and not self._holders_moved
-        # a steady ramp: the load changed by what it changed the step before
+        held = change.dot(change) <= STEADY**2 * pressing.dot(pressing)  # dot: no norm's cost
+        steady = held and not self._holders_moved
+        # a steady ramp of the pressing tools (a moved holder's load is not theirs): the load
+        # changed by what it changed the step before
         drift = np.subtract(change, self._last_change, out=self._last_change)
-        ramping = not steady and drift.dot(drift) <= RAMP**2 * change.dot(change)
+        ramping = not held and not self._holders_moved
+        ramping = ramping and drift.dot(drift) <= RAMP**2 * change.dot(change)
         np.copyto(self._last_change, change)
         np.copyto(self._last_load, pressing)
         self._holders_moved = False
@@ -592,6 +597,8 @@ class HyperReducedPhysics:
         elif taken and not (update > FLOOR and update > limit * previous):
             np.copyto(self._applied, self.load)
             return True
+        elif taken and moving:
+            self.newton.undo()  # the jumped step's tangent part, at a state dropped
         self.q[:], self.pi[:] = q0, pi0
         self.newton.last_update = previous
         if not self.newton.refresh(self.q, self.pi):
