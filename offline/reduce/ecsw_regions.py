@@ -96,7 +96,8 @@ class RegionRecipe:
             raise InputError(f"the check sample's tolerance must lie in (0, {self.tolerance}) "
                              f"(tighter than the model's), or be 0 for none; got "
                              f"{self.check_tolerance}")  # fmt: skip
-        if not (0 < self.oblique <= 10 and 1 <= self.linear_modes <= 1000):
+        modes = self.linear_modes
+        if not (0 < self.oblique <= 10 and type(modes) is int and 1 <= modes <= 1000):
             raise InputError(f"an oblique region's tangential force must lie in (0, 10] of "
                              f"the campaign's and its linear modes in 1..1000, got "
                              f"{self.oblique}, {self.linear_modes}")  # fmt: skip
@@ -288,14 +289,16 @@ def region_snapshots(solves: RegionSolves, site: RegionSite, second_force: float
     campaign's direction (out of the surface along its normal for "normal"), nothing
     pressing (grasp-and-lift's states); a pinch, at the k-th site about the point the
     campaign's tool and eight more at the nearest nodes, each pressing ``pinch_force`` N
-    (``RegionSolves.pinch_tools``); oblique, the campaign's tool at the k-th site with a
-    tangential force of ``oblique`` of its own on the same point at azimuth 120 k degrees
-    (``RegionSolves.oblique_tool``: three directions about the site)."""
+    (``RegionSolves.pinch_tools``); oblique, the campaign's tool at the k-th site of each
+    ring with a tangential force of ``oblique`` of its own on the same point at azimuth
+    120 k degrees (``RegionSolves.oblique_tool``: three directions about the site)."""
     first = solves.nodes(site.points[0])
     if site.kind == "at":
         solved = [solves.solve(node) for node in first]
     elif site.kind == "oblique":
-        solved = [solves.solve(node, tools=[solves.oblique_tool(node, 120.0 * k, oblique)])
+        rings = solves.per_distance  # three directions in each ring of solves
+        solved = [solves.solve(node, tools=[solves.oblique_tool(node, 120.0 * (k % rings % 3),
+                                                                oblique)])
                   for k, node in enumerate(first)]  # fmt: skip
     elif site.kind == "pinch":
         pinches = [(node, *solves.pinch(node, pinch_force)) for node in first]
@@ -384,10 +387,31 @@ def linear_modes(operators, loads, points, free, count: int) -> np.ndarray:
             g, W = loads.at(point, push)
             columns.append(g / W)
     responses = rest_solver(operators, free)(np.array(columns).T)
-    if responses.shape[1] < count:
-        raise InputError(f"{responses.shape[1]} linear responses for {count} linear modes: "
+    modes = pod(responses)[:, :count]
+    if modes.shape[1] < count:
+        raise InputError(f"{modes.shape[1]} linear responses for {count} linear modes: "
                          "a larger --radius, or fewer --linear-modes")  # fmt: skip
-    return pod(responses)[:, :count]
+    return modes
+
+
+MAX_LINEAR_VERTICES = 400  # an oblique region's linear responses are dense: N x 3 each
+
+
+def oblique_site(surface, point, recipe: RegionRecipe) -> None:
+    """Refuse, before any solve, an oblique region whose solves cannot hold three
+    directions in each ring (``--solves-per-distance`` under 3) or whose loadable vertices
+    within its radius give fewer linear responses than ``recipe.linear_modes`` or more
+    than the memory of ``MAX_LINEAR_VERTICES``' (dense columns of the organ's size)."""
+    where = f"an oblique region at {np.round(point, 4).tolist()} mm"
+    if recipe.per_distance < 3:
+        raise InputError(f"{where} needs 3 solves a distance or more (its three tangential "
+                         f"directions), got {recipe.per_distance}")  # fmt: skip
+    count = len(region_vertices(surface, point, recipe.radius))
+    if 3 * count < recipe.linear_modes or count > MAX_LINEAR_VERTICES:
+        raise InputError(f"{where} has {count} loadable vertices within its radius: "
+                         f"{3 * count} linear responses for {recipe.linear_modes} linear modes, "
+                         f"at most {MAX_LINEAR_VERTICES} vertices (a radius that fits, or "
+                         "fewer --linear-modes)")  # fmt: skip
 
 
 def press_loads(solves: RegionSolves, loads, sites) -> np.ndarray:
@@ -515,12 +539,8 @@ def physics_from_campaign(model_path, store, sites, recipe: RegionRecipe, out) -
     for site in sites:  # before any solve: each site has loadable surface within the radius
         for point in site.points:
             region_vertices(surface, point, recipe.radius)
-        responses = 3 * len(region_vertices(surface, site.points[0], recipe.radius))
-        if site.kind == "oblique" and responses < recipe.linear_modes:
-            raise InputError(f"an oblique region at {np.round(site.points[0], 4).tolist()} mm "
-                             f"has {responses} linear responses (3 a loadable vertex within "
-                             f"its radius) for {recipe.linear_modes} linear modes: a larger "
-                             "--radius, or fewer --linear-modes")  # fmt: skip
+        if site.kind == "oblique":
+            oblique_site(surface, site.points[0], recipe)
         if site.kind == "held":  # and a holder's site a patch the runtime can hold
             patch = grip.patch(site.points[1], config.load.contact_radius)
             holder_rows(np.zeros((grip.points.size, 1)), grip.points, patch)

@@ -30,7 +30,8 @@ HELP = {
     "train": "campaign + reduce in one go [offline]",
     "anm": "POD-ANM of one problem against full Newton: curves, tables [offline]",
     "accuracy": "the reduced model against full-order solves at held-out positions [offline]",
-    "physics": "hyper-reduced physics of regions of a model (two tools, holders) [offline]",
+    "physics": "hyper-reduced physics of regions of a model (two tools, holders, pinches, "
+    "oblique presses) [offline]",
 }
 
 
@@ -564,10 +565,13 @@ def cmd_physics(args, petsc) -> int:
                           tolerance=args.tolerance, radius=args.radius,
                           second_force=args.second_force, lift=args.lift,
                           between_nodes=args.between_nodes, pinch_force=args.pinch_force,
-                          check_tolerance=args.check_tolerance, oblique=args.oblique_force,
+                          check_tolerance=args.check_tolerance,
+                          oblique=0.5 if args.oblique_force is None else args.oblique_force,
                           linear_modes=args.linear_modes)  # fmt: skip
     if args.lift and not args.held:
         raise HapticromError("physics --lift lifts the holders of --held regions: give --held")
+    if args.oblique_force is not None and not args.oblique:
+        raise HapticromError("physics --oblique-force is an --oblique region's: give --oblique")
     petsc.start()
     regions = physics_from_campaign(args.model, store, sites, recipe, out)
     log.info(f"wrote {out}: {len(regions)} region(s) of hyper-reduced physics")
@@ -578,8 +582,8 @@ def add_physics(sub) -> None:
     """``hapticrom physics MODEL CAMPAIGN_DIR --at X,Y,Z --out FILE``."""
     p = new_command(sub, "physics", cmd_physics, HELP["physics"], description=(
         "Build regions of hyper-reduced physics (issue 18: the reduced mixed model solved "
-        "online on the few elements ECSW samples: one press, a pinch, two tools at once, or "
-        "a press beside a holder) "
+        "online on the few elements ECSW samples: one press, a pinch, an oblique press, two "
+        "tools at once, or a press beside a holder) "
         "about points of a model's trained surface, and write them with the model to a "
         "new file (artifact group hyperreduced). Each region takes full-order solves of "
         "the campaign's load path about its centre (on the demo cornea 2 minutes a "
@@ -649,10 +653,10 @@ def add_physics(sub) -> None:
         p,
         "--oblique-force",
         float_in(0.0, 10.0),
-        0.5,
+        None,
         "F",
         "an --oblique region's tangential force in its solves, of the campaign's (default "
-        "0.5: 27 degrees off the normal)",
+        "0.5: 27 degrees off a campaign's normal press)",
     )
     number_option(
         p,
