@@ -296,18 +296,18 @@ def lifted(physics, lift, ramp=40, hold=60):
     return physics
 
 
-def trainers_lift(models, Phi, physics) -> np.ndarray:
-    """The trainer's Galerkin model with ``physics``' holder penalty k A^T A and its load
-    k A^T t solved (Newton, 1e-10): the state the runtime must settle on."""
+def trainers_hold(model, physics) -> np.ndarray:
+    """``model`` (a trainer's) with ``physics``' holder penalty k A^T A and its load k A^T
+    t solved (Newton, 1e-10): the state the runtime must settle on."""
     A, t = physics.holders[0], physics.holder_targets[0]
-    trainers, n = models["galerkin"], Phi.shape[1]
-    constant = trainers.linear.copy()
+    n = A.shape[1]
+    constant = model.linear.copy()
     try:
-        trainers.linear[:n, :n] += physics.hold_stiffness * (A.T @ A)
+        model.linear[:n, :n] += physics.hold_stiffness * (A.T @ A)
         pull = physics.hold_stiffness * (A.T @ t)
-        return trainers.solve(pull, np.linspace(0.1, 1.0, 10), tolerance=1e-10)[0][-1]
+        return model.solve(pull, np.linspace(0.1, 1.0, 10), tolerance=1e-10)[0][-1]
     finally:
-        trainers.linear[:] = constant
+        model.linear[:] = constant
 
 
 def outward(vertices, grip, length) -> np.ndarray:
@@ -335,7 +335,7 @@ def test_a_moved_holder_lifts_its_patch_as_the_trainers_model(trained):
         physics.move_holder(1, lift)
     after = [physics.load, physics.holder_targets[0], physics.holder_loads]
     assert all(np.array_equal(a, b) for a, b in zip(before, after, strict=True))
-    expected = trainers_lift(models, Phi, physics)
+    expected = trainers_hold(models["galerkin"], physics)
     assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
     u = np.zeros_like(vertices)
     physics.surface_displacement(u)
@@ -379,7 +379,7 @@ def test_a_wide_holder_lifts_its_patch_as_the_trainers_model(trained, tmp_path):
         lift = outward(vertices, grip, 0.05)
         physics = lifted(model.physics(holders=[grip], slices=1), lift)
         assert physics.holder_nodes[0] >= 3 and physics.holders[0].shape[0] == rows
-        expected = trainers_lift(models, Phi, physics)
+        expected = trainers_hold(models["galerkin"], physics)
         assert np.linalg.norm(physics.q - expected) <= 1e-8 * np.linalg.norm(expected)
         u = np.zeros_like(vertices)
         physics.surface_displacement(u)
@@ -480,20 +480,6 @@ def test_held_patch_responses_are_the_linear_full_orders_hold(held):
                              free, held["loads"])  # fmt: skip
     unit = R / np.linalg.norm(R, axis=0)
     assert np.linalg.norm(unit - L @ (L.T @ unit)) <= HOLD_PATTERNS * np.linalg.norm(unit, 2) * 3
-
-
-def trainers_hold(model, physics) -> np.ndarray:
-    """``model`` (a trainer's) with ``physics``' holder penalty k A^T A and its load k A^T
-    t solved (Newton, 1e-10): the state the runtime must settle on."""
-    A, t = physics.holders[0], physics.holder_targets[0]
-    n = A.shape[1]
-    constant = model.linear.copy()
-    try:
-        model.linear[:n, :n] += physics.hold_stiffness * (A.T @ A)
-        pull = physics.hold_stiffness * (A.T @ t)
-        return model.solve(pull, np.linspace(0.1, 1.0, 10), tolerance=1e-10)[0][-1]
-    finally:
-        model.linear[:] = constant
 
 
 def test_a_held_regions_holder_holds_its_patch_in_its_patterns(held):
