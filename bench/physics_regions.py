@@ -225,7 +225,7 @@ def pinch_case(store, point, args) -> tuple:
 def oblique_case(store, point, args) -> tuple:
     """([(point, force)]: the campaign's tool at ``point`` and the ``--oblique`` tangential
     force at 45 degrees, as one tool, the full order's datasets under both, their load
-    vector)."""
+    vector, the unit directions of the press and of the tangential force)."""
     from hapticrom.offline.reduce.ecsw_regions import RegionSolves
     from hapticrom.offline.reduce.inputs import campaign_config
 
@@ -237,7 +237,18 @@ def oblique_case(store, point, args) -> tuple:
     print(f"  the full order pressed obliquely at {np.round(press[0], 3).tolist()} mm "
           f"({time.perf_counter() - t:.0f} s)", flush=True)  # fmt: skip
     force = np.asarray(press[1]) + np.asarray(tangential[1])
-    return [(press[0], tuple(force))], data, data["load_vector"]
+    directions = [np.asarray(f) / np.linalg.norm(f) for f in (press[1], tangential[1])]
+    return [(press[0], tuple(force))], data, data["load_vector"], directions
+
+
+def node_components(vertices, point, u, full, directions) -> dict:
+    """The errors of the surface vertex nearest ``point``'s displacement ``u`` against the
+    full order's along each of ``directions`` (the press's, the tangential force's), each
+    of the full order's component there: the oblique press's normal and tangential parts
+    apart (its depth weighs them together)."""
+    k = int(np.argmin(np.linalg.norm(vertices - point, axis=1)))
+    errors = [float((u[k] - full[k]) @ d / (full[k] @ d)) for d in directions]
+    return {"normal_error": errors[0], "tangential_error": errors[1]}
 
 
 def lifted(store, model, region, i, holder, args) -> dict:
@@ -346,6 +357,10 @@ def main() -> None:
                "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
                **timing(ms), "refreshes": physics.refreshes,
                "error_estimate": physics.error_estimate()}  # fmt: skip
+        if args.oblique:  # the pressed vertex's move along the press and the tangential force
+            row.update(node_components(physics.vertices, point, u, field, case[3]))
+            print(f"  at the pressed vertex: along the press {row['normal_error']:+.2%}, "
+                  f"along the tangential force {row['tangential_error']:+.2%}")  # fmt: skip
         if args.estimate_cost:
             row["estimate_cost"] = estimate_cost(model, region, holders, tools, factors, args)
         print(f"position {i:3d}: {row['elements']} elements, {row['modes']} + "
