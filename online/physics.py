@@ -166,8 +166,8 @@ def pattern_rows(basis, patch, patterns) -> tuple[np.ndarray, np.ndarray]:
     n = basis.shape[1]
     scale = 1.0 / np.sqrt(len(patch))
     A = basis.reshape(-1, 3, n)[patch].reshape(-1, n)
-    rows = scale * (patterns.T @ A)
-    return rows, np.ascontiguousarray(scale * (patterns.T @ np.tile(np.eye(3), (len(patch), 1))))
+    moved = patterns.reshape(len(patch), 3, -1).sum(axis=0).T  # L^T (d at each node) / d
+    return scale * (patterns.T @ A), np.ascontiguousarray(scale * moved)
 
 
 def stored_hold(h, region: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -416,7 +416,7 @@ class HyperReducedPhysics:
         the patch the region was built to hold, else ``holder_rows``."""
         stored = self.stored_hold
         if stored is not None and np.array_equal(np.sort(patch), np.sort(stored[0])):
-            return pattern_rows(self.grip_basis, *self.stored_hold)
+            return pattern_rows(self.grip_basis, *stored)
         rows = holder_rows(self.grip_basis, self.grip_points, patch, self.holds_flat)
         return rows, holder_map(len(patch), len(rows))
 

@@ -252,10 +252,17 @@ def edge_midpoints(surface) -> tuple[np.ndarray, np.ndarray]:
             np.vstack([surface.normals, normals]))  # fmt: skip
 
 
+def unit_svd(columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(left singular vectors, singular values) of the columns, each scaled to unit norm
+    first (zero columns left out)."""
+    norms = np.linalg.norm(columns, axis=0)
+    U, s, _ = np.linalg.svd(columns[:, norms > 0] / norms[norms > 0], full_matrices=False)
+    return U, s
+
+
 def pod(columns: np.ndarray) -> np.ndarray:
     """Left singular vectors of the columns, each scaled to unit norm first."""
-    norms = np.linalg.norm(columns, axis=0)
-    return np.linalg.svd(columns[:, norms > 0] / norms[norms > 0], full_matrices=False)[0]
+    return unit_svd(columns)[0]
 
 
 @dataclass(frozen=True)
@@ -370,8 +377,7 @@ def hold_patterns(reactions: np.ndarray, tolerance: float = HOLD_PATTERNS) -> np
     column scaled to unit norm first, down to ``tolerance`` of the largest singular value:
     the force patterns a held region's holder keeps its patch still in (the rows it
     holds, ``online/physics.py``)."""
-    norms = np.linalg.norm(reactions, axis=0)
-    U, s, _ = np.linalg.svd(reactions[:, norms > 0] / norms[norms > 0], full_matrices=False)
+    U, s = unit_svd(reactions)
     return np.ascontiguousarray(U[:, s > tolerance * s[0]])
 
 
@@ -381,12 +387,8 @@ def linear_modes(operators, loads, points, free, count: int) -> np.ndarray:
     zero outside the ``free`` rows: what an oblique region's basis needs beside its solves
     (three tangential directions at other nodes do not span a fourth at this one: the
     bench's oblique press 2.9-4.2 % off without them, 1.7-2.5 % with 20; README, stop 40)."""
-    columns = []
-    for point in points:
-        for push in np.eye(3):
-            g, W = loads.at(point, push)
-            columns.append(g / W)
-    responses = rest_solver(operators, free)(np.array(columns).T)
+    unit = unit_loads(loads, [(point, push) for point in points for push in np.eye(3)])
+    responses = rest_solver(operators, free)(unit)
     modes = pod(responses)[:, :count]
     if modes.shape[1] < count:
         raise InputError(f"{modes.shape[1]} linear responses for {count} linear modes: "
@@ -414,15 +416,22 @@ def oblique_site(surface, point, recipe: RegionRecipe) -> None:
                          "fewer --linear-modes)")  # fmt: skip
 
 
-def press_loads(solves: RegionSolves, loads, sites) -> np.ndarray:
-    """(N, L): the loads g / W (per N) of the campaign's tool pressing a unit force along
-    the campaign's direction at each of ``sites`` (``RegionSolves`` sites)."""
+def unit_loads(loads, pushes) -> np.ndarray:
+    """(N, L): the loads g / W (per N) of the campaign's tool (``loads`` a ``ToolLoads``)
+    centred at each point of ``pushes`` ((point mm, unit direction) pairs)."""
     columns = []
-    for site in sites:
-        position = solves.position(site)
-        g, W = loads.at(position.point, solves.config.load.unit_direction(position))
+    for point, push in pushes:
+        g, W = loads.at(point, push)
         columns.append(g / W)
     return np.array(columns).T
+
+
+def press_loads(solves: RegionSolves, loads, sites) -> np.ndarray:
+    """(N, L): ``unit_loads`` of the campaign's tool pressing along the campaign's
+    direction at each of ``sites`` (``RegionSolves`` sites)."""
+    positions = [solves.position(site) for site in sites]
+    return unit_loads(loads, [(p.point, solves.config.load.unit_direction(p))
+                              for p in positions])  # fmt: skip
 
 
 def region_bases(operators, U, P, recipe: RegionRecipe,
