@@ -567,7 +567,8 @@ def cmd_physics(args, petsc) -> int:
                           between_nodes=args.between_nodes, pinch_force=args.pinch_force,
                           check_tolerance=args.check_tolerance,
                           oblique=0.5 if args.oblique_force is None else args.oblique_force,
-                          linear_modes=args.linear_modes)  # fmt: skip
+                          linear_modes=args.linear_modes,
+                          extra_pressure_modes=args.extra_pressure_modes)  # fmt: skip
     if args.lift and not args.held:
         raise HapticromError("physics --lift lifts the holders of --held regions: give --held")
     if args.oblique_force is not None and not args.oblique:
@@ -662,10 +663,10 @@ def add_physics(sub) -> None:
         p,
         "--linear-modes",
         int_in(1, 1000),
-        20,
+        60,
         "N",
         "an --oblique region's modes of the tool's linear responses at its loadable "
-        "vertices (default 20)",
+        "vertices (default 60)",
     )
     number_option(
         p,
@@ -734,6 +735,15 @@ def add_physics(sub) -> None:
         20,
         "N",
         "pressure modes (default 20; each adds a supremizer mode)",
+    )
+    number_option(
+        p,
+        "--extra-pressure-modes",
+        int_in(0, 1000),
+        10,
+        "N",
+        "pressure modes added for --held and --oblique regions, whose bases carry extra "
+        "displacement modes (default 10)",
     )
 
 
