@@ -117,6 +117,7 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
     data = solves.solve(holder, tools=[solves.tool(first, 1.0)], config=solves.held)
     grip = solves.surface.nodes[holder]
     physics = model.physics(slices=1, holders=[grip])
+    assert physics.pi.size == 6 + 10  # --pressure-modes 6 and the held region's 10 extra
     tool = solves.tool(first, 1.0)
     u, full = pressed_surface(physics, [tool], data, model)
     error = np.linalg.norm(u - full) / np.linalg.norm(full)
@@ -163,9 +164,13 @@ def test_a_held_region_reproduces_a_held_solve_it_was_built_from(
         (["--held=0,0,0,0,0,0"], "the two sites must differ"),
         (["--pinch=0,0,0", "--pinch-force", "0"], "--pinch-force"),
         (["--oblique=0,0,0", "--oblique-force", "0"], "--oblique-force"),
-        (["--oblique=0,0,0", "--linear-modes", "0"], "--linear-modes"),
+        (["--oblique=0,0,0", "--linear-modes", "0"], "--linear-modes: must lie in [1, 1,000]"),
         (["--oblique=0,0,0", "--linear-modes", "900"], "for 900 linear modes"),
-        (["--oblique=0,0,0", "--extra-pressure-modes", "-1"], "--extra-pressure-modes"),
+        (
+            ["--oblique=0,0,0", "--extra-pressure-modes", "-1"],
+            "--extra-pressure-modes: must lie in [0, 1,000]",
+        ),
+        (["--oblique=0,0,0"], "15 linear responses for 60 linear modes (default 60)"),
         (["--oblique=0,0,0", "--solves-per-distance", "2"], "needs 3 solves a distance"),
         (["--at=0,0,0", "--oblique-force", "0.3"], "give --oblique"),
         (["--at", "0,0,0", "--lift", "0.1"], "give --held"),
@@ -317,7 +322,7 @@ def test_an_oblique_region_presses_at_a_direction_it_was_not_built_from(
         u, full = pressed_surface(physics, [(press[0], force)], data, model)
         errors[name] = np.linalg.norm(u - full) / np.linalg.norm(full)
         if path == out:  # 12 state modes, 6 linear and a supremizer a pressure mode: 12
-            # and 10 extra asked, of the 18 pressures of 12 states and 6 linear modes
+            # and up to 10 extra asked, of the 18 pressures of 12 states and 6 linear modes
             assert physics.pi.size == 18 and physics.q.size == 12 + 6 + 18
     assert errors["own"] <= 1e-2 and errors["held-out"] <= 5e-2
     assert errors["held-out"] <= 0.5 * errors["presses"]

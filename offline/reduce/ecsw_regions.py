@@ -76,9 +76,10 @@ class RegionRecipe:
     pinch_force: float = 0.014  # N: each of a pinch region's nine forces (thesis §3.4.3)
     oblique: float = 0.5  # an oblique region's tangential force in its solves, of the campaign's
     linear_modes: int = 60  # an oblique region's modes of the tool's linear responses
-    # pressure modes added where the basis carries extra displacement modes (a held region's
-    # responses, an oblique region's linear modes): their condensed pressures compete with
-    # the solves' for the pressure POD (README, stop 48: 3.1 -> 2.1 % Galerkin, held)
+    # up to this many pressure modes more where the basis carries extra displacement modes (a
+    # held region's responses, an oblique region's linear modes): their condensed pressures
+    # compete with the solves' for the pressure POD (README, stop 48: the held press at
+    # position 30 3.14 -> 2.10 % with every element, 3.33 -> 2.57 % through the product)
     extra_pressure_modes: int = 10
     between_nodes: bool = False  # solves also at the loadable edges' midpoints (a coarse mesh)
     # the error indicator's check sample: ECSW's tolerance, tighter than the model's (None: a
@@ -418,11 +419,15 @@ def oblique_site(surface, point, recipe: RegionRecipe) -> None:
         raise InputError(f"{where} needs 3 solves a distance or more (its three tangential "
                          f"directions), got {recipe.per_distance}")  # fmt: skip
     count = len(region_vertices(surface, point, recipe.radius))
-    if 3 * count < recipe.linear_modes or count > MAX_LINEAR_VERTICES:
-        raise InputError(f"{where} has {count} loadable vertices within its radius: "
-                         f"{3 * count} linear responses for {recipe.linear_modes} linear modes, "
-                         f"at most {MAX_LINEAR_VERTICES} vertices (a radius that fits, or "
-                         "fewer --linear-modes)")  # fmt: skip
+    if 3 * count < recipe.linear_modes:
+        raise InputError(f"{where} has {count} loadable vertices within its radius "
+                         f"({recipe.radius:g} mm): {3 * count} linear responses for "
+                         f"{recipe.linear_modes} linear modes (default 60); a larger --radius "
+                         f"or --linear-modes {3 * count} or fewer")  # fmt: skip
+    if count > MAX_LINEAR_VERTICES:
+        raise InputError(f"{where} has {count} loadable vertices within its radius "
+                         f"({recipe.radius:g} mm), more than {MAX_LINEAR_VERTICES} (its linear "
+                         "responses are dense): a smaller --radius")  # fmt: skip
 
 
 def unit_loads(loads, pushes) -> np.ndarray:
@@ -448,8 +453,9 @@ def region_bases(operators, U, P, recipe: RegionRecipe,
     """(Phi, Psi): ``state_modes`` of the states, the ``extra`` displacement modes kept
     whole (a holder's responses, an oblique region's linear modes) and the supremizers of
     the pressure modes, orthonormalised; the pressure modes: ``pressure_modes`` of the
-    pressures, ``extra_pressure_modes`` more with extra modes (their condensed pressures
-    among the pressures)."""
+    pressures, with extra modes up to ``extra_pressure_modes`` more (their condensed
+    pressures among the pressures; as many as those columns give, logged if fewer: the
+    extra modes' count is known only after the solves)."""
     free = np.flatnonzero(np.abs(U).max(axis=1) > 0)
     if U.shape[1] < recipe.state_modes or P.shape[1] < recipe.pressure_modes:
         raise InputError(f"{U.shape[1]} states for {recipe.state_modes} state and "
@@ -460,6 +466,10 @@ def region_bases(operators, U, P, recipe: RegionRecipe,
         P = np.hstack([P, operators.Bt.T @ extra / operators.compliance[:, None]])
         pressures += recipe.extra_pressure_modes
     Psi = pod(P)[:, :pressures]
+    if Psi.shape[1] < pressures:
+        log.warning("%d pressure modes of %d asked (%d + %d extra): the states and extra modes "
+                    "give no more", Psi.shape[1], pressures, recipe.pressure_modes,
+                    recipe.extra_pressure_modes)  # fmt: skip
     parts.append(supremizers(operators, Psi, free))
     return np.linalg.qr(np.hstack(parts))[0], Psi
 

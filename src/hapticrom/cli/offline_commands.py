@@ -742,8 +742,8 @@ def add_physics(sub) -> None:
         int_in(0, 1000),
         10,
         "N",
-        "pressure modes added for --held and --oblique regions, whose bases carry extra "
-        "displacement modes (default 10)",
+        "up to this many pressure modes more for --held and --oblique regions, whose bases "
+        "carry extra displacement modes (default 10)",
     )
 
 
