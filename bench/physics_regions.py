@@ -357,6 +357,13 @@ def main() -> None:
                "field_error": float(np.linalg.norm(u - field) / np.linalg.norm(field)),
                **timing(ms), "refreshes": physics.refreshes,
                "error_estimate": physics.error_estimate()}  # fmt: skip
+        if args.held:  # the holder's force on the tissue against the full order's reaction
+            pull, reaction = physics.holder_force(0), np.asarray(data["force"][-1])
+            row["holder_force_error"] = float(np.linalg.norm(pull - reaction)
+                                              / np.linalg.norm(reaction))  # fmt: skip
+            print(f"  the holder's force {np.round(pull, 5).tolist()} N against the full "
+                  f"order's {np.round(reaction, 5).tolist()} "
+                  f"({row['holder_force_error']:.2%})")  # fmt: skip
         if args.oblique:  # the pressed vertex's move along the press and the tangential force
             row.update(node_components(physics.vertices, point, u, field, case[3]))
             print(f"  at the pressed vertex: along the press {row['normal_error']:+.2%}, "
