@@ -251,6 +251,13 @@ def node_components(vertices, point, u, full, directions) -> dict:
     return {"normal_error": errors[0], "tangential_error": errors[1]}
 
 
+def holder_force_error(physics, data) -> tuple[np.ndarray, np.ndarray, float]:
+    """(the physics' first holder's force on the tissue (N), the full order's holder's
+    reaction at the end of ``data``'s path, their relative difference)."""
+    pull, reaction = physics.holder_force(0), np.asarray(data["force"][-1])
+    return pull, reaction, float(np.linalg.norm(pull - reaction) / np.linalg.norm(reaction))
+
+
 def lifted(store, model, region, i, holder, args) -> dict:
     """Grasp-and-lift at ``region``: the holder at ``holder`` (mm) moved ``--lift`` mm
     against the campaign's direction over ``--frames`` steps, then held as long, against
@@ -275,11 +282,11 @@ def lifted(store, model, region, i, holder, args) -> dict:
     physics.surface_displacement(u)
     full = data["displacement"][-1].reshape(-1, 3)[model.artifact["surface"]["nodes"]]
     lagging = (physics.surface_basis @ ramp_end).reshape(-1, 3)
-    pull, reaction = physics.holder_force(0), np.asarray(data["force"][-1])  # on the tissue
+    pull, reaction, force_error = holder_force_error(physics, data)
     row = {"position": i, "lift_mm": args.lift, "elements": len(physics.newton.sample[0]),
            "field_error": float(np.linalg.norm(u - full) / np.linalg.norm(full)),
            "ramp_end_field_error": float(np.linalg.norm(lagging - full) / np.linalg.norm(full)),
-           "force_error": float(np.linalg.norm(pull - reaction) / np.linalg.norm(reaction)),
+           "force_error": force_error,
            "holder_force": pull.tolist(), "full_force": reaction.tolist(), **timing(ms),
            "refreshes": physics.refreshes, "error_estimate": physics.error_estimate()}  # fmt: skip
     print(f"position {i:3d}, lifted {args.lift} mm: field {100 * row['field_error']:.2f} % "
@@ -358,9 +365,7 @@ def main() -> None:
                **timing(ms), "refreshes": physics.refreshes,
                "error_estimate": physics.error_estimate()}  # fmt: skip
         if args.held:  # the holder's force on the tissue against the full order's reaction
-            pull, reaction = physics.holder_force(0), np.asarray(data["force"][-1])
-            row["holder_force_error"] = float(np.linalg.norm(pull - reaction)
-                                              / np.linalg.norm(reaction))  # fmt: skip
+            pull, reaction, row["holder_force_error"] = holder_force_error(physics, data)
             print(f"  the holder's force {np.round(pull, 5).tolist()} N against the full "
                   f"order's {np.round(reaction, 5).tolist()} "
                   f"({row['holder_force_error']:.2%})")  # fmt: skip

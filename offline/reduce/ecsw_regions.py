@@ -422,8 +422,9 @@ def oblique_site(surface, point, recipe: RegionRecipe) -> None:
     if 3 * count < recipe.linear_modes:
         raise InputError(f"{where} has {count} loadable vertices within its radius "
                          f"({recipe.radius:g} mm): {3 * count} linear responses for "
-                         f"{recipe.linear_modes} linear modes (default 60); a larger --radius "
-                         f"or --linear-modes {3 * count} or fewer")  # fmt: skip
+                         f"{recipe.linear_modes} linear modes (default "
+                         f"{RegionRecipe.linear_modes}); a larger --radius or --linear-modes "
+                         f"{3 * count} or fewer")  # fmt: skip
     if count > MAX_LINEAR_VERTICES:
         raise InputError(f"{where} has {count} loadable vertices within its radius "
                          f"({recipe.radius:g} mm), more than {MAX_LINEAR_VERTICES} (its linear "
