@@ -45,11 +45,13 @@ from hapticrom.online.hyperreduced import (
     _SAMPLE,
     _SUMS,
     Scratch,
+    _check_nodes,
     _check_sample,
     _check_tangent_outputs,
-    _residual_sum,
+    _residual_nodes,
     _tangent_sum,
     sampled_residual_tangent,
+    shared_nodes,
 )
 from hapticrom.shared.errors import InputError
 
@@ -127,22 +129,24 @@ def _next_tangent(linear, counters, lu, pivots, building, K):
 
 
 _I8_1D, _I8_2D = "int64[::1]", "int64[:, ::1]"
-_STEP = (f"float64({_SAMPLE}, {_RO.format(2)}, Array(int64, 1, 'C', readonly=True), "
+_STEP = (f"float64({_SAMPLE}, {_RO.format(3)}, Array(int64, 2, 'C', readonly=True), "
+         f"{_RO.format(2)}, Array(int64, 1, 'C', readonly=True), "
          f"int64, {_RO.format(1)}, {_F8_1D}, {_F8_1D}, {_I8_1D}, {_F8_2D}, {_I8_2D}, {_F8_2D}, "
-         f"{_F8_1D}, {_F8_1D}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_2D}, {_F8_1D}, {_F8_1D}, "
-         f"{_F8_2D})")  # fmt: skip
+         f"{_F8_1D}, {_F8_1D}, {_F8_2D}, {_F8_2D}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_2D}, "
+         f"{_F8_1D}, {_F8_1D}, {_F8_2D})")  # fmt: skip
 
 
 @njit(_STEP, cache=True, nogil=True, fastmath=_SUMS)
-def haptic_step(dN, dV, Phi, Psi, params, weights, linear, bounds, iterations, load, q, pi,
-                counters, lu, pivots, building, x, r, K, u, r_u, K_uu, K_up, scalars,
-                T):  # fmt: skip
+def haptic_step(dN, dV, Phi, Psi, params, weights, node_rows, slots, linear, bounds,
+                iterations, load, q, pi, counters, lu, pivots, building, x, r, K, node_u,
+                node_forces, u, r_u, K_uu, K_up, scalars, T):  # fmt: skip
     """One step under ``load`` (n,) from (q, pi), updated in place (the module's steps and
     buffers); returns the last iteration's |delta q| / |q|, or REFUSED (nothing changed).
     Shapes are checked (ValueError) before anything is written."""
     S, m, n = Phi.shape
     n_p = Psi.shape[1]
     _check_sample(dN, dV, Phi, Psi, params, weights, q, pi)
+    _check_nodes(node_rows, slots, node_u, node_forces, S, m, n)
     _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, T)
     _check_step(linear, bounds, load, counters, lu, pivots, building, x, n, S)
     if iterations < 1:
@@ -151,7 +155,8 @@ def haptic_step(dN, dV, Phi, Psi, params, weights, linear, bounds, iterations, l
     x[n:] = pi
     update = 0.0
     for _ in range(iterations):
-        _residual_sum(dN, dV, Phi, Psi, params, weights, 0, S, x[:n], x[n:], r, u, r_u, scalars)
+        _residual_nodes(dN, dV, node_rows, slots, Psi, params, weights, x[:n], x[n:], r, node_u,
+                        node_forces, u, r_u, scalars)  # fmt: skip
         _negative_residual(linear, x, load, r)
         _lu_solve(lu, pivots[0], r)
         for i in range(n + n_p):
@@ -219,6 +224,10 @@ class HapticNewton:
         self.pivots = np.zeros((2, size), np.int64)
         self.x, self.r, self.K = np.empty(size), np.empty(size), np.empty((size, size))
         self.scratch = Scratch(m // 3, n)
+        # the sample's distinct nodes (the residual's) and their displacements and forces
+        node_rows, slots = shared_nodes(self.sample[2])
+        self.nodes = (_readonly(node_rows), _readonly(slots, np.int64))
+        self.node_u, self.node_forces = np.empty((len(node_rows), 3)), np.empty((len(node_rows), 3))
         sampled_residual_tangent(*self.sample, np.zeros(n), np.zeros(size - n), self.r,
                                  self.K, *self.scratch.buffers())  # fmt: skip
         np.add(self.K, self.linear, out=self.lu)
@@ -283,9 +292,10 @@ class HapticNewton:
     def step(self, q, pi, load) -> bool:
         """One step under ``load`` (n,) from (q, pi) (float64, contiguous), updated in place;
         False if it was refused (then nothing changed)."""
-        update = haptic_step(*self.sample, self.linear, self.bounds, self.iterations, load, q,
-                             pi, self.counters, self.lu, self.pivots, self.building, self.x,
-                             self.r, self.K, *self.scratch.buffers())  # fmt: skip
+        update = haptic_step(*self.sample, *self.nodes, self.linear, self.bounds,
+                             self.iterations, load, q, pi, self.counters, self.lu, self.pivots,
+                             self.building, self.x, self.r, self.K, self.node_u,
+                             self.node_forces, *self.scratch.buffers())  # fmt: skip
         if update == REFUSED:
             return False
         self.last_update = update

@@ -36,8 +36,11 @@ the sums over modes and an element's sums over its points and nodes (the element
 ``_integrate_mapped``, inlined) vectorise; results differ from sequential sums by
 rounding. No flag assumes finite numbers: a NaN still reaches the output. The material
 laws are compiled apart without these flags (material_kernels), whatever numba's cache
-holds. Measured on 325 HGO hexahedra at 50 + 20 modes (/proc/cpuinfo: an Intel Xeon):
-the residual 1.9 -> 1.5 us an element with the element kernel inlined under these flags.
+holds, except hgo's at every point of an element at once (``_hgo_points``, the residual's:
+inlined so that it vectorises). Measured on 325 HGO hexahedra at 50 + 20 modes
+(/proc/cpuinfo: an Intel Xeon): the residual 1.9 -> 1.5 us an element with the element
+kernel inlined under these flags; on the demo's held region (414 hexahedra, 72 + 30
+modes; an AMD EPYC) 2.1 -> 1.6 us with hgo's points in vector lanes (stop 49).
 """
 
 from __future__ import annotations
@@ -73,6 +76,29 @@ class Scratch:
         return self.u, self.r_u, self.K_uu, self.K_up, self.scalars, self.T
 
 
+def shared_nodes(Phi) -> tuple[np.ndarray, np.ndarray]:
+    """The sample's distinct node rows and where each element's nodes are among them:
+    (node_rows (N, 3, n), slots (S, nodes) int64), node_rows[slots[s, a]] equal to
+    Phi[s, 3a : 3a + 3] for every element s and node a. Sampled elements share nodes (the
+    demo's held region: 3,312 element nodes, 1,076 distinct), and :func:`_residual_nodes`
+    computes each node's displacement and projects its force once. Rows equal in value are
+    one node whether or not they are one mesh node: the sums are the same."""
+    Phi = np.ascontiguousarray(Phi, dtype=np.float64)
+    S, m, n = Phi.shape
+    distinct, slots = np.unique(Phi.reshape(S * (m // 3), 3 * n), axis=0, return_inverse=True)
+    return (np.ascontiguousarray(distinct.reshape(-1, 3, n)),
+            np.ascontiguousarray(slots.reshape(S, m // 3), dtype=np.int64))  # fmt: skip
+
+
+@njit(inline="always")
+def _element_pressure(Psi, s, pi):
+    """p = Psi[s] . pi."""
+    p = 0.0
+    for j in range(pi.shape[0]):
+        p += Psi[s, j] * pi[j]
+    return p
+
+
 @njit(inline="always")
 def _element_state(Phi, Psi, s, q, pi, u):
     """u = Phi[s] q as (nodes, 3); returns p = Psi[s] . pi."""
@@ -82,10 +108,7 @@ def _element_state(Phi, Psi, s, q, pi, u):
         for j in range(n):
             v += Phi[s, row, j] * q[j]
         u[row // 3, row % 3] = v
-    p = 0.0
-    for j in range(pi.shape[0]):
-        p += Psi[s, j] * pi[j]
-    return p
+    return _element_pressure(Psi, s, pi)
 
 
 @njit(inline="always")
@@ -167,6 +190,41 @@ def _residual_sum(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, u, r
 
 
 @njit(inline="always")
+def _residual_nodes(dN, dV, node_rows, slots, Psi, params, weights, q, pi, r, node_u,
+                    node_forces, u, r_u, scalars):  # fmt: skip
+    """:func:`_residual_sum` over every sampled element, each distinct node's displacement
+    computed and its force projected once (:func:`shared_nodes`), not once an element it
+    belongs to: an order of n fewer operations a shared node (shapes checked by the
+    caller). The same sums in another order."""
+    n = node_rows.shape[2]
+    for a in range(node_rows.shape[0]):  # node_u = node_rows q
+        for i in range(3):
+            v = 0.0
+            for j in range(n):
+                v += node_rows[a, i, j] * q[j]
+            node_u[a, i] = v
+            node_forces[a, i] = 0.0
+    r[:] = 0.0
+    for s in range(slots.shape[0]):
+        for b in range(slots.shape[1]):
+            for i in range(3):
+                u[b, i] = node_u[slots[s, b], i]
+        p = _element_pressure(Psi, s, pi)
+        _integrate_mapped(dN[s], dV[s], u, p, params[s], r_u, None, None, scalars)
+        for b in range(slots.shape[1]):
+            for i in range(3):
+                node_forces[slots[s, b], i] += weights[s] * r_u[3 * b + i]
+        theta = _theta(scalars, p, params[s, KAPPA])
+        for k in range(Psi.shape[1]):
+            r[n + k] += weights[s] * Psi[s, k] * theta
+    for a in range(node_rows.shape[0]):  # r[:n] = node_rows^T node_forces
+        for i in range(3):
+            f = node_forces[a, i]
+            for j in range(n):
+                r[j] += f * node_rows[a, i, j]
+
+
+@njit(inline="always")
 def _tangent_sum(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, K, u, r_u, K_uu,
                  K_up, scalars, T):  # fmt: skip
     """r and K = the sums over the sampled elements first..last - 1 (shapes checked by the
@@ -203,6 +261,25 @@ def _check_sample(dN, dV, Phi, Psi, params, weights, q, pi):
         raise ValueError("dN and dV must have the same points")
     if q.shape[0] != n or pi.shape[0] != Psi.shape[1]:
         raise ValueError("q (n,) and pi (n_p,) must have Phi's and Psi's columns")
+
+
+@njit(inline="always")
+def _check_nodes(node_rows, slots, node_u, node_forces, S, m, n):
+    """node_rows (N, 3, n), slots (S, m / 3) of rows of node_rows (every one read: a slot
+    outside would read outside), node_u and node_forces (N, 3)."""
+    N = node_rows.shape[0]
+    if node_rows.shape[1] != 3 or node_rows.shape[2] != n:
+        raise ValueError("node_rows must be (N, 3, n) and slots (S, nodes): shared_nodes'")
+    if slots.shape[0] != S or slots.shape[1] * 3 != m:
+        raise ValueError("node_rows must be (N, 3, n) and slots (S, nodes): shared_nodes'")
+    if node_u.shape[0] != N or node_u.shape[1] != 3:
+        raise ValueError("node_u and node_forces must be (N, 3), N node_rows' nodes")
+    if node_forces.shape[0] != N or node_forces.shape[1] != 3:
+        raise ValueError("node_u and node_forces must be (N, 3), N node_rows' nodes")
+    for s in range(S):
+        for b in range(slots.shape[1]):
+            if not 0 <= slots[s, b] < N:
+                raise ValueError("a slot is not a row of node_rows")
 
 
 @njit(inline="always")

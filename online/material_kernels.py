@@ -240,20 +240,20 @@ def _outer(u, v):
 
 
 @njit(inline="always")
+def _cofactors(F):
+    """cof F = J F^-T (row-major 9-tuple)."""
+    return (F[4] * F[8] - F[5] * F[7], F[5] * F[6] - F[3] * F[8], F[3] * F[7] - F[4] * F[6],
+            F[2] * F[7] - F[1] * F[8], F[0] * F[8] - F[2] * F[6], F[1] * F[6] - F[0] * F[7],
+            F[1] * F[5] - F[2] * F[4], F[2] * F[3] - F[0] * F[5],
+            F[0] * F[4] - F[1] * F[3])  # fmt: skip
+
+
+@njit(inline="always")
 def _det_inverse_transpose(F):
     """J = det F and F^-T = cof F / J (row-major 9-tuple)."""
-    c00 = F[4] * F[8] - F[5] * F[7]
-    c01 = F[5] * F[6] - F[3] * F[8]
-    c02 = F[3] * F[7] - F[4] * F[6]
-    c10 = F[2] * F[7] - F[1] * F[8]
-    c11 = F[0] * F[8] - F[2] * F[6]
-    c12 = F[1] * F[6] - F[0] * F[7]
-    c20 = F[1] * F[5] - F[2] * F[4]
-    c21 = F[2] * F[3] - F[0] * F[5]
-    c22 = F[0] * F[4] - F[1] * F[3]
-    J = F[0] * c00 + F[1] * c01 + F[2] * c02
-    r = 1.0 / J
-    return J, (c00 * r, c01 * r, c02 * r, c10 * r, c11 * r, c12 * r, c20 * r, c21 * r, c22 * r)
+    c = _cofactors(F)
+    J = F[0] * c[0] + F[1] * c[1] + F[2] * c[2]
+    return J, _scaled(1.0 / J, c)
 
 
 @njit(inline="always")
@@ -441,6 +441,73 @@ def _hgo_tangent(work, terms, A):
                         v += M[3 * j + l]
                     A[r, s] = v
                     A[s, r] = v
+
+
+# -- a law at every point of an element at once (the residual of a hyper-reduced step) -------
+# The points' stage buffer W (POINT_ROWS, MAX_POINTS): a row a quantity, a column a point, so
+# that a loop over the points is a loop over contiguous entries and vectorises (four points
+# a 256-bit instruction). The element kernel writes F's rows; the law writes P dV's, rest's
+# and theta's; the rows from _POINT_LAW on are the law's own.
+MAX_POINTS = 16  # columns: the hexahedron's 8 points and the tetrahedron's 14 fit
+POINT_F, POINT_P = 0, 9  # F and (dRest + p dTheta) dV: 9 rows each, row-major 3x3
+POINT_REST, POINT_THETA = 18, 19  # rest(F) and theta(F)
+_POINT_LAW = 20
+# hgo's own rows: J and the invariants, then 1/J, J^(-2/3) and the fibres' weights
+_PJ, _PI1, _PI2, _PI4, _PI6, _PINV, _PG1, _PC4, _PC6 = range(_POINT_LAW, _POINT_LAW + 9)
+POINT_ROWS = _POINT_LAW + 9
+
+
+# Inlined, unlike the laws above: in its caller W is a stack buffer of constant shape, so
+# LLVM sees that its rows do not overlap and vectorises; passed to a compiled function of
+# its own, W's rows are at a stride known only at run time, and no loop vectorised
+# (measured: no 256-bit instruction, with fastmath or without). Its rounding is therefore
+# its caller's flags' (hyperreduced's _SUMS: sums reassociated, products fused).
+@njit(inline="always")
+def _hgo_points(W, points, params, p, dV):
+    """:func:`_hgo`'s rest, theta and (its P with part (1, 0, p)) dV at the first ``points``
+    columns of W from their F rows: three loops over the points, the first and last without
+    a branch or a call (they vectorise), the transcendental functions, the division (numba
+    tests its divisor) and the fibres' tension test in the second."""
+    m0, m1, m2 = params[M0], params[M0 + 1], params[M0 + 2]
+    n0, n1, n2 = params[N0], params[N0 + 1], params[N0 + 2]
+    for q in range(points):  # J and the invariants
+        F = (W[0, q], W[1, q], W[2, q], W[3, q], W[4, q], W[5, q], W[6, q], W[7, q], W[8, q])
+        cof = _cofactors(F)
+        C = _product(_transpose(F), F)
+        I1 = C[0] + C[4] + C[8]
+        Fm, Fn = _apply(F, m0, m1, m2), _apply(F, n0, n1, n2)
+        W[_PJ, q] = F[0] * cof[0] + F[1] * cof[1] + F[2] * cof[2]
+        W[_PI1, q] = I1
+        W[_PI2, q] = 0.5 * (I1 * I1 - _frobenius(C, C))
+        W[_PI4, q] = Fm[0] * Fm[0] + Fm[1] * Fm[1] + Fm[2] * Fm[2]
+        W[_PI6, q] = Fn[0] * Fn[0] + Fn[1] * Fn[1] + Fn[2] * Fn[2]
+    tension_only = params[TENSION_ONLY] != 0.0
+    for q in range(points):  # 1/J, ln J, J^(-2/3), the fibres: calls and branches
+        J = W[_PJ, q]
+        lnJ = math.log(J)
+        g1 = math.exp(-2.0 / 3.0 * lnJ)
+        f4, df4, _ = _fibre(g1 * W[_PI4, q], params[K1], params[K2], tension_only)
+        f6, df6, _ = _fibre(g1 * W[_PI6, q], params[K3], params[K4], tension_only)
+        W[POINT_THETA, q] = lnJ
+        W[_PINV, q] = 1.0 / J
+        W[_PG1, q] = g1
+        W[_PC4, q], W[_PC6, q] = df4 * g1, df6 * g1
+        isotropic = 0.5 * params[C1] * (g1 * W[_PI1, q] - 3.0)
+        W[POINT_REST, q] = isotropic + 0.5 * params[C2] * (g1 * g1 * W[_PI2, q] - 3.0) + f4 + f6
+    p1, p2 = -2.0 / 3.0, -4.0 / 3.0
+    for q in range(points):  # P dV, as _hgo's P (rest weight 1, a = p), F^-T = cof F / J
+        F = (W[0, q], W[1, q], W[2, q], W[3, q], W[4, q], W[5, q], W[6, q], W[7, q], W[8, q])
+        g1, c4, c6 = W[_PG1, q], W[_PC4, q], W[_PC6, q]
+        c1, c2 = 0.5 * params[C1] * g1, 0.5 * params[C2] * g1 * g1
+        I1 = W[_PI1, q]
+        s1 = p1 * (c1 * I1 + c4 * W[_PI4, q] + c6 * W[_PI6, q]) + p2 * c2 * W[_PI2, q]
+        half_dI2 = _combination(I1, F, -1.0, _product(F, _product(_transpose(F), F)))
+        U = _combination(2.0 * c1, F, 2.0 * c2, half_dI2)
+        Fm, Fn = _apply(F, m0, m1, m2), _apply(F, n0, n1, n2)
+        fibres = _combination(c4, _outer(Fm, (m0, m1, m2)), c6, _outer(Fn, (n0, n1, n2)))
+        G = _scaled(W[_PINV, q], _cofactors(F))
+        for r in range(9):
+            W[POINT_P + r, q] = (U[r] + 2.0 * fibres[r] + (s1 + p) * G[r]) * dV[q]
 
 
 @njit(inline="always")

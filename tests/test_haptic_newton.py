@@ -190,9 +190,7 @@ def test_a_step_meeting_nan_is_refused_and_changes_nothing(model):
     bad = loads(stiffness, 1)[0].copy()
     bad[2] = np.nan
     assert not solver.step(q, pi, bad)
-    assert haptic_step(*solver.sample, solver.linear, solver.bounds, 1, readonly(bad), q, pi,
-                       solver.counters, solver.lu, solver.pivots, solver.building, solver.x,
-                       solver.r, solver.K, *solver.scratch.buffers()) == REFUSED  # fmt: skip
+    assert haptic_step(*arguments(solver, q, pi, readonly(bad)).values()) == REFUSED
     for a, b in zip(before, solver_state(solver, q, pi), strict=True):
         assert np.array_equal(a, b)
     assert solver.last_update == update
@@ -262,11 +260,36 @@ def test_a_tangent_that_does_not_factorise_is_dropped(model):
 def arguments(solver, q, pi, load) -> dict:
     names = ("dN", "dV", "Phi", "Psi", "params", "weights")
     scratch = ("u", "r_u", "K_uu", "K_up", "scalars", "T")
-    return {**dict(zip(names, solver.sample, strict=True)), "linear": solver.linear,
+    return {**dict(zip(names, solver.sample, strict=True)), "node_rows": solver.nodes[0],
+            "slots": solver.nodes[1], "linear": solver.linear,
             "bounds": solver.bounds, "iterations": solver.iterations, "load": load, "q": q,
             "pi": pi, "counters": solver.counters, "lu": solver.lu, "pivots": solver.pivots,
             "building": solver.building, "x": solver.x, "r": solver.r, "K": solver.K,
+            "node_u": solver.node_u, "node_forces": solver.node_forces,
             **dict(zip(scratch, solver.scratch.buffers(), strict=True))}  # fmt: skip
+
+
+def test_the_residual_reads_each_shared_node_once(model):
+    """The sample's distinct node rows (shared_nodes): fewer than its elements' nodes (the
+    synthetic mesh's elements share nodes), and every element's rows read back from them
+    bit for bit."""
+    _, _, _, inputs, linear, _ = model
+    solver = HapticNewton(inputs, linear, 1, 1)
+    node_rows, slots = solver.nodes
+    Phi = solver.sample[2]
+    S, m, n = Phi.shape
+    assert len(node_rows) < S * m // 3
+    assert np.array_equal(node_rows[slots].reshape(S, m, n), Phi)
+    q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
+    args = arguments(solver, q, pi, readonly(np.zeros(MODES)))
+    outside = slots.copy()
+    outside[-1, -1] = len(node_rows)  # one past the last row
+    args["slots"] = readonly_int(outside)
+    before = solver_state(solver, q, pi) + [solver.node_u.copy()]
+    with pytest.raises(ValueError, match="a slot is not a row of node_rows"):
+        haptic_step(*args.values())
+    for a, b in zip(before, solver_state(solver, q, pi) + [solver.node_u], strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
 
 
 def readonly_int(values) -> np.ndarray:
@@ -301,6 +324,10 @@ def readonly_int(values) -> np.ndarray:
     ("K_up", lambda S: np.zeros(2), "scratch"),
     ("scalars", lambda S: np.zeros(1), "scratch"),
     ("T", lambda S: np.zeros((3, 3)), "scratch"),
+    ("slots", lambda S: readonly_int(np.zeros((S, 1))), "slots"),
+    ("node_rows", lambda S: readonly(np.zeros((1, 3, MODES + 1))), "node_rows"),
+    ("node_u", lambda S: np.zeros((1, 3)), "node_u"),
+    ("node_forces", lambda S: np.zeros((1, 2)), "node_forces"),
 ])  # fmt: skip
 def test_wrong_inputs_refused_before_writing(model, name, wrong, message):
     _, _, _, inputs, linear, stiffness = model
@@ -343,13 +370,15 @@ def test_allocates_nothing():
         from hapticrom.online.haptic_newton import HapticNewton, haptic_step
 
         @njit
-        def run(dN, dV, Phi, Psi, params, w, linear, bounds, load, q, pi, counters, lu,
-                pivots, building, x, r, K, u, r_u, K_uu, K_up, scalars, T, n):
+        def run(dN, dV, Phi, Psi, params, w, node_rows, slots, linear, bounds, load, q, pi,
+                counters, lu, pivots, building, x, r, K, node_u, node_forces, u, r_u, K_uu,
+                K_up, scalars, T, n):
             total = 0.0
             for _ in range(n):
-                total += haptic_step(dN, dV, Phi, Psi, params, w, linear, bounds, 2, load, q,
-                                     pi, counters, lu, pivots, building, x, r, K, u, r_u,
-                                     K_uu, K_up, scalars, T)
+                total += haptic_step(dN, dV, Phi, Psi, params, w, node_rows, slots, linear,
+                                     bounds, 2, load, q, pi, counters, lu, pivots, building,
+                                     x, r, K, node_u, node_forces, u, r_u, K_uu, K_up,
+                                     scalars, T)
             return total
 
         rng = np.random.default_rng(1)
@@ -367,9 +396,10 @@ def test_allocates_nothing():
         solver = HapticNewton(sample, linear, 2, 2)
         q, pi, load = np.zeros(n), np.zeros(n_p), 1e-4 * rng.standard_normal(n)
         load.flags.writeable = False
-        same_allocations(run, *solver.sample, solver.linear, solver.bounds, load, q, pi,
-                         solver.counters, solver.lu, solver.pivots, solver.building, solver.x,
-                         solver.r, solver.K, *solver.scratch.buffers())
+        same_allocations(run, *solver.sample, *solver.nodes, solver.linear, solver.bounds,
+                         load, q, pi, solver.counters, solver.lu, solver.pivots,
+                         solver.building, solver.x, solver.r, solver.K, solver.node_u,
+                         solver.node_forces, *solver.scratch.buffers())
         assert np.isfinite(q).all() and np.abs(q).max() > 0
         print("ok")
     """
