@@ -2,7 +2,9 @@
 one compiled call: no Python, LAPACK or allocation between the sums.
 
 The model is :mod:`.hyperreduced`'s: R(q, pi) = the sampled sums + ``linear`` (q, pi) -
-(load, 0), its tangent the sampled sums' derivative + ``linear``. A step from (q, pi):
+(load, 0), its tangent the sampled sums' derivative + ``linear``; the residual is summed
+over the sample's distinct nodes (each node's displacement and force once), the tangent's
+parts element by element. A step from (q, pi):
 
 1. ``iterations`` modified Newton iterations on the residual alone, with the last
    factorised tangent;
@@ -28,7 +30,10 @@ overlapping another: :class:`HapticNewton` makes them so), between steps:
     lu (size, size), pivots (2, size): the factorised tangent and its pivots (row 0, as
       dense_solve.lu_factor leaves them; row 1 the factorisation's scratch); building
       (size, size): the tangent being summed (``linear`` plus the parts before PART);
-    x, r (size,), K (size, size): the step's state, residual and part; then a
+    x, r (size,), K (size, size): the step's state, residual and part; node_u,
+      node_forces (N, 3): the residual's displacement and force of each of the sample's
+      N distinct nodes (node_rows (N, 3, n) and slots (S, nodes) after the sample:
+      :func:`~hapticrom.online.hyperreduced.shared_nodes`'); then a
     :class:`~hapticrom.online.hyperreduced.Scratch`'s buffers; size = n + n_p.
 """
 
@@ -142,7 +147,9 @@ def haptic_step(dN, dV, Phi, Psi, params, weights, node_rows, slots, linear, bou
                 node_forces, u, r_u, K_uu, K_up, scalars, T):  # fmt: skip
     """One step under ``load`` (n,) from (q, pi), updated in place (the module's steps and
     buffers); returns the last iteration's |delta q| / |q|, or REFUSED (nothing changed).
-    Shapes are checked (ValueError) before anything is written."""
+    Shapes and slots are checked (ValueError) before anything is written; that node_rows
+    and slots are Phi's (shared_nodes') is not (it would cost what they save): else the
+    residual and the tangent are of two bases. :class:`HapticNewton` makes them itself."""
     S, m, n = Phi.shape
     n_p = Psi.shape[1]
     _check_sample(dN, dV, Phi, Psi, params, weights, q, pi)
@@ -224,12 +231,13 @@ class HapticNewton:
         self.pivots = np.zeros((2, size), np.int64)
         self.x, self.r, self.K = np.empty(size), np.empty(size), np.empty((size, size))
         self.scratch = Scratch(m // 3, n)
+        # the rest's tangent; the kernel checks the sample's shapes (before shared_nodes)
+        sampled_residual_tangent(*self.sample, np.zeros(n), np.zeros(size - n), self.r,
+                                 self.K, *self.scratch.buffers())  # fmt: skip
         # the sample's distinct nodes (the residual's) and their displacements and forces
         node_rows, slots = shared_nodes(self.sample[2])
         self.nodes = (_readonly(node_rows), _readonly(slots, np.int64))
         self.node_u, self.node_forces = np.empty((len(node_rows), 3)), np.empty((len(node_rows), 3))
-        sampled_residual_tangent(*self.sample, np.zeros(n), np.zeros(size - n), self.r,
-                                 self.K, *self.scratch.buffers())  # fmt: skip
         np.add(self.K, self.linear, out=self.lu)
         if not lu_factor(self.lu, self.pivots[0]):
             raise InputError("the model's tangent at rest is singular: no first step")

@@ -282,14 +282,15 @@ def test_the_residual_reads_each_shared_node_once(model):
     assert np.array_equal(node_rows[slots].reshape(S, m, n), Phi)
     q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
     args = arguments(solver, q, pi, readonly(np.zeros(MODES)))
-    outside = slots.copy()
-    outside[-1, -1] = len(node_rows)  # one past the last row
-    args["slots"] = readonly_int(outside)
-    before = solver_state(solver, q, pi) + [solver.node_u.copy()]
-    with pytest.raises(ValueError, match="a slot is not a row of node_rows"):
-        haptic_step(*args.values())
-    for a, b in zip(before, solver_state(solver, q, pi) + [solver.node_u], strict=True):
-        assert np.array_equal(a, b, equal_nan=True)
+    for bad in (len(node_rows), -1):  # one past the last row, and before the first
+        outside = slots.copy()
+        outside[-1, -1] = bad
+        args["slots"] = readonly_int(outside)
+        before = solver_state(solver, q, pi) + [solver.node_u.copy()]
+        with pytest.raises(ValueError, match="a slot is not a row of node_rows"):
+            haptic_step(*args.values())
+        for a, b in zip(before, solver_state(solver, q, pi) + [solver.node_u], strict=True):
+            assert np.array_equal(a, b, equal_nan=True)
 
 
 def readonly_int(values) -> np.ndarray:

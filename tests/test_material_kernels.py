@@ -294,15 +294,22 @@ def test_fibre_tension_only_switch():
     assert same(both_stretched, switched, smooth)
 
 
-def hgo_points(Fs, packed, p, dV):
-    """material_kernels._hgo_points on the columns of a stage buffer: (P dV, rest, theta)
-    at each point of Fs (points, 3, 3)."""
+@pytest.fixture(scope="module")
+def hgo_points_kernel():
+    """material_kernels._hgo_points compiled as the element kernel inlines it (the
+    hyper-reduced sums' flags: reassociated, fused)."""
     from numba import njit
 
-    @njit
+    @njit(fastmath={"reassoc", "contract"})
     def run(W, points, packed, p, dV):
         mk._hgo_points(W, points, packed, p, dV)
 
+    return run
+
+
+def hgo_points(run, Fs, packed, p, dV):
+    """(P dV, rest, theta) at each point of Fs (points, 3, 3) from the columns of a stage
+    buffer."""
     W = np.full((mk.POINT_ROWS, mk.MAX_POINTS), np.nan)  # a column not written stays NaN
     W[mk.POINT_F : mk.POINT_F + 9, : len(Fs)] = Fs.reshape(len(Fs), 9).T
     run(W, len(Fs), packed, p, dV)
@@ -311,7 +318,7 @@ def hgo_points(Fs, packed, p, dV):
 
 
 @pytest.mark.parametrize("name", ["hgo", "hgo-tension-only"])
-def test_hgo_at_every_point_at_once_is_the_law_point_by_point(name):
+def test_hgo_at_every_point_at_once_is_the_law_point_by_point(name, hgo_points_kernel):
     """The residual's hgo at an element's points at once (vector lanes) gives, at each
     point, rest, theta and (dRest + p dTheta) dV of the law point by point (held to UFL
     above), to rounding: both parameter sets (C2 > 0 in the second), fibres stretched and
@@ -321,7 +328,7 @@ def test_hgo_at_every_point_at_once_is_the_law_point_by_point(name):
         for points in (8, 14):
             Fs = np.array([isochoric_stretch(random_unit(), 1.1)] + deformations(points - 1)[1:])
             dV, p = RNG.uniform(0.1, 2.0, points), 0.05 * RNG.standard_normal()
-            P, rest, theta = hgo_points(Fs, packed, p, dV)
+            P, rest, theta = hgo_points(hgo_points_kernel, Fs, packed, p, dV)
             for F, Pq, rest_q, theta_q, v in zip(Fs, P, rest, theta, dV, strict=True):
                 (rest_ref, P_rest, _), (theta_ref, g, _) = (kernels(F, packed)[k]
                                                             for k in ("rest", "theta"))  # fmt: skip
