@@ -165,9 +165,15 @@ def test_off_the_surface_of_a_closed_organ_the_nearest_sample_answers(closed_org
     _, points, normals, triangles = closed_organ
     for p in ([0.0, 0.0, 0.0], [0.0, 0.0, 1e6], [3e3, -2e3, 1e3]):
         flag, samples, weights, _ = located(p, points, normals, triangles)
-        nearest = int(np.argmin(np.linalg.norm(points - np.array(p), axis=1)))
+        distance = np.linalg.norm(points - np.array(p), axis=1)
         assert flag == kernels.FLAG_OUTSIDE_REGION
-        assert samples[0] == nearest and set(samples) <= set(range(len(points)))
+        assert set(samples) <= set(range(len(points)))
+        # At the centre every sample is RADIUS away to 2 ulp: four tie in floating point
+        # (stop 50), and which one the kernel meets first follows the triangles' order.
+        # Any of them is the nearest; far away the nearest is alone (by 1 mm or more).
+        assert distance[samples[0]] <= distance.min() * (1 + 4 * np.finfo(float).eps)
+        if np.sort(distance)[1] > distance.min() * (1 + 1e-9):
+            assert samples[0] == np.argmin(distance)
         assert list(weights) == [1.0, 0.0, 0.0]
 
 
