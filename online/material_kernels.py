@@ -35,6 +35,7 @@ from numba import carray, njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from hapticrom.online.vector_math import vexp, vexpm1, vlog
 from hapticrom.shared.errors import InputError
 from hapticrom.shared.material_layout import (  # the packed row's layout, named once
     C1,
@@ -362,6 +363,17 @@ def _fibre(I, k_stiff, k_exp, tension_only):
     return 0.5 * k_stiff / k_exp * e_minus_1, k_stiff * x * e, k_stiff * e * (1.0 + 2.0 * q)
 
 
+@njit(inline="always")
+def _fibre_lanes(I, k_stiff, k_exp, tension_only):
+    """:func:`_fibre`'s energy and first derivative with no branch and no call (an
+    unstretched fibre's x taken as 0 gives its zeros; vector_math's expm1): a loop over
+    points that calls it vectorises."""
+    x = I - 1.0
+    x = 0.0 if tension_only and x <= 0.0 else x
+    e_minus_1 = vexpm1(k_exp * x * x)
+    return 0.5 * k_stiff / k_exp * e_minus_1, k_stiff * x * (e_minus_1 + 1.0)
+
+
 @njit(nogil=True, fastmath=False)
 def _hgo(Fa, params, part, P, A):
     """rest = C1/2 (I1b - 3) + C2/2 (I2b - 3) + fibre(I4b) + fibre(I6b), theta = ln J.
@@ -465,9 +477,9 @@ POINT_ROWS = _POINT_LAW + 9
 @njit(inline="always")
 def _hgo_points(W, points, params, p, dV):
     """:func:`_hgo`'s rest, theta and (its P with part (1, 0, p)) dV at the first ``points``
-    columns of W from their F rows: three loops over the points, the first and last without
-    a branch or a call (they vectorise), the transcendental functions, the division (numba
-    tests its divisor) and the fibres' tension test in the second."""
+    columns of W from their F rows: three loops over the points, none with a branch or a
+    call, so that each vectorises (the second's exp, expm1 and log vector_math's, its
+    division untested: its caller's numba error model must be numpy's)."""
     m0, m1, m2 = params[M0], params[M0 + 1], params[M0 + 2]
     n0, n1, n2 = params[N0], params[N0 + 1], params[N0 + 2]
     for q in range(points):  # J and the invariants
@@ -482,12 +494,12 @@ def _hgo_points(W, points, params, p, dV):
         W[_PI4, q] = Fm[0] * Fm[0] + Fm[1] * Fm[1] + Fm[2] * Fm[2]
         W[_PI6, q] = Fn[0] * Fn[0] + Fn[1] * Fn[1] + Fn[2] * Fn[2]
     tension_only = params[TENSION_ONLY] != 0.0
-    for q in range(points):  # 1/J, ln J, J^(-2/3), the fibres: calls and branches
+    for q in range(points):  # 1/J, ln J, J^(-2/3), the fibres (vector_math's, no calls)
         J = W[_PJ, q]
-        lnJ = math.log(J)
-        g1 = math.exp(-2.0 / 3.0 * lnJ)
-        f4, df4, _ = _fibre(g1 * W[_PI4, q], params[K1], params[K2], tension_only)
-        f6, df6, _ = _fibre(g1 * W[_PI6, q], params[K3], params[K4], tension_only)
+        lnJ = vlog(J)
+        g1 = vexp(-2.0 / 3.0 * lnJ)
+        f4, df4 = _fibre_lanes(g1 * W[_PI4, q], params[K1], params[K2], tension_only)
+        f6, df6 = _fibre_lanes(g1 * W[_PI6, q], params[K3], params[K4], tension_only)
         W[POINT_THETA, q] = lnJ
         W[_PINV, q] = 1.0 / J
         W[_PG1, q] = g1

@@ -297,10 +297,10 @@ def test_fibre_tension_only_switch():
 @pytest.fixture(scope="module")
 def hgo_points_kernel():
     """material_kernels._hgo_points compiled as the element kernel inlines it (the
-    hyper-reduced sums' flags: reassociated, fused)."""
+    hyper-reduced sums' flags: reassociated, fused; numpy's error model)."""
     from numba import njit
 
-    @njit(fastmath={"reassoc", "contract"})
+    @njit(fastmath={"reassoc", "contract"}, error_model="numpy")
     def run(W, points, packed, p, dV):
         mk._hgo_points(W, points, packed, p, dV)
 
