@@ -34,7 +34,9 @@ overlapping another: :class:`HapticNewton` makes them so), between steps:
       node_forces (N, 3): the residual's displacement and force of each of the sample's
       N distinct nodes (node_rows (N, 3, n) and slots (S, nodes) after the sample:
       :func:`~hapticrom.online.hyperreduced.shared_nodes`'); then a
-    :class:`~hapticrom.online.hyperreduced.Scratch`'s buffers; size = n + n_p.
+    :class:`~hapticrom.online.hyperreduced.Scratch`'s buffers but T; then PhiQ (Phi's
+    rows in the precision of the tangent parts' q-q projection, float64 or float32) and
+    that projection's buffers Kw (m, m), TQ (m, n), Kqq (n, n); size = n + n_p.
 """
 
 from __future__ import annotations
@@ -54,13 +56,16 @@ from hapticrom.online.hyperreduced import (
     _check_sample,
     _check_tangent_outputs,
     _residual_nodes,
-    _tangent_sum,
+    _tangent_part,
     sampled_residual_tangent,
     shared_nodes,
 )
 from hapticrom.shared.errors import InputError
 
 PART, FAILED_FACTORISATIONS, COUNTER_SIZE = 0, 1, 2  # offsets into the counters
+# the tangent parts' q-q projection: "single" halves its time on the demo's held region
+# (stop 50) and leaves where the steps settle unchanged (the residual decides it)
+PRECISIONS = {"single": np.float32, "double": np.float64}
 REFUSED = -1.0  # haptic_step's answer to a step it refused
 
 
@@ -134,27 +139,46 @@ def _next_tangent(linear, counters, lu, pivots, building, K):
 
 
 _I8_1D, _I8_2D = "int64[::1]", "int64[:, ::1]"
-_STEP = (f"float64({_SAMPLE}, {_RO.format(3)}, Array(int64, 2, 'C', readonly=True), "
-         f"{_RO.format(2)}, Array(int64, 1, 'C', readonly=True), "
-         f"int64, {_RO.format(1)}, {_F8_1D}, {_F8_1D}, {_I8_1D}, {_F8_2D}, {_I8_2D}, {_F8_2D}, "
-         f"{_F8_1D}, {_F8_1D}, {_F8_2D}, {_F8_2D}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_2D}, "
-         f"{_F8_1D}, {_F8_1D}, {_F8_2D})")  # fmt: skip
 
 
-@njit(_STEP, cache=True, nogil=True, fastmath=_SUMS)
+def _step_signature(precision: str) -> str:
+    """haptic_step's types, its tangent's q-q block projected in ``precision``."""
+    low = f"Array({precision}, 3, 'C', readonly=True), {precision}[:, ::1], {precision}[:, ::1]"
+    return (f"float64({_SAMPLE}, {_RO.format(3)}, Array(int64, 2, 'C', readonly=True), "
+            f"{_RO.format(2)}, Array(int64, 1, 'C', readonly=True), "
+            f"int64, {_RO.format(1)}, {_F8_1D}, {_F8_1D}, {_I8_1D}, {_F8_2D}, {_I8_2D}, {_F8_2D}, "
+            f"{_F8_1D}, {_F8_1D}, {_F8_2D}, {_F8_2D}, {_F8_2D}, {_F8_2D}, {_F8_1D}, {_F8_2D}, "
+            f"{_F8_1D}, {_F8_1D}, {low}, {precision}[:, ::1])")  # fmt: skip
+
+
+@njit(inline="always")
+def _check_projection(PhiQ, Kw, TQ, Kqq, S, m, n):
+    if PhiQ.shape[0] != S or PhiQ.shape[1] != m or PhiQ.shape[2] != n:
+        raise ValueError("PhiQ must be Phi's shape; Kw (m, m), TQ (m, n), Kqq (n, n)")
+    if Kw.shape[0] != m or Kw.shape[1] != m or TQ.shape[0] != m or TQ.shape[1] != n:
+        raise ValueError("PhiQ must be Phi's shape; Kw (m, m), TQ (m, n), Kqq (n, n)")
+    if Kqq.shape[0] != n or Kqq.shape[1] != n:
+        raise ValueError("PhiQ must be Phi's shape; Kw (m, m), TQ (m, n), Kqq (n, n)")
+
+
+@njit([_step_signature("float64"), _step_signature("float32")], cache=True, nogil=True,
+      fastmath=_SUMS)  # fmt: skip
 def haptic_step(dN, dV, Phi, Psi, params, weights, node_rows, slots, linear, bounds,
                 iterations, load, q, pi, counters, lu, pivots, building, x, r, K, node_u,
-                node_forces, u, r_u, K_uu, K_up, scalars, T):  # fmt: skip
+                node_forces, u, r_u, K_uu, K_up, scalars, PhiQ, Kw, TQ, Kqq):  # fmt: skip
     """One step under ``load`` (n,) from (q, pi), updated in place (the module's steps and
     buffers); returns the last iteration's |delta q| / |q|, or REFUSED (nothing changed).
-    Shapes and slots are checked (ValueError) before anything is written; that node_rows
-    and slots are Phi's (shared_nodes') is not (it would cost what they save): else the
+    The tangent part's q-q block is projected in PhiQ's precision (float64 or float32;
+    PhiQ: Phi rounded to it, Kw, TQ, Kqq its buffers). Shapes and slots are checked
+    (ValueError) before anything is written; that node_rows and slots are Phi's
+    (shared_nodes') and PhiQ is Phi rounded is not (it would cost what they save): else the
     residual and the tangent are of two bases. :class:`HapticNewton` makes them itself."""
     S, m, n = Phi.shape
     n_p = Psi.shape[1]
     _check_sample(dN, dV, Phi, Psi, params, weights, q, pi)
     _check_nodes(node_rows, slots, node_u, node_forces, S, m, n)
-    _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, T)
+    _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, TQ)
+    _check_projection(PhiQ, Kw, TQ, Kqq, S, m, n)
     _check_step(linear, bounds, load, counters, lu, pivots, building, x, n, S)
     if iterations < 1:
         raise ValueError("iterations must be at least 1")
@@ -172,8 +196,8 @@ def haptic_step(dN, dV, Phi, Psi, params, weights, node_rows, slots, linear, bou
             return REFUSED
         update = _relative_update(r, x, n)
     part = counters[PART]
-    _tangent_sum(dN, dV, Phi, Psi, params, weights, bounds[part], bounds[part + 1], x[:n],
-                 x[n:], r, K, u, r_u, K_uu, K_up, scalars, T)  # fmt: skip
+    _tangent_part(dN, dV, Phi, Psi, params, weights, bounds[part], bounds[part + 1], x[:n],
+                  x[n:], r, K, u, r_u, K_uu, K_up, scalars, PhiQ, Kw, TQ, Kqq)  # fmt: skip
     if not _finite(K):
         return REFUSED
     for i in range(n + n_p):
@@ -199,11 +223,14 @@ class HapticNewton:
     ``HyperReducedModel``'s ``.sample``, or an artifact's), ``linear`` (n + n_p square) its
     constant tangent; ``iterations`` a step, the tangent in ``slices`` parts (the defaults
     1 and 20: stop 42's two-tool measurement; the Python class it replaced had 2 and 10).
-    The first tangent is the rest's. InputError for values the class checks (the counts,
-    non-finite arrays, weights, a rest tangent that does not factorise); sample shapes that
-    do not agree raise the kernels' ValueError."""
+    The first tangent is the rest's. ``precision``: the tangent parts' q-q block projected in
+    "single" (float32: Phi's rows rounded, twice the vector lanes; the default, see
+    PRECISIONS) or "double". InputError for values the class checks (the counts,
+    non-finite arrays, weights, a rest tangent that does not factorise, the precision);
+    sample shapes that do not agree raise the kernels' ValueError."""
 
-    def __init__(self, sample, linear, iterations: int = 1, slices: int = 20):
+    def __init__(self, sample, linear, iterations: int = 1, slices: int = 20,
+                 precision: str = "single"):  # fmt: skip
         if len(sample) != 6:
             raise InputError("sample must be (dN, dV, Phi, Psi, params, weights)")
         self.sample = tuple(_readonly(a) for a in sample)
@@ -224,6 +251,8 @@ class HapticNewton:
             if not integer or value < low or (high is not None and value > high):
                 upto = f" to the sampled elements ({high})" if high is not None else ""
                 raise InputError(f"{name} must be an integer from {low}{upto}")
+        if precision not in PRECISIONS:
+            raise InputError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         self.iterations = int(iterations)
         self.bounds = _readonly(np.linspace(0, S, slices + 1), np.int64)
         self.counters = np.zeros(COUNTER_SIZE, np.int64)
@@ -238,6 +267,12 @@ class HapticNewton:
         node_rows, slots = shared_nodes(self.sample[2])
         self.nodes = (_readonly(node_rows), _readonly(slots, np.int64))
         self.node_u, self.node_forces = np.empty((len(node_rows), 3)), np.empty((len(node_rows), 3))
+        # the tangent parts' q-q projection: Phi's rows and the buffers in its precision
+        low = PRECISIONS[precision]
+        self.precision = precision
+        self.projection = (_readonly(self.sample[2], low), np.empty((m, m), low),
+                           np.empty((m, n), low), np.empty((n, n), low))  # fmt: skip
+        self._element_buffers = (*self.scratch.buffers()[:-1], *self.projection)  # T: TQ's
         np.add(self.K, self.linear, out=self.lu)
         if not lu_factor(self.lu, self.pivots[0]):
             raise InputError("the model's tangent at rest is singular: no first step")
@@ -303,7 +338,7 @@ class HapticNewton:
         update = haptic_step(*self.sample, *self.nodes, self.linear, self.bounds,
                              self.iterations, load, q, pi, self.counters, self.lu, self.pivots,
                              self.building, self.x, self.r, self.K, self.node_u,
-                             self.node_forces, *self.scratch.buffers())  # fmt: skip
+                             self.node_forces, *self._element_buffers)  # fmt: skip
         if update == REFUSED:
             return False
         self.last_update = update

@@ -158,6 +158,42 @@ def _add_projected_tangent(Phi, Psi, s, weight, K_uu, K_up, T, K):
 
 
 @njit(inline="always")
+def _add_coupling(Phi, Psi, s, weight, K_up, K):
+    """K[:n, n:] += weight Phi^T K_up Psi: an element's q-pi block."""
+    m, n, n_p = Phi.shape[1], Phi.shape[2], Psi.shape[1]
+    for i in range(n):
+        t = 0.0
+        for row in range(m):
+            t += Phi[s, row, i] * K_up[row]
+        t *= weight
+        for k in range(n_p):
+            K[i, n + k] += t * Psi[s, k]
+
+
+@njit(inline="always")
+def _add_projected_stiffness(PhiQ, s, weight, K_uu, Kw, TQ, Kqq):
+    """Kqq's upper triangle += weight Phi^T K_uu Phi, in the precision of PhiQ, Kw, TQ and
+    Kqq (Phi's rows rounded to it): :func:`_add_projected_tangent`'s q-q block, its
+    operations in the same order (Kw = weight K_uu first, in that precision)."""
+    m, n = PhiQ.shape[1], PhiQ.shape[2]
+    for row in range(m):
+        for c in range(m):
+            Kw[row, c] = weight * K_uu[row, c]
+    for row in range(m):  # TQ = Kw PhiQ
+        for j in range(n):
+            TQ[row, j] = 0.0
+        for c in range(0, m, 3):
+            a0, a1, a2 = Kw[row, c], Kw[row, c + 1], Kw[row, c + 2]
+            for j in range(n):
+                TQ[row, j] += a0 * PhiQ[s, c, j] + a1 * PhiQ[s, c + 1, j] + a2 * PhiQ[s, c + 2, j]
+    for i in range(n):
+        for c in range(0, m, 3):
+            b0, b1, b2 = PhiQ[s, c, i], PhiQ[s, c + 1, i], PhiQ[s, c + 2, i]
+            for j in range(n - i):
+                Kqq[i, i + j] += b0 * TQ[c, i + j] + b1 * TQ[c + 1, i + j] + b2 * TQ[c + 2, i + j]
+
+
+@njit(inline="always")
 def _symmetrize(K):
     """The lower triangle of K from its upper one (the q-q block's and the q-pi block)."""
     size = K.shape[0]
@@ -237,6 +273,30 @@ def _tangent_sum(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, K, u,
         theta = _theta(scalars, p, params[s, KAPPA])
         _add_projected(Phi, Psi, s, weights[s], theta, r_u, r)
         _add_projected_tangent(Phi, Psi, s, weights[s], K_uu, K_up, T, K)
+    _symmetrize(K)
+
+
+@njit(inline="always")
+def _tangent_part(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, K, u, r_u, K_uu,
+                  K_up, scalars, PhiQ, Kw, TQ, Kqq):  # fmt: skip
+    """:func:`_tangent_sum`'s r and K, the q-q block projected in PhiQ's precision (PhiQ:
+    Phi's rows in it; Kw, TQ, Kqq buffers in it): in float64, the same operations in the
+    same order (bit for bit); in float32, twice the vector lanes a product. A modified
+    Newton's tangent steers its iterations, the residual decides where they stop."""
+    n = Phi.shape[2]
+    r[:] = 0.0
+    K[:, :] = 0.0
+    Kqq[:, :] = 0.0
+    for s in range(first, last):
+        p = _element_state(Phi, Psi, s, q, pi, u)
+        _integrate_mapped(dN[s], dV[s], u, p, params[s], r_u, K_uu, K_up, scalars)
+        theta = _theta(scalars, p, params[s, KAPPA])
+        _add_projected(Phi, Psi, s, weights[s], theta, r_u, r)
+        _add_coupling(Phi, Psi, s, weights[s], K_up, K)
+        _add_projected_stiffness(PhiQ, s, weights[s], K_uu, Kw, TQ, Kqq)
+    for i in range(n):
+        for j in range(i, n):
+            K[i, j] = Kqq[i, j]
     _symmetrize(K)
 
 

@@ -234,15 +234,16 @@ class ReducedModel:
         return self.surface_basis.shape[2]
 
     def physics(self, region: int = 0, holders=(), iterations: int = 1, slices: int = 30,
-                estimate_steps: int = 100):  # fmt: skip
+                estimate_steps: int = 100, precision: str = "single"):  # fmt: skip
         """Region ``region`` of the hyper-reduced physics (artifact format 2.5, group
         ``hyperreduced``), ``holders`` gripping the surface at those points (mm): a
         :class:`~hapticrom.online.physics.HyperReducedPhysics` (``iterations`` and
-        ``slices`` its Newton's, ``estimate_steps`` the steps an error estimate is spread
-        over: ``physics.error_estimate()``)."""
+        ``slices`` and ``precision`` its Newton's, ``estimate_steps`` the steps an error
+        estimate is spread over: ``physics.error_estimate()``)."""
         from hapticrom.online.physics import HyperReducedPhysics
 
-        return HyperReducedPhysics(self, region, holders, iterations, slices, estimate_steps)
+        return HyperReducedPhysics(self, region, holders, iterations, slices, estimate_steps,
+                                   precision)  # fmt: skip
 
     def simulator(self, interpolation: str | None = None, response: str | None = None, **limits):
         """A new simulator state on this model (models are shared, simulators are not).

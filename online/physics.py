@@ -318,10 +318,12 @@ class HyperReducedPhysics:
     here: on the demo's held and two-tool regions the same settled errors and no more lag
     at a ramp's end than 20, at a p99 0.1 ms lower: README, stop 45); an error estimate
     spread over ``estimate_steps`` steps (``error_estimate``; 0: none, the steps about 5 %
-    cheaper at 100 on the demo's two-tool regions)."""
+    cheaper at 100 on the demo's two-tool regions); ``precision`` the tangent parts'
+    projection's, as ``HapticNewton``'s (the estimate's Newton step on that tangent)."""
 
     def __init__(self, model, region: int = 0, holders=(), iterations: int = 1,
-                 slices: int = 30, estimate_steps: int = 100):  # fmt: skip
+                 slices: int = 30, estimate_steps: int = 100,
+                 precision: str = "single"):  # fmt: skip
         if GROUP not in model.artifact.groups:
             raise InputError(f"{model.artifact.path} has no hyper-reduced physics (group "
                              f"{GROUP}, artifact format 2.5)")  # fmt: skip
@@ -353,7 +355,8 @@ class HyperReducedPhysics:
         for A in self.holders:
             linear[:n, :n] += self.hold_stiffness * (A.T @ A)
         # slices: at most one element a part (a small region has fewer elements than 30)
-        self.newton = self._newton(sample, linear, iterations, min(slices, len(sample[5])))
+        self.newton = self._newton(sample, linear, iterations, min(slices, len(sample[5])),
+                                   precision)  # fmt: skip
         self.check = None  # the error indicator (a file with check samples: group 1.2)
         if "check_element_offsets" in h and estimate_steps:
             check = region_sample(h, attrs["cell"], region, "check_")
@@ -382,11 +385,11 @@ class HyperReducedPhysics:
         self._last_change = np.zeros(n)  # the pressing load's change the step before
         self._holders_moved = False  # a holder moved since the last step: not steady
 
-    def _newton(self, sample, linear, iterations, slices) -> HapticNewton:
+    def _newton(self, sample, linear, iterations, slices, precision) -> HapticNewton:
         """HapticNewton on the region; a rest tangent that does not factorise is the file's
         (ArtifactError) or, with holders, theirs (InputError naming them)."""
         try:
-            return HapticNewton(sample, linear, iterations, slices)
+            return HapticNewton(sample, linear, iterations, slices, precision)
         except InputError as exc:
             if "singular" not in str(exc):
                 raise

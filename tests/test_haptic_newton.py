@@ -30,6 +30,7 @@ from hapticrom.shared.errors import InputError
 pytestmark = pytest.mark.serial
 RNG = np.random.default_rng(20261125)
 SIZE = MODES + PRESSURE_MODES
+SINGLE_ROUNDING = 1e-5  # float32's epsilon 6e-8 times a sum's terms (m = 24 to 30) and more
 
 
 # -- the LU -------------------------------------------------------------------------------------
@@ -136,7 +137,7 @@ def test_steps_follow_the_numpy_schedule(model, iterations, slices):
     slices = min(slices, len(elements))  # the tetrahedra's sample has 2 elements
     path = loads(stiffness, 4 * slices + 1)
     expected = reference_steps(problem, elements, weights, linear, path, iterations, slices)
-    solver = HapticNewton(inputs, linear, iterations, slices)
+    solver = HapticNewton(inputs, linear, iterations, slices, precision="double")
     q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
     for k, (load, x) in enumerate(zip(path, expected, strict=True)):
         assert solver.step(q, pi, load), k
@@ -159,20 +160,45 @@ def newton_equilibrium(problem, elements, weights, linear, load) -> np.ndarray:
     raise AssertionError("Newton did not converge")
 
 
-def test_steps_settle_on_the_equilibrium(model):
+@pytest.mark.parametrize("precision", ["single", "double"])
+def test_steps_settle_on_the_equilibrium(model, precision):
     """Under a held load the fixed-cost steps converge to Newton's root (in numpy); the
-    last update goes to 0."""
+    last update goes to 0. With the tangent's projection in single precision too: the
+    tangent steers, the residual (double) decides where the steps stop."""
     problem, elements, weights, inputs, linear, stiffness = model
     reseed(RNG, "settle")
     load = loads(stiffness, 1)[0]
     expected = newton_equilibrium(problem, elements, weights, linear, load)
-    solver = HapticNewton(inputs, linear, 1, 2)
+    solver = HapticNewton(inputs, linear, 1, 2, precision=precision)
     q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
     for _ in range(60):
         assert solver.step(q, pi, load)
     assert np.abs(q - expected[:MODES]).max() <= 1e-10 * np.abs(expected[:MODES]).max()
     assert np.abs(pi - expected[MODES:]).max() <= 1e-10 * np.abs(expected[MODES:]).max()
     assert solver.last_update <= 1e-10
+
+
+def test_a_single_precision_tangent_part_is_the_double_one_rounded(model):
+    """From the same state under the same load, the tangent part (half the elements: the
+    step does not factorise it) summed with its q-q projection in single precision is the
+    double one to float32's rounding of the products' sums (relative to the block's
+    largest entry), its q-pi block and residual (double in both) bit for bit."""
+    _, elements, _, inputs, linear, stiffness = model
+    reseed(RNG, "single-part")
+    load = loads(stiffness, 2)[0]
+    parts = {}
+    for precision in ("single", "double"):
+        solver = HapticNewton(inputs, linear, 1, 2, precision=precision)
+        q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
+        assert solver.step(q, pi, load)  # the rest's factors in both: the same state
+        parts[precision] = solver.K.copy(), solver.r.copy(), q
+    (K1, r1, q1), (K2, r2, q2) = parts["single"], parts["double"]
+    assert np.array_equal(q1, q2) and np.array_equal(r1, r2)
+    n = MODES
+    assert np.array_equal(K1[:n, n:], K2[:n, n:]) and np.array_equal(K1[n:, :n], K2[n:, :n])
+    error = np.abs(K1[:n, :n] - K2[:n, :n]).max() / np.abs(K2[:n, :n]).max()
+    assert 0 < error <= SINGLE_ROUNDING, error
+    assert np.array_equal(K1, K1.T)
 
 
 def solver_state(solver, q, pi) -> list[np.ndarray]:
@@ -257,16 +283,24 @@ def test_a_tangent_that_does_not_factorise_is_dropped(model):
     assert np.array_equal(solver.building, linear)
 
 
+def readonly_single(a) -> np.ndarray:
+    a = np.array(a, dtype=np.float32, order="C")
+    a.flags.writeable = False
+    return a
+
+
 def arguments(solver, q, pi, load) -> dict:
     names = ("dN", "dV", "Phi", "Psi", "params", "weights")
-    scratch = ("u", "r_u", "K_uu", "K_up", "scalars", "T")
+    scratch = ("u", "r_u", "K_uu", "K_up", "scalars")
+    projection = ("PhiQ", "Kw", "TQ", "Kqq")
     return {**dict(zip(names, solver.sample, strict=True)), "node_rows": solver.nodes[0],
             "slots": solver.nodes[1], "linear": solver.linear,
             "bounds": solver.bounds, "iterations": solver.iterations, "load": load, "q": q,
             "pi": pi, "counters": solver.counters, "lu": solver.lu, "pivots": solver.pivots,
             "building": solver.building, "x": solver.x, "r": solver.r, "K": solver.K,
             "node_u": solver.node_u, "node_forces": solver.node_forces,
-            **dict(zip(scratch, solver.scratch.buffers(), strict=True))}  # fmt: skip
+            **dict(zip(scratch, solver.scratch.buffers()[:-1], strict=True)),
+            **dict(zip(projection, solver.projection, strict=True))}  # fmt: skip
 
 
 def test_the_residual_reads_each_shared_node_once(model):
@@ -324,7 +358,10 @@ def readonly_int(values) -> np.ndarray:
     ("K_uu", lambda S: np.zeros((2, 2)), "scratch"),
     ("K_up", lambda S: np.zeros(2), "scratch"),
     ("scalars", lambda S: np.zeros(1), "scratch"),
-    ("T", lambda S: np.zeros((3, 3)), "scratch"),
+    ("TQ", lambda S: np.zeros((3, 3), np.float32), "scratch"),
+    ("PhiQ", lambda S: readonly_single(np.zeros((S, 3, MODES))), "PhiQ"),
+    ("Kw", lambda S: np.zeros((3, 3), np.float32), "Kw"),
+    ("Kqq", lambda S: np.zeros((MODES, MODES + 1), np.float32), "Kqq"),
     ("slots", lambda S: readonly_int(np.zeros((S, 1))), "slots"),
     ("node_rows", lambda S: readonly(np.zeros((1, 3, MODES + 1))), "node_rows"),
     ("node_u", lambda S: np.zeros((1, 3)), "node_u"),
@@ -357,7 +394,8 @@ def test_constructor_refusals(model):
              ((inputs[:5] + (-inputs[5],), linear), {"slices": 1}, "weights"),
              ((inputs[:2] + (np.nan * inputs[2],) + inputs[3:], linear), {"slices": 1}, "Phi"),
              ((inputs[:2] + (0 * inputs[2],) + inputs[3:], linear), {"slices": 1},
-              "singular")]  # fmt: skip
+              "singular"),
+             ((inputs, linear), {"slices": 1, "precision": "half"}, "precision")]  # fmt: skip
     for args, kwargs, message in cases:
         with pytest.raises(InputError, match=message):
             HapticNewton(*args, **kwargs)
@@ -373,13 +411,13 @@ def test_allocates_nothing():
         @njit
         def run(dN, dV, Phi, Psi, params, w, node_rows, slots, linear, bounds, load, q, pi,
                 counters, lu, pivots, building, x, r, K, node_u, node_forces, u, r_u, K_uu,
-                K_up, scalars, T, n):
+                K_up, scalars, PhiQ, Kw, TQ, Kqq, n):
             total = 0.0
             for _ in range(n):
                 total += haptic_step(dN, dV, Phi, Psi, params, w, node_rows, slots, linear,
                                      bounds, 2, load, q, pi, counters, lu, pivots, building,
                                      x, r, K, node_u, node_forces, u, r_u, K_uu, K_up,
-                                     scalars, T)
+                                     scalars, PhiQ, Kw, TQ, Kqq)
             return total
 
         rng = np.random.default_rng(1)
@@ -400,7 +438,8 @@ def test_allocates_nothing():
         same_allocations(run, *solver.sample, *solver.nodes, solver.linear, solver.bounds,
                          load, q, pi, solver.counters, solver.lu, solver.pivots,
                          solver.building, solver.x, solver.r, solver.K, solver.node_u,
-                         solver.node_forces, *solver.scratch.buffers())
+                         solver.node_forces, *solver.scratch.buffers()[:-1],
+                         *solver.projection)
         assert np.isfinite(q).all() and np.abs(q).max() > 0
         print("ok")
     """

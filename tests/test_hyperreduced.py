@@ -13,7 +13,7 @@ reused scratch, wrong shapes refused before writing, no allocation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import cycle
 
 import numpy as np
@@ -370,6 +370,24 @@ def test_residual_alone_is_the_tangent_kernels_residual(problem):
     with pytest.raises(ValueError, match="r must be"):
         sampled_residual(*inputs, q, pi, wrong, scratch.u, scratch.r_u, scratch.scalars)
     assert np.all(wrong == 7.0)
+
+
+def test_more_points_than_the_lanes_hold_take_the_point_by_point_path():
+    """hgo hexahedra with 27 quadrature points (degree 4): more than the points path's
+    stack buffer holds (MAX_POINTS), so ``sampled_residual`` takes the point-by-point
+    kernel; its sums are the numpy assembly's over that kernel (past the buffer's end, the
+    points path would read and write beyond its stack)."""
+    problem = replace(make_problem("hex-hgo"), reference=ek.reference_element("hexahedron", 4))
+    assert len(problem.reference.weights) == 27 > mk.MAX_POINTS
+    elements, weights = random_subset(problem)
+    q, pi = random_state()
+    r_ref, _ = numpy_sums(problem, elements, weights, q, pi)
+    scratch = Scratch(problem.nodes, MODES)
+    r = np.full(MODES + PRESSURE_MODES, np.nan)
+    sampled_residual(*sample(problem, elements, weights), q, pi, r, scratch.u, scratch.r_u,
+                     scratch.scalars)  # fmt: skip
+    for rows in (slice(0, MODES), slice(MODES, None)):
+        assert relative(r[rows], r_ref[rows]) <= RELATIVE
 
 
 # -- outputs and scratch ----------------------------------------------------------------------

@@ -882,11 +882,12 @@ def test_pressing_again_allocates_nothing(trained):
     assert kept < 256 and pressing < bare[1] + 8 * len(out), (kept, pressing, bare)
 
 
-def settled(trained, path, estimate_steps, hold=60):
+def settled(trained, path, estimate_steps, hold=60, precision="single"):
     """The physics of ``path`` (a tangent every step) pressed as the campaign, then held."""
     _, (data, point), _, _, _, _, _ = trained
     f = data["load_vector"]
-    physics = load(path, isolate=False).physics(slices=1, estimate_steps=estimate_steps)
+    physics = load(path, isolate=False).physics(slices=1, estimate_steps=estimate_steps,
+                                                precision=precision)  # fmt: skip
     return pressed(physics, point, f.reshape(-1, 3).sum(axis=0), data["load_factor"], hold=hold)
 
 
@@ -899,7 +900,7 @@ def test_the_error_estimate_is_a_newton_step_on_the_samples_difference(trained):
     _, (data, _), Phi, models, paths, _, _ = trained
     physics = load(paths["coarse"], isolate=False).physics(estimate_steps=5)
     assert np.isnan(physics.error_estimate())  # no estimate finished yet
-    physics = settled(trained, paths["coarse"], 5)
+    physics = settled(trained, paths["coarse"], 5, precision="double")  # T as LAPACK's
     eta, q, pi = physics.error_estimate(), physics.q, physics.pi
     load_ = Phi.T @ data["load_vector"]
     r, T = models["coarse"].residual_tangent(q, pi, data["load_factor"][-1] * load_)
