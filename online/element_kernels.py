@@ -357,8 +357,9 @@ assert _STACK_SIZES == (464, 1296), _STACK_SIZES
 # point-by-point path, it made each caller's compilation 3.5 times longer: 5.7 -> 20 s for
 # the residual alone, measured). The sums' flags (hyperreduced's _SUMS), so that the sums
 # over the points vectorise; numpy's error model, so that no division tests its divisor
-# (a test is a branch, which stops a loop's vectorisation): a zero J or kappa gives inf or
-# NaN, which the callers refuse as not finite, instead of raising.
+# (a test is a branch, which stops a loop's vectorisation): a zero J or kappa here gives
+# inf or NaN, which the callers refuse as not finite, instead of raising (the
+# point-by-point path, tangents and more than MAX_POINTS points, still raises at J = 0).
 @njit(nogil=True, fastmath={"reassoc", "contract"}, error_model="numpy")
 def _residual_points(dN, dV, u, p, params, r_u, scalars):
     """:func:`_integrate_mapped`'s residual for an hgo element, its points in vector lanes

@@ -11,7 +11,10 @@ tests/test_vector_math.py.
 The reductions use ``llvm.fma`` and ``llvm.rint`` directly: an inlined function takes its
 caller's fast-math flags, and a caller that allows reassociation (the element kernel's
 sums) could otherwise fold ``(x - n ln2_hi) - n ln2_lo`` into ``x - n ln2``, losing the
-split's extra bits. LLVM does not reorder an fma's one rounding.
+split's extra bits. LLVM does not reorder an fma's one rounding. Safe under the flags
+"reassoc" and "contract" (the sums'), not under ``fastmath=True``: its "nnan" and "ninf"
+would fold away the tests for NaN and infinity, and "nsz" with "reassoc" could regroup
+the two scale factors into one that overflows.
 """
 
 from __future__ import annotations
@@ -110,7 +113,7 @@ def _pow2(n):
 
 @njit(inline="always")
 def _scale(y, n):
-    """y 2^n for an integer-valued n in [-1074, 1024], as two factors within the normal
+    """y 2^n for an integer-valued n in [-1075, 1024], as two factors within the normal
     range (2^n alone would overflow at 1024 and be subnormal below -1022)."""
     half = _rint(0.5 * n)
     return y * _pow2(half) * _pow2(n - half)
@@ -118,8 +121,9 @@ def _scale(y, n):
 
 @njit(inline="always")
 def _reduce(x):
-    """(n, r): x = n ln2 + r, |r| <= ln2 / 2 (n clamped to [-1074, 1024] far out)."""
-    n = min(max(_rint(x * LOG2E), -1074.0), 1024.0)
+    """(n, r): x = n ln2 + r, |r| <= ln2 / 2 for x in [-745.2, 709.8] (n clamped to
+    [-1075, 1024] beyond, where the callers' own limits answer)."""
+    n = min(max(_rint(x * LOG2E), -1075.0), 1024.0)
     return n, _fma(-n, LN2_LO, _fma(-n, LN2_HI, x))
 
 
@@ -147,12 +151,12 @@ def vexpm1(x):
     """exp(x) - 1 within 2 ulp, exact near 0 (where exp(x) - 1 would cancel)."""
     n, r = _reduce(x)
     em = _expm1_reduced(r)
-    near = min(max(n, -60.0), 60.0)  # 2^n - 1 is exact or rounds harmlessly here
+    near = min(max(n, -53.0), 53.0)  # 2^n - 1 is exact here
     s = _pow2(near)
     y = _fma(s, em, s - 1.0) if n == near else _scale(em + 1.0, n) - 1.0
     y = math.inf if x > EXP_OVERFLOW else y
     y = -1.0 if x < EXPM1_MINUS_ONE else y
-    return x if x != x else y
+    return x if (x != x or x == 0.0) else y  # NaN, and -0 keeps its sign
 
 
 @njit(inline="always")

@@ -25,6 +25,7 @@ from hapticrom.online.haptic_newton import (
     HapticNewton,
     haptic_step,
 )
+from hapticrom.online.hyperreduced import Scratch, sampled_residual_tangent
 from hapticrom.shared.errors import InputError
 
 pytestmark = pytest.mark.serial
@@ -199,6 +200,23 @@ def test_a_single_precision_tangent_part_is_the_double_one_rounded(model):
     error = np.abs(K1[:n, :n] - K2[:n, :n]).max() / np.abs(K2[:n, :n]).max()
     assert 0 < error <= SINGLE_ROUNDING, error
     assert np.array_equal(K1, K1.T)
+
+
+def test_a_double_precision_tangent_part_is_the_sampled_sums_over_its_elements(model):
+    """precision="double": a step's tangent part (the first half of the elements) is
+    sampled_residual_tangent's r and K over those elements at the step's state, bit for
+    bit (the same operations in the same order)."""
+    _, _, _, inputs, linear, stiffness = model
+    reseed(RNG, "double-part")
+    solver = HapticNewton(inputs, linear, 1, 2, precision="double")
+    q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
+    assert solver.step(q, pi, loads(stiffness, 2)[0]) and solver.part == 1
+    first, last = solver.bounds[:2]
+    part = tuple(readonly(a[first:last]) for a in solver.sample)
+    r, K = np.full(SIZE, np.nan), np.full((SIZE, SIZE), np.nan)
+    scratch = Scratch(solver.sample[2].shape[1] // 3, MODES)
+    sampled_residual_tangent(*part, readonly(q), readonly(pi), r, K, *scratch.buffers())
+    assert np.array_equal(solver.K, K) and np.array_equal(solver.r, r)
 
 
 def solver_state(solver, q, pi) -> list[np.ndarray]:
@@ -395,7 +413,10 @@ def test_constructor_refusals(model):
              ((inputs[:2] + (np.nan * inputs[2],) + inputs[3:], linear), {"slices": 1}, "Phi"),
              ((inputs[:2] + (0 * inputs[2],) + inputs[3:], linear), {"slices": 1},
               "singular"),
-             ((inputs, linear), {"slices": 1, "precision": "half"}, "precision")]  # fmt: skip
+             ((inputs, linear), {"slices": 1, "precision": "half"}, "precision"),
+             ((inputs, linear), {"slices": 1, "precision": ["single"]}, "precision"),
+             ((inputs[:2] + (inputs[2] * 1e39 / np.abs(inputs[2]).max(),) + inputs[3:],
+               linear), {"slices": 1}, "overflows")]  # fmt: skip
     for args, kwargs, message in cases:
         with pytest.raises(InputError, match=message):
             HapticNewton(*args, **kwargs)

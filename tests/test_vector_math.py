@@ -39,7 +39,8 @@ def library(function, x: float) -> float:
 
 
 def exp_arguments() -> np.ndarray:
-    edges = [709.78, 709.7827, 709.79, -708.39, -708.4, -744.4, -745.1, -745.2, -40.0, -39.9]
+    edges = [709.78, 709.7827, 709.79, -708.39, -708.4, -744.4, -745.1, -745.2, -40.0, -39.9,
+             -745.1332191019411, -744.79]  # fmt: skip
     halves = [k * math.log(2) / 2 for k in range(-5, 6)]  # the reduction's boundaries
     return np.concatenate([RNG.uniform(-746, 710, 100_000), RNG.uniform(-3, 3, 100_000),
                            RNG.uniform(-1e-6, 1e-6, 5_000), np.nextafter(halves, math.inf),
@@ -71,6 +72,8 @@ def test_within_an_ulp_or_two_of_the_c_library(function, reference, arguments, u
     expected = np.array([library(reference, v) for v in x])
     special = ~np.isfinite(expected) | (expected == 0)
     assert np.array_equal(got[special], expected[special], equal_nan=True)
+    zero = expected == 0
+    assert np.array_equal(np.signbit(got[zero]), np.signbit(expected[zero]))  # -0 as libm
     tiny = np.abs(expected) < 2.2250738585072014e-308  # subnormal results: their own ulp
     spacing = np.array([math.ulp(v) for v in expected[~special]])
     error = np.abs(got[~special] - expected[~special]) / spacing
