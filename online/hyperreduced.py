@@ -131,33 +131,6 @@ def _add_projected(Phi, Psi, s, weight, theta, r_u, r):
 
 
 @njit(inline="always")
-def _add_projected_tangent(Phi, Psi, s, weight, K_uu, K_up, T, K):
-    """K += weight (Phi^T K_uu Phi, Phi^T K_up Psi): the q-q block's upper triangle and the
-    q-pi block. The modes are the contiguous inner loops, counted from 0 (numba's index
-    wraparound then folds away and they vectorise), over a node's 3 rows at a time (fewer
-    loads and stores of T and K a product)."""
-    m, n, n_p = Phi.shape[1], Phi.shape[2], Psi.shape[1]
-    for row in range(m):  # T = weight K_uu Phi
-        for j in range(n):
-            T[row, j] = 0.0
-        for c in range(0, m, 3):
-            a0, a1, a2 = weight * K_uu[row, c], weight * K_uu[row, c + 1], weight * K_uu[row, c + 2]
-            for j in range(n):
-                T[row, j] += a0 * Phi[s, c, j] + a1 * Phi[s, c + 1, j] + a2 * Phi[s, c + 2, j]
-    for i in range(n):
-        t = 0.0
-        for row in range(m):
-            t += Phi[s, row, i] * K_up[row]
-        t *= weight
-        for k in range(n_p):
-            K[i, n + k] += t * Psi[s, k]
-        for c in range(0, m, 3):
-            b0, b1, b2 = Phi[s, c, i], Phi[s, c + 1, i], Phi[s, c + 2, i]
-            for j in range(n - i):
-                K[i, i + j] += b0 * T[c, i + j] + b1 * T[c + 1, i + j] + b2 * T[c + 2, i + j]
-
-
-@njit(inline="always")
 def _add_coupling(Phi, Psi, s, weight, K_up, K):
     """K[:n, n:] += weight Phi^T K_up Psi: an element's q-pi block."""
     m, n, n_p = Phi.shape[1], Phi.shape[2], Psi.shape[1]
@@ -173,8 +146,10 @@ def _add_coupling(Phi, Psi, s, weight, K_up, K):
 @njit(inline="always")
 def _add_projected_stiffness(PhiQ, s, weight, K_uu, Kw, TQ, Kqq):
     """Kqq's upper triangle += weight Phi^T K_uu Phi, in the precision of PhiQ, Kw, TQ and
-    Kqq (Phi's rows rounded to it): :func:`_add_projected_tangent`'s q-q block, its
-    operations in the same order (Kw = weight K_uu first, in that precision)."""
+    Kqq (Phi's rows rounded to it; Kw = weight K_uu first, in that precision; Kw may be
+    K_uu itself). The modes are the contiguous inner loops, counted from 0 (numba's index
+    wraparound then folds away and they vectorise), over a node's 3 rows at a time (fewer
+    loads and stores of TQ and Kqq a product)."""
     m, n = PhiQ.shape[1], PhiQ.shape[2]
     for row in range(m):
         for c in range(m):
@@ -261,28 +236,14 @@ def _residual_nodes(dN, dV, node_rows, slots, Psi, params, weights, q, pi, r, no
 
 
 @njit(inline="always")
-def _tangent_sum(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, K, u, r_u, K_uu,
-                 K_up, scalars, T):  # fmt: skip
-    """r and K = the sums over the sampled elements first..last - 1 (shapes checked by the
-    caller): a whole tangent, or a slice of one (:mod:`.haptic_newton`)."""
-    r[:] = 0.0
-    K[:, :] = 0.0
-    for s in range(first, last):
-        p = _element_state(Phi, Psi, s, q, pi, u)
-        _integrate_mapped(dN[s], dV[s], u, p, params[s], r_u, K_uu, K_up, scalars)
-        theta = _theta(scalars, p, params[s, KAPPA])
-        _add_projected(Phi, Psi, s, weights[s], theta, r_u, r)
-        _add_projected_tangent(Phi, Psi, s, weights[s], K_uu, K_up, T, K)
-    _symmetrize(K)
-
-
-@njit(inline="always")
 def _tangent_part(dN, dV, Phi, Psi, params, weights, first, last, q, pi, r, K, u, r_u, K_uu,
                   K_up, scalars, PhiQ, Kw, TQ, Kqq):  # fmt: skip
-    """:func:`_tangent_sum`'s r and K, the q-q block projected in PhiQ's precision (PhiQ:
-    Phi's rows in it; Kw, TQ, Kqq buffers in it): in float64, the same operations in the
-    same order (bit for bit); in float32, twice the vector lanes a product. A modified
-    Newton's tangent steers its iterations, the residual decides where they stop."""
+    """r and K = the sums over the sampled elements first..last - 1 (shapes checked by the
+    caller): a whole tangent, or a slice of one (:mod:`.haptic_newton`). The q-q block is
+    projected in PhiQ's precision (PhiQ: Phi's rows in it; Kw, TQ, Kqq buffers in it, which
+    in float64 may be K_uu, T and K themselves): in float32, twice the vector lanes a
+    product. A modified Newton's tangent steers its iterations, the residual decides where
+    they stop."""
     n = Phi.shape[2]
     r[:] = 0.0
     K[:, :] = 0.0
@@ -372,8 +333,8 @@ def sampled_residual_tangent(dN, dV, Phi, Psi, params, weights, q, pi, r, K, u, 
     n_p = Psi.shape[1]
     _check_sample(dN, dV, Phi, Psi, params, weights, q, pi)
     _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, T)
-    _tangent_sum(dN, dV, Phi, Psi, params, weights, 0, S, q, pi, r, K, u, r_u, K_uu, K_up,
-                 scalars, T)  # fmt: skip
+    _tangent_part(dN, dV, Phi, Psi, params, weights, 0, S, q, pi, r, K, u, r_u, K_uu, K_up,
+                  scalars, Phi, K_uu, T, K)  # fmt: skip
 
 
 @njit(f"void({_SAMPLE}, {_STATE}, {_F8_1D}, {_F8_2D}, {_F8_1D}, {_F8_1D})", cache=True,
