@@ -45,7 +45,6 @@ import numpy as np
 from numba import carray, njit
 
 from hapticrom.online.material_kernels import (
-    _THETA,
     KAPPA,
     LAW,
     LAW_HGO,
@@ -60,6 +59,7 @@ from hapticrom.online.material_kernels import (
     _evaluate,
     _hgo_points,
     _stack_doubles,
+    _theta_gradient,
 )
 from hapticrom.shared.errors import InputError
 
@@ -285,11 +285,12 @@ def _add_point(dN, dV, u, p, params, F, P, g, A, B, r_u, K_uu, K_up):
     """One quadrature point's terms of r_u and (unless None) K_uu's upper block triangle and
     K_up; returns its (rest + p theta, theta). Per point one law evaluation gives the mixed
     stress dRest + p dTheta and tangent d2Rest + p d2Theta (rest weighted 1, kappa 0, theta
-    p), a second dTheta alone."""
+    p), and dTheta alone (material_kernels' _theta_gradient: a second law evaluation cost
+    11 of an element tangent's 117 us, stop 51)."""
     _deformation_gradient(u, dN, F)
     if K_uu is not None:
         rest, theta = _evaluate(F, params, (1.0, 0.0, p), P, A)
-        _evaluate(F, params, _THETA, g, None)
+        _theta_gradient(F, params, g)
     else:
         rest, theta = _evaluate(F, params, (1.0, 0.0, p), P, None)
     for a in range(u.shape[0]):
@@ -351,6 +352,13 @@ def _integrate(X, u, p, params, reference, weights, r_u, K_uu, K_up, scalars):
 # the stack buffers of _residual_points, their sizes literals (numba's stack wants them)
 _STACK_SIZES = (POINT_ROWS * MAX_POINTS, 3 * MAX_NODES * MAX_POINTS)
 assert _STACK_SIZES == (464, 1296), _STACK_SIZES
+# The shapes _residual_points' loops run over as literals, (lanes, nodes): the points padded
+# to the lanes, for the hexahedron and the quadratic tetrahedron (MAX_POINTS lanes and the
+# element's nodes otherwise). Loops over run-time counts of 8 points and 8 nodes are mostly
+# their scalar remainders (LLVM's vector body takes 16 or more a pass); both literal, the
+# loops unroll whole. Measured on the demo's held region (414 hexahedra, an AMD EPYC), the
+# residual's element part: 333 -> 259 us (min); either literal alone: 325-332 us.
+POINT_SHAPES = ((8, 8), (MAX_POINTS, 10))
 
 
 # Not inlined: compiled once and called by every sum over elements (inlined beside the
@@ -364,34 +372,52 @@ assert _STACK_SIZES == (464, 1296), _STACK_SIZES
 def _residual_points(dN, dV, u, p, params, r_u, scalars):
     """:func:`_integrate_mapped`'s residual for an hgo element, its points in vector lanes
     (material_kernels' stage buffer W): F at every point, the law at every point
-    (``_hgo_points``), then r_u. The gradients are copied point-minor first (dNt), so that
-    every loop over the points reads contiguous entries."""
+    (``_hgo_points``), then r_u; over one of POINT_SHAPES' literal shapes if the element
+    fits it."""
     points, n = dV.shape[0], u.shape[0]
+    hexahedron, tetrahedron = POINT_SHAPES
+    if points <= hexahedron[0] and n == hexahedron[1]:
+        _residual_lanes(dN, dV, u, p, params, r_u, scalars, hexahedron[0], hexahedron[1])
+    elif points <= tetrahedron[0] and n == tetrahedron[1]:
+        _residual_lanes(dN, dV, u, p, params, r_u, scalars, tetrahedron[0], tetrahedron[1])
+    else:
+        _residual_lanes(dN, dV, u, p, params, r_u, scalars, MAX_POINTS, n)
+
+
+@njit(inline="always")
+def _residual_lanes(dN, dV, u, p, params, r_u, scalars, lanes, n):
+    """:func:`_residual_points` over ``lanes`` columns (at least the points) and the n
+    nodes (u's; literals in a call where they can be): the gradients copied point-minor
+    (dNt) so that every loop over the lanes reads contiguous entries; a padded lane has no
+    gradient (F = I, a finite law) and no volume (dVl = 0: it adds exact zeros)."""
+    points = dV.shape[0]
     W = carray(_stack_doubles(464), (POINT_ROWS, MAX_POINTS))  # literals: _STACK_SIZES
     dNt = carray(_stack_doubles(1296), (MAX_NODES, 3, MAX_POINTS))
-    for q in range(points):
+    dVl = carray(_stack_doubles(16), (MAX_POINTS,))  # 16: MAX_POINTS, a literal
+    for q in range(lanes):
+        dVl[q] = dV[q] if q < points else 0.0
         for a in range(n):
             for j in range(3):
-                dNt[a, j, q] = dN[q, a, j]
+                dNt[a, j, q] = dN[q, a, j] if q < points else 0.0
     for r in range(9):  # F = I + sum_a u_a (x) dN_a
         i, j = r // 3, r % 3
-        for q in range(points):
+        for q in range(lanes):
             W[POINT_F + r, q] = 1.0 if i == j else 0.0
         for a in range(n):
             ua = u[a, i]
-            for q in range(points):
+            for q in range(lanes):
                 W[POINT_F + r, q] += ua * dNt[a, j, q]
-    _hgo_points(W, points, params, p, dV)
+    _hgo_points(W, lanes, params, p, dVl)
     energy = volumetric = volume = 0.0
-    for q in range(points):
-        energy += dV[q] * (W[POINT_REST, q] + p * W[POINT_THETA, q])
-        volumetric += dV[q] * W[POINT_THETA, q]
-        volume += dV[q]
+    for q in range(lanes):
+        energy += dVl[q] * (W[POINT_REST, q] + p * W[POINT_THETA, q])
+        volumetric += dVl[q] * W[POINT_THETA, q]
+        volume += dVl[q]
     for a in range(n):  # r_u[3a + i] = sum over the points of (P dV)[i, j] dN_a,j
         for i in range(3):
             v = 0.0
             for j in range(3):
-                for q in range(points):
+                for q in range(lanes):
                     v += W[POINT_P + 3 * i + j, q] * dNt[a, j, q]
             r_u[3 * a + i] = v
     _finish(p, 1.0 / params[KAPPA], energy, volumetric, volume, None, scalars)

@@ -522,6 +522,24 @@ def _hgo_points(W, points, params, p, dV):
             W[POINT_P + r, q] = (U[r] + 2.0 * fibres[r] + (s1 + p) * G[r]) * dV[q]
 
 
+# Compiled apart without flags, as the laws: its bits are theirs.
+@njit(nogil=True, fastmath=False)
+def _theta_gradient(Fa, params, g):
+    """g = dTheta/dF alone: what _evaluate(F, params, _THETA, g, None) writes, without the
+    rest of the law (an element tangent's K_up needs it at every point): F for svk (theta =
+    tr E), F^-T for neo-hookean and hgo (theta = ln J), NaN for an unknown law."""
+    law = params[LAW]
+    if law == LAW_SVK:
+        G = _matrix(Fa)
+    elif law == LAW_NEO_HOOKEAN or law == LAW_HGO:
+        G = _det_inverse_transpose(_matrix(Fa))[1]
+    else:
+        g[:, :] = np.nan
+        return
+    for r in range(9):
+        g[r // 3, r % 3] = G[r]
+
+
 @njit(inline="always")
 def _evaluate(F, params, part, P, A):
     """(rest, theta) of the law params[LAW]; P and A written unless None (NaN: unknown law)."""

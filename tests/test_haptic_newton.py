@@ -24,6 +24,7 @@ from hapticrom.online.haptic_newton import (
     REFUSED,
     HapticNewton,
     haptic_step,
+    part_bounds,
 )
 from hapticrom.online.hyperreduced import Scratch, sampled_residual_tangent
 from hapticrom.shared.errors import InputError
@@ -113,7 +114,7 @@ def loads(stiffness, steps: int) -> list[np.ndarray]:
 
 def reference_steps(problem, elements, weights, linear, load_path, iterations, slices):
     """The module's schedule in numpy: the states after each step."""
-    bounds = np.linspace(0, len(elements), slices + 1).astype(np.int64)
+    bounds = part_bounds(len(elements), slices, SIZE, problem.rows.shape[1], MODES)
     sums = lambda part, x: numpy_sums(problem, elements[part], weights[part], x[:MODES],  # noqa: E731
                                       x[MODES:])  # fmt: skip
     tangent = sums(slice(None), np.zeros(SIZE))[1] + linear
@@ -146,6 +147,27 @@ def test_steps_follow_the_numpy_schedule(model, iterations, slices):
         assert np.abs(pi - x[MODES:]).max() <= 1e-10 * np.abs(x[MODES:]).max(), k
         assert solver.part == (k + 1) % slices
     assert solver.failed_factorisations == 0
+
+
+@pytest.mark.parametrize("elements, parts, size", [(414, 30, 102), (414, 1, 102), (40, 7, 20),
+                                                   (5, 5, 300), (1000, 20, 60)])  # fmt: skip
+def test_the_parts_cost_alike_with_the_factorisation_in_the_last(elements, parts, size):
+    """part_bounds runs from 0 to the elements without decreasing, and the parts, the
+    factorisation's element-equivalents counted in the last (the model's, recomputed here),
+    differ by at most one element and a half, unless the factorisation alone outweighs a
+    part (then the last is empty, the others even). Equal parts would put the whole
+    factorisation on the last step."""
+    m, n = 24, 72
+    bounds = part_bounds(elements, parts, size, m, n)
+    assert bounds.dtype == np.int64 and len(bounds) == parts + 1
+    assert bounds[0] == 0 and bounds[-1] == elements and (np.diff(bounds) >= 0).all()
+    factorisation = size**3 / 3 / (m * m * n + m * n * n / 2)
+    costs = np.diff(bounds).astype(float)
+    costs[-1] += factorisation
+    if factorisation <= (elements + factorisation) / parts:
+        assert costs.max() - costs.min() <= 1.5, costs
+    else:
+        assert bounds[-2] == elements and np.ptp(np.diff(bounds)[:-1]) <= 1
 
 
 def newton_equilibrium(problem, elements, weights, linear, load) -> np.ndarray:

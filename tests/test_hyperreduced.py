@@ -390,6 +390,40 @@ def test_more_points_than_the_lanes_hold_take_the_point_by_point_path():
         assert relative(r[rows], r_ref[rows]) <= RELATIVE
 
 
+def _rule(name: str) -> ek.ReferenceElement:
+    """A reference element whose points leave lanes of the points path's shapes empty."""
+    if name == "hex-gauss-1":  # 1 point: the hexahedron's 8 lanes, 7 padded
+        return ek.reference_element("hexahedron", 1)
+    gauss = ek.reference_element("hexahedron")
+    if name == "hex-12":  # 8 nodes and 12 points: MAX_POINTS lanes, the nodes a variable
+        extra = np.array([[0.3, 0.4, 0.5], [0.7, 0.2, 0.6], [0.5, 0.5, 0.5], [0.1, 0.8, 0.3]])
+        rule = (np.vstack([gauss.points, extra]), np.r_[0.75 * gauss.weights, np.full(4, 1 / 16)])
+        return ek.reference_element("hexahedron", rule=rule)
+    points = np.array([[0.1, 0.2, 0.3], [0.5, 0.1, 0.2], [0.2, 0.5, 0.1], [0.25, 0.25, 0.25]])
+    return ek.reference_element("tetrahedron", rule=(points, np.full(4, 1 / 24)))  # 16 lanes
+
+
+@pytest.mark.parametrize("name, rule", [("hex-hgo", "hex-gauss-1"), ("hex-hgo", "hex-12"),
+                                        ("tet-hgo-incompressible", "tet-4")])  # fmt: skip
+def test_points_the_lanes_leave_empty_add_nothing(name, rule):
+    """The points path runs over literal lane counts (POINT_SHAPES), the points padded with
+    lanes of no gradient and no volume: with 1 of a hexahedron's 8 lanes, 4 of a
+    tetrahedron's 16, and 12 points of a hexahedron (MAX_POINTS lanes, its 8 nodes not a
+    literal), ``sampled_residual`` is the numpy assembly over the point-by-point kernel."""
+    problem = replace(make_problem(name), reference=_rule(rule))
+    points, nodes = len(problem.reference.weights), problem.nodes
+    assert points < ek.MAX_POINTS and (points, nodes) not in ek.POINT_SHAPES
+    elements, weights = random_subset(problem)
+    q, pi = random_state()
+    r_ref, _ = numpy_sums(problem, elements, weights, q, pi)
+    scratch = Scratch(nodes, MODES)
+    r = np.full(MODES + PRESSURE_MODES, np.nan)
+    sampled_residual(*sample(problem, elements, weights), q, pi, r, scratch.u, scratch.r_u,
+                     scratch.scalars)  # fmt: skip
+    for rows in (slice(0, MODES), slice(MODES, None)):
+        assert relative(r[rows], r_ref[rows]) <= RELATIVE
+
+
 # -- outputs and scratch ----------------------------------------------------------------------
 def test_every_output_written_and_scratch_reusable(problem):
     """NaN-filled r, K and scratch come back finite, equal to a fresh scratch's; a scratch

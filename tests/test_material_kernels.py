@@ -451,3 +451,28 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
         print("ok")
     """
     run_probe(body, BLOCK_FE_STACK, {"NUMBA_CACHE_DIR": str(tmp_path / "numba")})
+
+
+def test_theta_gradient_alone_is_the_law_s_bit_for_bit():
+    """_theta_gradient (an element tangent's K_up at every point) writes what the law's
+    theta part writes, bit for bit (theta_derivatives' g, held to UFL above), for every
+    law at random deformations; NaN for an unknown law id."""
+    from numba import njit
+
+    @njit
+    def theta_gradient(F, params, g):
+        mk._theta_gradient(F, params, g)
+
+    for name, (_, parameter_sets) in CASES.items():
+        for params in parameter_sets:
+            packed = pack(name, params, random_unit(), random_unit())
+            for F in deformations(6):
+                expected, g = np.empty((3, 3)), np.full((3, 3), np.nan)
+                mk.theta_derivatives(np.ascontiguousarray(F), packed, expected, np.empty((9, 9)))
+                theta_gradient(np.ascontiguousarray(F), packed, g)
+                np.testing.assert_array_equal(g, expected, err_msg=name)
+    unknown = mk.law_parameters("svk", E=1.0, nu=0.3)
+    unknown[mk.LAW] = 99.0
+    g = np.zeros((3, 3))
+    theta_gradient(np.eye(3), unknown, g)
+    assert np.isnan(g).all()
