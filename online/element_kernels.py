@@ -350,8 +350,8 @@ def _integrate(X, u, p, params, reference, weights, r_u, K_uu, K_up, scalars):
 
 
 # the stack buffers of _residual_points, their sizes literals (numba's stack wants them)
-_STACK_SIZES = (POINT_ROWS * MAX_POINTS, 3 * MAX_NODES * MAX_POINTS)
-assert _STACK_SIZES == (464, 1296), _STACK_SIZES
+_STACK_SIZES = (POINT_ROWS * MAX_POINTS, 3 * MAX_NODES * MAX_POINTS, MAX_POINTS)
+assert _STACK_SIZES == (464, 1296, 16), _STACK_SIZES
 # The shapes _residual_points' loops run over as literals, (lanes, nodes): the points padded
 # to the lanes, for the hexahedron and the quadratic tetrahedron (MAX_POINTS lanes and the
 # element's nodes otherwise). Loops over run-time counts of 8 points and 8 nodes are mostly
@@ -373,27 +373,31 @@ def _residual_points(dN, dV, u, p, params, r_u, scalars):
     """:func:`_integrate_mapped`'s residual for an hgo element, its points in vector lanes
     (material_kernels' stage buffer W): F at every point, the law at every point
     (``_hgo_points``), then r_u; over one of POINT_SHAPES' literal shapes if the element
-    fits it."""
+    fits it. The stack buffers are made here, once for the three inlined shapes."""
     points, n = dV.shape[0], u.shape[0]
+    W = carray(_stack_doubles(464), (POINT_ROWS, MAX_POINTS))  # literals: _STACK_SIZES
+    stage = (W, carray(_stack_doubles(1296), (MAX_NODES, 3, MAX_POINTS)),
+             carray(_stack_doubles(16), (MAX_POINTS,)))  # fmt: skip
     hexahedron, tetrahedron = POINT_SHAPES
     if points <= hexahedron[0] and n == hexahedron[1]:
-        _residual_lanes(dN, dV, u, p, params, r_u, scalars, hexahedron[0], hexahedron[1])
+        _residual_lanes(dN, dV, u, p, params, r_u, scalars, stage, hexahedron[0],
+                        hexahedron[1])  # fmt: skip
     elif points <= tetrahedron[0] and n == tetrahedron[1]:
-        _residual_lanes(dN, dV, u, p, params, r_u, scalars, tetrahedron[0], tetrahedron[1])
+        _residual_lanes(dN, dV, u, p, params, r_u, scalars, stage, tetrahedron[0],
+                        tetrahedron[1])  # fmt: skip
     else:
-        _residual_lanes(dN, dV, u, p, params, r_u, scalars, MAX_POINTS, n)
+        _residual_lanes(dN, dV, u, p, params, r_u, scalars, stage, MAX_POINTS, n)
 
 
 @njit(inline="always")
-def _residual_lanes(dN, dV, u, p, params, r_u, scalars, lanes, n):
+def _residual_lanes(dN, dV, u, p, params, r_u, scalars, stage, lanes, n):
     """:func:`_residual_points` over ``lanes`` columns (at least the points) and the n
-    nodes (u's; literals in a call where they can be): the gradients copied point-minor
-    (dNt) so that every loop over the lanes reads contiguous entries; a padded lane has no
-    gradient (F = I, a finite law) and no volume (dVl = 0: it adds exact zeros)."""
+    nodes (u's; literals in a call where they can be), in ``stage``'s buffers (W, dNt,
+    dVl): the gradients copied point-minor (dNt) so that every loop over the lanes reads
+    contiguous entries; a padded lane has no gradient (F = I, a finite law) and no volume
+    (dVl = 0: it adds exact zeros)."""
     points = dV.shape[0]
-    W = carray(_stack_doubles(464), (POINT_ROWS, MAX_POINTS))  # literals: _STACK_SIZES
-    dNt = carray(_stack_doubles(1296), (MAX_NODES, 3, MAX_POINTS))
-    dVl = carray(_stack_doubles(16), (MAX_POINTS,))  # 16: MAX_POINTS, a literal
+    W, dNt, dVl = stage
     for q in range(lanes):
         dVl[q] = dV[q] if q < points else 0.0
         for a in range(n):

@@ -218,11 +218,14 @@ def part_bounds(elements: int, parts: int, size: int, nodes_rows: int, modes: in
     largest, not its mean, is the one to lower. The model: size^3 / 3 multiply-adds for the
     factorisation, m^2 n + m n^2 / 2 for an element's projection (m = ``nodes_rows``, its
     rows; n = ``modes``): 3.4 elements on the demo's held region (102; 24, 72), where the
-    factorisation took 85 us and an element's tangent 19 (4.5: stop 51). The last part may
-    be empty (a factorisation worth more than a part)."""
-    factorisation = size**3 / 3 / (nodes_rows**2 * modes + nodes_rows * modes**2 / 2)
+    factorisation took 85 us and an element's tangent 19 (4.5: stop 51). The last part
+    keeps an element even where the factorisation outweighs a part: an empty one would
+    make the factorisation a step of its own, one more step of the tangent's age (the
+    module's note: that diverged at 3 parts)."""
+    element = max(1.0, nodes_rows**2 * modes + nodes_rows * modes**2 / 2)
+    factorisation = size**3 / 3 / element
     per_part = (elements + factorisation) / parts
-    last = min(elements, round(max(0.0, per_part - factorisation)))
+    last = min(elements, max(1, round(per_part - factorisation)))
     bounds = np.empty(parts + 1, np.int64)
     bounds[:-1] = np.rint(np.linspace(0, elements - last, parts))
     bounds[-1] = elements

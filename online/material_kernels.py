@@ -525,9 +525,11 @@ def _hgo_points(W, points, params, p, dV):
 # Compiled apart without flags, as the laws: its bits are theirs.
 @njit(nogil=True, fastmath=False)
 def _theta_gradient(Fa, params, g):
-    """g = dTheta/dF alone: what _evaluate(F, params, _THETA, g, None) writes, without the
-    rest of the law (an element tangent's K_up needs it at every point): F for svk (theta =
-    tr E), F^-T for neo-hookean and hgo (theta = ln J), NaN for an unknown law."""
+    """g = dTheta/dF alone: what _evaluate(F, params, _THETA, g, None) writes where the law
+    is finite (J > 0; there it wrote NaN, here F^-T is inf or of the wrong sign: the same
+    point's P and A are NaN), without the rest of the law (an element tangent's K_up needs
+    it at every point): F for svk (theta = tr E), F^-T for neo-hookean and hgo (theta =
+    ln J), NaN for an unknown law."""
     law = params[LAW]
     if law == LAW_SVK:
         G = _matrix(Fa)

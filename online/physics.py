@@ -354,7 +354,7 @@ class HyperReducedPhysics:
         self.holder_nodes = [len(q) for q in patches]  # under 3: each node held
         for A in self.holders:
             linear[:n, :n] += self.hold_stiffness * (A.T @ A)
-        # slices: at most one element a part (a small region has fewer elements than 30)
+        # slices: at least one element a part (a small region has fewer elements than 30)
         self.newton = self._newton(sample, linear, iterations, min(slices, len(sample[5])),
                                    precision)  # fmt: skip
         self.check = None  # the error indicator (a file with check samples: group 1.2)

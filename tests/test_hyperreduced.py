@@ -412,7 +412,7 @@ def test_points_the_lanes_leave_empty_add_nothing(name, rule):
     literal), ``sampled_residual`` is the numpy assembly over the point-by-point kernel."""
     problem = replace(make_problem(name), reference=_rule(rule))
     points, nodes = len(problem.reference.weights), problem.nodes
-    assert points < ek.MAX_POINTS and (points, nodes) not in ek.POINT_SHAPES
+    assert points not in [lanes for lanes, _ in ek.POINT_SHAPES]  # some lanes padded
     elements, weights = random_subset(problem)
     q, pi = random_state()
     r_ref, _ = numpy_sums(problem, elements, weights, q, pi)

@@ -456,7 +456,8 @@ def test_runtime_module_imports_no_fe_stack_and_allocates_nothing(tmp_path):
 def test_theta_gradient_alone_is_the_law_s_bit_for_bit():
     """_theta_gradient (an element tangent's K_up at every point) writes what the law's
     theta part writes, bit for bit (theta_derivatives' g, held to UFL above), for every
-    law at random deformations; NaN for an unknown law id."""
+    law at random deformations (J > 0: where the law is finite); NaN for an unknown law
+    id."""
     from numba import njit
 
     @njit
