@@ -21,28 +21,30 @@ import time
 
 import numpy as np
 
+from hapticrom.cli.args import float_in, int_in
+from hapticrom.cli.offline_commands import centre_point
 from hapticrom.online.haptic_newton import HapticNewton
 from hapticrom.online.model import load
 
 
 def point(text: str) -> np.ndarray:
-    values = np.array([float(v) for v in text.split(",")])
-    if values.shape != (3,) or not np.isfinite(values).all():
-        raise argparse.ArgumentTypeError(f"a point is X,Y,Z (three finite numbers), got {text!r}")
-    return values
+    """X,Y,Z (mm) as the CLI's ``--at`` reads it."""
+    return np.array(centre_point(text))
 
 
 def parse() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model")
-    parser.add_argument("--region", type=int, default=0)
+    parser.add_argument("--region", type=int_in(0, 10**6), default=0)
     parser.add_argument("--holder", type=point, default=point("-3.907,-2.311,-1.457"))
     parser.add_argument("--no-holder", action="store_true", help="a region built without one")
     parser.add_argument("--press", type=point, default=point("-2.232,-1.734,-0.53"))
-    parser.add_argument("--force", type=float, default=0.02, help="N along -z")
-    parser.add_argument("--ramp", type=int, default=60, help="steps to the load (2/3 ramp)")
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--slices", type=int, default=30)
+    parser.add_argument("--force", type=float_in(0.0, 1e3, "N"), default=0.02, help="N along -z")
+    parser.add_argument(
+        "--ramp", type=int_in(1, 10**6), default=60, help="steps to the load (2/3 ramp)"
+    )
+    parser.add_argument("--steps", type=int_in(100, 10**7), default=3000)
+    parser.add_argument("--slices", type=int_in(1, 10**6), default=30)
     return parser.parse_args()
 
 
