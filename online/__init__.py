@@ -31,7 +31,9 @@ artifact's ``hyperreduced`` group, ``model.physics()``): :mod:`~hapticrom.online
 (a region under pressing tools and holders), :mod:`~hapticrom.online.material_kernels`,
 :mod:`~hapticrom.online.element_kernels`, :mod:`~hapticrom.online.hyperreduced` (the
 sampled sums), :mod:`~hapticrom.online.haptic_newton` (a step of fixed cost) and
-:mod:`~hapticrom.online.dense_solve` (its LU).
+:mod:`~hapticrom.online.dense_solve` (its LU), over :mod:`~hapticrom.online.vector_math`
+(exp, expm1, log in vector lanes) and :mod:`~hapticrom.online.vector_tiles` (register tiles
+for the tangent's projection).
 """
 
 from hapticrom.online.jit_cache import drop_if_stale

@@ -34,9 +34,10 @@ overlapping another: :class:`HapticNewton` makes them so), between steps:
       node_forces (N, 3): the residual's displacement and force of each of the sample's
       N distinct nodes (node_rows (N, 3, n) and slots (S, nodes) after the sample:
       :func:`~hapticrom.online.hyperreduced.shared_nodes`'); then a
-    :class:`~hapticrom.online.hyperreduced.Scratch`'s buffers but T; then PhiQ (Phi's
-    rows in the precision of the tangent parts' q-q projection, float64 or float32) and
-    that projection's buffers Kw (m, m), TQ (m, n), Kqq (n, n); size = n + n_p.
+    :class:`~hapticrom.online.hyperreduced.Scratch`'s buffers but T; then PhiQ (S, m, N)
+    (Phi's rows in the precision of the tangent parts' q-q projection, float64 or float32,
+    padded to N >= n columns for its register tiles: :func:`projection_rows`) and that
+    projection's buffers Kw (m, m), TQ (m, N), Kqq (N, N); size = n + n_p.
 """
 
 from __future__ import annotations
@@ -60,11 +61,13 @@ from hapticrom.online.hyperreduced import (
     sampled_residual_tangent,
     shared_nodes,
 )
+from hapticrom.online.vector_tiles import TILE_BYTES
 from hapticrom.shared.errors import InputError
 
 PART, FAILED_FACTORISATIONS, COUNTER_SIZE = 0, 1, 2  # offsets into the counters
-# the tangent parts' q-q projection: "single" takes it 232 -> 151 us a part on the demo's
-# held region (stop 50) and leaves where the steps settle unchanged (the residual decides)
+# the tangent parts' q-q projection: "single" took it 232 -> 151 us a part on the demo's
+# held region in loops (stop 50; in register tiles since stop 52, single's Phi padded to 16
+# columns' multiples) and leaves where the steps settle unchanged (the residual decides)
 PRECISIONS = {"single": np.float32, "double": np.float64}
 REFUSED = -1.0  # haptic_step's answer to a step it refused
 
@@ -153,12 +156,15 @@ def _step_signature(precision: str) -> str:
 
 @njit(inline="always")
 def _check_projection(PhiQ, Kw, TQ, Kqq, S, m, n):
-    if PhiQ.shape[0] != S or PhiQ.shape[1] != m or PhiQ.shape[2] != n:
-        raise ValueError("PhiQ must be Phi's shape; Kw (m, m), TQ (m, n), Kqq (n, n)")
-    if Kw.shape[0] != m or Kw.shape[1] != m or TQ.shape[0] != m or TQ.shape[1] != n:
-        raise ValueError("PhiQ must be Phi's shape; Kw (m, m), TQ (m, n), Kqq (n, n)")
-    if Kqq.shape[0] != n or Kqq.shape[1] != n:
-        raise ValueError("PhiQ must be Phi's shape; Kw (m, m), TQ (m, n), Kqq (n, n)")
+    """PhiQ (S, m, N), N >= n (Phi's columns, padded for the projection's tiles); Kw (m, m),
+    TQ (m, N), Kqq (N, N)."""
+    N = PhiQ.shape[2]
+    if PhiQ.shape[0] != S or PhiQ.shape[1] != m or N < n:
+        raise ValueError("PhiQ must be Phi's shape or wider; Kw (m, m), TQ (m, N), Kqq (N, N)")
+    if Kw.shape[0] != m or Kw.shape[1] != m or TQ.shape[0] != m or TQ.shape[1] != N:
+        raise ValueError("PhiQ must be Phi's shape or wider; Kw (m, m), TQ (m, N), Kqq (N, N)")
+    if Kqq.shape[0] != N or Kqq.shape[1] != N:
+        raise ValueError("PhiQ must be Phi's shape or wider; Kw (m, m), TQ (m, N), Kqq (N, N)")
 
 
 @njit([_step_signature("float64"), _step_signature("float32")], cache=True, nogil=True,
@@ -169,15 +175,17 @@ def haptic_step(dN, dV, Phi, Psi, params, weights, node_rows, slots, linear, bou
     """One step under ``load`` (n,) from (q, pi), updated in place (the module's steps and
     buffers); returns the last iteration's |delta q| / |q|, or REFUSED (nothing changed).
     The tangent part's q-q block is projected in PhiQ's precision (float64 or float32;
-    PhiQ: Phi rounded to it, Kw, TQ, Kqq its buffers). Shapes and slots are checked
-    (ValueError) before anything is written; that node_rows and slots are Phi's
-    (shared_nodes') and PhiQ is Phi rounded is not (it would cost what they save): else the
-    residual and the tangent are of two bases. :class:`HapticNewton` makes them itself."""
+    PhiQ: Phi rounded to it, maybe padded: :func:`projection_rows`; Kw, TQ, Kqq its
+    buffers). Shapes and slots are checked (ValueError) before anything is written; that
+    node_rows and slots are Phi's (shared_nodes') and PhiQ is Phi rounded (and padded) is
+    not (it would cost what they save): else the residual and the tangent are of two
+    bases. :class:`HapticNewton` makes them itself."""
     S, m, n = Phi.shape
     n_p = Psi.shape[1]
     _check_sample(dN, dV, Phi, Psi, params, weights, q, pi)
     _check_nodes(node_rows, slots, node_u, node_forces, S, m, n)
-    _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, TQ)
+    # TQ is (m, N >= n) here (_check_projection): its first n columns stand for Scratch.T
+    _check_tangent_outputs(m, n, n_p, r, K, u, r_u, K_uu, K_up, scalars, TQ[:, :n])
     _check_projection(PhiQ, Kw, TQ, Kqq, S, m, n)
     _check_step(linear, bounds, load, counters, lu, pivots, building, x, n, S)
     if iterations < 1:
@@ -211,18 +219,25 @@ def haptic_step(dN, dV, Phi, Psi, params, weights, node_rows, slots, linear, bou
     return update
 
 
+# An element's tangent (law, stiffness and tiled projection), modelled by its projection's
+# multiply-add count m^2 n + m n^2 / 2, against the factorisation's size^3 / 3, in time:
+# 2.6 times as many a microsecond, measured on the demo's held region after the tiles (stop
+# 52, an AMD EPYC): an element's tangent 7.8 us for 104k, the factorisation of 102 unknowns
+# with its copies about 70 us for 354k.
+ELEMENT_TANGENT_RATE = 2.6
+
+
 def part_bounds(elements: int, parts: int, size: int, nodes_rows: int, modes: int) -> np.ndarray:
     """The tangent's parts as bounds (parts + 1 int64 from 0 to ``elements``): equal in cost
     with the factorisation (size = n + n_p) that the step of the last part adds counted in
     that part, in elements of equal cost. A step's cost is what the loop waits on, so its
     largest, not its mean, is the one to lower. The model: size^3 / 3 multiply-adds for the
-    factorisation, m^2 n + m n^2 / 2 for an element's projection (m = ``nodes_rows``, its
-    rows; n = ``modes``): 3.4 elements on the demo's held region (102; 24, 72), where the
-    factorisation took 85 us and an element's tangent 19 (4.5: stop 51). The last part
-    keeps an element even where the factorisation outweighs a part: an empty one would
-    make the factorisation a step of its own, one more step of the tangent's age (the
-    module's note: that diverged at 3 parts)."""
-    element = max(1.0, nodes_rows**2 * modes + nodes_rows * modes**2 / 2)
+    factorisation, (m^2 n + m n^2 / 2) / ELEMENT_TANGENT_RATE for an element's tangent (m =
+    ``nodes_rows``, its rows; n = ``modes``): 8.9 elements on the demo's held region (102;
+    24, 72; measured about 9). The last part keeps an element even where the factorisation
+    outweighs a part: an empty one would make the factorisation a step of its own, one
+    more step of the tangent's age (the module's note: that diverged at 3 parts)."""
+    element = max(1.0, (nodes_rows**2 * modes + nodes_rows * modes**2 / 2) / ELEMENT_TANGENT_RATE)
     factorisation = size**3 / 3 / element
     per_part = (elements + factorisation) / parts
     last = min(elements, max(1, round(per_part - factorisation)))
@@ -230,6 +245,26 @@ def part_bounds(elements: int, parts: int, size: int, nodes_rows: int, modes: in
     bounds[:-1] = np.rint(np.linspace(0, elements - last, parts))
     bounds[-1] = elements
     return bounds
+
+
+def projection_rows(Phi, dtype) -> np.ndarray:
+    """Phi's rows for the tangent parts' q-q projection in ``dtype``. float64: Phi itself,
+    so that a part is :func:`~hapticrom.online.hyperreduced.sampled_residual_tangent`'s
+    sums over its elements bit for bit (register tiles where n is a multiple of 8, as
+    there). float32: rounded, and padded with zero columns to a whole number of a vector
+    tile's 16 lanes (vector_tiles; the demo's held region: 72 -> 80), so that the
+    projection always runs in register tiles. InputError if Phi overflows float32."""
+    if np.dtype(dtype) == np.float64:
+        return Phi
+    S, m, n = Phi.shape
+    lanes = TILE_BYTES // np.dtype(dtype).itemsize
+    rows = np.zeros((S, m, -(-n // lanes) * lanes), dtype)
+    with np.errstate(over="ignore"):  # an overflow is refused below
+        rows[:, :, :n] = Phi
+    if not np.isfinite(rows).all():
+        raise InputError("the sample's Phi overflows single precision: precision='double'")
+    rows.flags.writeable = False
+    return rows
 
 
 def _readonly(a, dtype=np.float64) -> np.ndarray:
@@ -246,8 +281,8 @@ class HapticNewton:
     1 and 20: stop 42's two-tool measurement; the Python class it replaced had 2 and 10),
     the last smaller by the factorisation after it (:func:`part_bounds`). The first
     tangent is the rest's. ``precision``: the tangent parts' q-q block projected in
-    "single" (float32: Phi's rows rounded, twice the vector lanes; the default, see
-    PRECISIONS) or "double". InputError for values the class checks (the counts,
+    "single" (float32: Phi's rows rounded and padded, twice the vector lanes; the default,
+    see PRECISIONS) or "double". InputError for values the class checks (the counts,
     non-finite arrays, weights, a rest tangent that does not factorise, the precision);
     sample shapes that do not agree raise the kernels' ValueError."""
 
@@ -292,12 +327,10 @@ class HapticNewton:
         # the tangent parts' q-q projection: Phi's rows and the buffers in its precision
         low = PRECISIONS[precision]
         self.precision = precision
-        with np.errstate(over="ignore"):  # an overflow is refused below
-            PhiQ = self.sample[2] if low == np.float64 else _readonly(self.sample[2], low)
-        if not np.isfinite(PhiQ).all():
-            raise InputError("the sample's Phi overflows single precision: precision='double'")
-        self.projection = (PhiQ, np.empty((m, m), low), np.empty((m, n), low),
-                           np.empty((n, n), low))  # fmt: skip
+        PhiQ = projection_rows(self.sample[2], low)
+        N = PhiQ.shape[2]
+        self.projection = (PhiQ, np.empty((m, m), low), np.empty((m, N), low),
+                           np.empty((N, N), low))  # fmt: skip
         self._element_buffers = (*self.scratch.buffers()[:-1], *self.projection)  # T: TQ's
         np.add(self.K, self.linear, out=self.lu)
         if not lu_factor(self.lu, self.pivots[0]):

@@ -55,6 +55,15 @@ from hapticrom.online.element_kernels import (
     _integrate_mapped,
 )
 from hapticrom.online.material_kernels import KAPPA, PARAMETER_SIZE
+from hapticrom.online.vector_tiles import (
+    TILE_ROWS,
+    tile,
+    tile_add,
+    tile_fma,
+    tile_lanes,
+    tile_store,
+    tile_zero,
+)
 
 _SUMS = {"reassoc", "contract"}  # numba fastmath flags of the sums over modes
 
@@ -145,15 +154,22 @@ def _add_coupling(Phi, Psi, s, weight, K_up, K):
 
 @njit(inline="always")
 def _add_projected_stiffness(PhiQ, s, weight, K_uu, Kw, TQ, Kqq):
-    """Kqq's upper triangle += weight Phi^T K_uu Phi, in the precision of PhiQ, Kw, TQ and
-    Kqq (Phi's rows rounded to it; Kw = weight K_uu first, in that precision; Kw may be
-    K_uu itself). The modes are the contiguous inner loops, counted from 0 (numba's index
-    wraparound then folds away and they vectorise), over a node's 3 rows at a time (fewer
-    loads and stores of TQ and Kqq a product)."""
+    """Kqq's upper triangle (N = PhiQ.shape[2] columns: Phi's, or Phi's padded with
+    anything: the columns past Phi's give Kqq entries past Phi's) += weight Phi^T K_uu Phi
+    (in tiles, the diagonal blocks' lower triangles too: no caller reads them),
+    in the precision of PhiQ, Kw, TQ and Kqq (Phi's rows rounded to it; Kw = weight K_uu
+    first, in that precision; Kw may be K_uu itself). Where N is a whole number of a
+    vector's lanes (:func:`_tiled_projection`), in register tiles: 85 -> 23 us for 12 of
+    the demo held region's elements in float32 (stop 52); else the loops below, the modes
+    their contiguous inner loops, counted from 0 (numba's index wraparound then folds away
+    and they vectorise), over a node's 3 rows at a time."""
     m, n = PhiQ.shape[1], PhiQ.shape[2]
     for row in range(m):
         for c in range(m):
             Kw[row, c] = weight * K_uu[row, c]
+    if n % tile_lanes(PhiQ) == 0:
+        _tiled_projection(PhiQ[s], Kw, TQ, Kqq)
+        return
     for row in range(m):  # TQ = Kw PhiQ
         for j in range(n):
             TQ[row, j] = 0.0
@@ -166,6 +182,41 @@ def _add_projected_stiffness(PhiQ, s, weight, K_uu, Kw, TQ, Kqq):
             b0, b1, b2 = PhiQ[s, c, i], PhiQ[s, c + 1, i], PhiQ[s, c + 2, i]
             for j in range(n - i):
                 Kqq[i, i + j] += b0 * TQ[c, i + j] + b1 * TQ[c + 1, i + j] + b2 * TQ[c + 2, i + j]
+
+
+@njit(inline="always")
+def _tiled_projection(P, Kw, TQ, Kqq):
+    """TQ = Kw P and Kqq += P^T TQ on its upper block triangle (the diagonal blocks whole),
+    P (m, N) an element's rows, N a whole number of tile lanes (vector_tiles): each tile of
+    TILE_ROWS x lanes summed over the m rows in registers. TQ's rows past the last whole
+    tile one at a time."""
+    m, N = P.shape
+    lanes = tile_lanes(P)
+    acc = tile(P)
+    whole = m - m % TILE_ROWS
+    for i in range(0, whole, TILE_ROWS):
+        for jb in range(N // lanes):
+            tile_zero(acc)
+            for c in range(m):
+                tile_fma(acc, P, c, jb * lanes, Kw[i, c], Kw[i + 1, c], Kw[i + 2, c], Kw[i + 3, c])
+            tile_store(acc, TQ, i, jb * lanes)
+    for row in range(whole, m):
+        for j in range(N):
+            TQ[row, j] = 0.0
+        for c in range(m):
+            a = Kw[row, c]
+            for j in range(N):
+                TQ[row, j] += a * P[c, j]
+    blocks = N // lanes
+    for ib in range(N // TILE_ROWS):
+        i = ib * TILE_ROWS
+        first = i // lanes  # the row's diagonal block: the blocks left of it are below it
+        for jb in range(blocks - first):
+            j = (first + jb) * lanes
+            tile_zero(acc)
+            for c in range(m):
+                tile_fma(acc, TQ, c, j, P[c, i], P[c, i + 1], P[c, i + 2], P[c, i + 3])
+            tile_add(acc, Kqq, i, j)
 
 
 @njit(inline="always")

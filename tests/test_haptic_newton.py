@@ -21,6 +21,7 @@ from test_hyperreduced import MODES, PRESSURE_MODES, make_problem, numpy_sums, r
 
 from hapticrom.online.dense_solve import lu_factor, lu_solve
 from hapticrom.online.haptic_newton import (
+    ELEMENT_TANGENT_RATE,
     REFUSED,
     HapticNewton,
     haptic_step,
@@ -161,7 +162,7 @@ def test_the_parts_cost_alike_with_the_factorisation_in_the_last(elements, parts
     bounds = part_bounds(elements, parts, size, m, n)
     assert bounds.dtype == np.int64 and len(bounds) == parts + 1
     assert bounds[0] == 0 and bounds[-1] == elements and (np.diff(bounds) >= 1).all()
-    factorisation = size**3 / 3 / (m * m * n + m * n * n / 2)
+    factorisation = size**3 / 3 / ((m * m * n + m * n * n / 2) / ELEMENT_TANGENT_RATE)
     costs = np.diff(bounds).astype(float)
     costs[-1] += factorisation
     if factorisation <= (elements + factorisation) / parts:
@@ -418,6 +419,28 @@ def test_wrong_inputs_refused_before_writing(model, name, wrong, message):
         haptic_step(*args.values())
     for a, b in zip(before, solver_state(solver, q, pi) + [solver.x], strict=True):
         assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_projection_buffers_narrower_than_the_padded_rows_refused(model):
+    """In single precision the rows are padded (MODES -> 16 columns) and the tiles write
+    TQ (m, 16) and Kqq (16, 16): buffers of Phi's width, or rows narrower than Phi, would be
+    read or written past their ends; refused before anything is written."""
+    _, _, _, inputs, linear, stiffness = model
+    solver = HapticNewton(inputs, linear, 1, 2)
+    PhiQ = solver.projection[0]
+    m, N = PhiQ.shape[1:]
+    assert N == 16 > MODES
+    q, pi = np.zeros(MODES), np.zeros(PRESSURE_MODES)
+    for name, wrong in (("TQ", np.zeros((m, MODES), np.float32)),
+                        ("Kqq", np.zeros((MODES, MODES), np.float32)),
+                        ("PhiQ", readonly_single(PhiQ[:, :, : MODES - 1]))):  # fmt: skip
+        args = arguments(solver, q, pi, loads(stiffness, 4)[0])
+        args[name] = wrong
+        before = solver_state(solver, q, pi) + [solver.x.copy()]
+        with pytest.raises(ValueError, match=name):
+            haptic_step(*args.values())
+        for a, b in zip(before, solver_state(solver, q, pi) + [solver.x], strict=True):
+            assert np.array_equal(a, b, equal_nan=True)
 
 
 def test_constructor_refusals(model):
