@@ -36,7 +36,7 @@ def _lanes(dtype) -> int:
 @njit(inline="always")
 def tile_lanes(a) -> int:
     """The values in a tile's row of ``a``'s type (16 float32, 8 float64)."""
-    return 64 // a.itemsize
+    return TILE_BYTES // a.itemsize
 
 
 def _vector(context, dtype) -> ir.VectorType:
