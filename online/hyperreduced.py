@@ -154,15 +154,15 @@ def _add_coupling(Phi, Psi, s, weight, K_up, K):
 
 @njit(inline="always")
 def _add_projected_stiffness(PhiQ, s, weight, K_uu, Kw, TQ, Kqq):
-    """Kqq's upper triangle (N = PhiQ.shape[2] columns: Phi's, or Phi's padded with
-    anything: the columns past Phi's give Kqq entries past Phi's) += weight Phi^T K_uu Phi
-    (in tiles, the diagonal blocks' lower triangles too: no caller reads them),
-    in the precision of PhiQ, Kw, TQ and Kqq (Phi's rows rounded to it; Kw = weight K_uu
-    first, in that precision; Kw may be K_uu itself). Where N is a whole number of a
-    vector's lanes (:func:`_tiled_projection`), in register tiles: 85 -> 23 us for 12 of
-    the demo held region's elements in float32 (stop 52); else the loops below, the modes
-    their contiguous inner loops, counted from 0 (numba's index wraparound then folds away
-    and they vectorise), over a node's 3 rows at a time."""
+    """Kqq's upper triangle += weight Phi^T K_uu Phi over PhiQ's N columns (Phi's, or Phi's
+    padded: a padded column only gives Kqq entries past Phi's), in the precision of PhiQ,
+    Kw, TQ and Kqq (Phi's rows rounded to it; Kw = weight K_uu first, in that precision; Kw
+    may be K_uu itself). Where N is a whole number of a vector's lanes, in register tiles
+    (:func:`_tiled_projection`, which also writes the diagonal blocks' lower triangles: no
+    caller reads them): 85 -> 23 us for 12 of the demo held region's elements in float32
+    (stop 52). Else the loops below: the modes their contiguous inner loops, counted from 0
+    (numba's index wraparound then folds away and they vectorise), over a node's 3 rows at
+    a time."""
     m, n = PhiQ.shape[1], PhiQ.shape[2]
     for row in range(m):
         for c in range(m):

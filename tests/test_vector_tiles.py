@@ -1,8 +1,8 @@
 """Register tiles (:mod:`hapticrom.online.vector_tiles`) and the tangent's q-q projection
-in them (hyperreduced's ``_add_projected_stiffness``): against numpy, in both precisions,
-for element rows that fill whole tiles (the hexahedron's 24) and that do not (the
-quadratic tetrahedron's 30), and against the loops the projection takes where the modes
-are not a whole number of a tile's lanes."""
+(hyperreduced's ``_add_projected_stiffness``), against numpy in both precisions: in tiles
+and, where the modes are not a whole number of a tile's lanes, in the loops; for element
+rows that fill whole tiles (the hexahedron's 24) and that do not (the quadratic
+tetrahedron's 30)."""
 
 from __future__ import annotations
 
