@@ -274,16 +274,15 @@ SURFACE_ARRAYS = (
     "sample_grid",  # (P, 2): the samples' places on the chart's grid, in nodes
     "sample_normals",  # (P, 3)
     "chart_shape",  # (3,) int64
-    "read_rows",  # (2,) int64
-    "read_columns",  # (2,) int64
+    "chart_blocks",  # (B,) int64: the first nodes of the runs the neighbours are summed on
     "halo",  # (1,) int64
     "charted",  # (C,) int64
     "charted_node",  # (C,) int64
     "charted_frac",  # (2, C) float32
     "uncharted",  # (U,) int64
-    "fields",  # (2, 3, N) float32 scratch
-    "rectangles",  # (3, 5) int64 scratch
-    "shifts",  # (3, 12) float64 scratch
+    "chart_grid",  # (N, 4) float32 scratch
+    "neighbours",  # (3, 2) int64 scratch
+    "terms",  # (3, terms_width(n)) float32 scratch
     "sample_points",  # compliance: (P, 3) float64
     "surface_vertices",  # (V, 3) float64
     "field_triangles",  # (TL, 3) int64, the loadable triangles
@@ -294,17 +293,19 @@ SURFACE_ARRAYS = (
     "triangle_grid",  # (7,) float64: origin, cell size, dims of the triangles' grid
     "grid_starts",  # (cells + 1,) int64
     "grid_ids",  # (entries,) int64
-    "read_fracs",  # transport: (2, C) float32 scratch
+    "read_weights",  # transport: (4, C) float32 scratch
     "read_cells",  # (C,) int64 scratch
+    "uncharted_basis",  # transport: (P, n, 3U) float32
+    "uncharted_sum",  # (3U,) float64 scratch
 )
 DIMS = 4
 (A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_MODE_SCALE,
  A_SAMPLE_GRID,
- A_SAMPLE_NORMALS, A_SHAPE, A_ROWS, A_COLUMNS, A_HALO, A_CHARTED, A_CHARTED_NODE,
- A_CHARTED_FRAC, A_UNCHARTED, A_FIELDS, A_RECTANGLES, A_SHIFTS, A_SAMPLE_POINTS,
+ A_SAMPLE_NORMALS, A_SHAPE, A_BLOCKS, A_HALO, A_CHARTED, A_CHARTED_NODE,
+ A_CHARTED_FRAC, A_UNCHARTED, A_CHART_GRID, A_NEIGHBOURS, A_TERMS, A_SAMPLE_POINTS,
  A_SURFACE_VERTICES, A_FIELD_TRIANGLES, A_CONTACT_FIELDS, A_TRIANGLE_ROWS, A_SAMPLE_ROWS,
- A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS, A_READ_FRACS,
- A_READ_CELLS) = range(len(SURFACE_ARRAYS))  # fmt: skip
+ A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS, A_READ_WEIGHTS,
+ A_READ_CELLS, A_UNCHARTED_BASIS, A_UNCHARTED_SUM) = range(len(SURFACE_ARRAYS))  # fmt: skip
 
 
 @njit(inline="always")
@@ -352,16 +353,17 @@ def _transported(arrays, dims, buf, c, out):
         _view2(arrays, dims, A_MODE_SCALE, np.float64),
         _view2(arrays, dims, A_SAMPLE_GRID, np.float64),
         _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
-        _view1(arrays, dims, A_SHAPE, np.int64), _view1(arrays, dims, A_ROWS, np.int64),
-        _view1(arrays, dims, A_COLUMNS, np.int64),
+        _view1(arrays, dims, A_SHAPE, np.int64), _view1(arrays, dims, A_BLOCKS, np.int64),
         _view1(arrays, dims, A_HALO, np.int64)[0],
         _view1(arrays, dims, A_CHARTED, np.int64), _view1(arrays, dims, A_CHARTED_NODE, np.int64),
         _view2(arrays, dims, A_CHARTED_FRAC, np.float32),
         _view1(arrays, dims, A_UNCHARTED, np.int64),
-        _view3(arrays, dims, A_BASIS_T, np.float32), _view3(arrays, dims, A_FIELDS, np.float32),
-        _view2(arrays, dims, A_RECTANGLES, np.int64), _view2(arrays, dims, A_SHIFTS, np.float64),
-        _view2(arrays, dims, A_READ_FRACS, np.float32),
-        _view1(arrays, dims, A_READ_CELLS, np.int64), out,
+        _view3(arrays, dims, A_UNCHARTED_BASIS, np.float32),
+        _view2(arrays, dims, A_CHART_GRID, np.float32),
+        _view2(arrays, dims, A_NEIGHBOURS, np.int64), _view2(arrays, dims, A_TERMS, np.float32),
+        _view2(arrays, dims, A_READ_WEIGHTS, np.float32),
+        _view1(arrays, dims, A_READ_CELLS, np.int64),
+        _view1(arrays, dims, A_UNCHARTED_SUM, np.float64), out,
     )  # fmt: skip
 
 
@@ -521,13 +523,16 @@ def _surface_arrays(sim: Simulator) -> dict[str, np.ndarray]:
             "node_basis": ch.node_basis, "mode_scale": ch.mode_scale,
             "sample_grid": ch.sample_grid,
             "sample_normals": m.sample_normals, "chart_shape": ch.shape,
-            "read_rows": ch.read_rows, "read_columns": ch.read_columns,
+            "chart_blocks": ch.blocks,
             "halo": np.array([ch.halo], dtype=np.int64), "charted": ch.charted,
             "charted_node": ch.charted_node, "charted_frac": ch.charted_frac,
-            "uncharted": ch.uncharted, "fields": np.zeros((2, 3, nodes), dtype=np.float32),
-            "rectangles": np.zeros((3, 5), dtype=np.int64), "shifts": np.zeros((3, 12)),
-            "read_fracs": np.zeros((2, len(ch.charted)), dtype=np.float32),
+            "uncharted": ch.uncharted, "chart_grid": np.zeros((nodes, 4), dtype=np.float32),
+            "neighbours": np.zeros((3, 2), dtype=np.int64),
+            "terms": np.zeros((3, sk.terms_width(n)), dtype=np.float32),
+            "read_weights": np.zeros((4, len(ch.charted)), dtype=np.float32),
             "read_cells": np.zeros(len(ch.charted), dtype=np.int64),
+            "uncharted_basis": ch.uncharted_basis,
+            "uncharted_sum": np.zeros(3 * len(ch.uncharted)),
         }  # fmt: skip
     if sim.interpolation == "compliance":
         f = m.contact_fields

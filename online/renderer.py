@@ -31,15 +31,19 @@ class SurfaceWork:
     def __init__(self, model, interpolation: str):
         n = model.num_modes
         self.coefficients = np.zeros((3, n))  # the neighbours' reduced coordinates
-        # The transported field: each neighbour's field at the chart's nodes, its rectangle
-        # on the grid and its shift.
-        nodes = int(np.prod(model.chart.shape)) if interpolation == "transport" else 1
-        self.chart_fields = np.zeros((2, 3, nodes), dtype=np.float32)
-        self.chart_rectangles = np.zeros((3, 5), dtype=np.int64)
-        self.chart_shifts = np.zeros((3, 12))
-        charted = len(model.chart.charted) if interpolation == "transport" else 1
-        self.chart_fracs = np.zeros((2, charted), dtype=np.float32)  # each vertex's read
+        # The transported field: the neighbours' sum on the chart's grid, (x, y, z, 0) a
+        # node; each neighbour's sample and shift, its weighed rotation and coefficients; each
+        # charted vertex's cell and bilinear weights (surface_kernels.transported_surface).
+        transport = interpolation == "transport"
+        nodes = int(np.prod(model.chart.shape)) if transport else 1
+        charted = len(model.chart.charted) if transport else 1
+        self.chart_grid = np.zeros((nodes, 4), dtype=np.float32)
+        self.chart_neighbours = np.zeros((3, 2), dtype=np.int64)
+        self.chart_terms = np.zeros((3, surface_kernels.terms_width(n)), dtype=np.float32)
+        self.chart_weights = np.zeros((4, charted), dtype=np.float32)
         self.chart_cells = np.zeros(charted, dtype=np.int64)
+        uncharted = len(model.chart.uncharted) if transport else 0
+        self.uncharted_sum = np.zeros(3 * uncharted)  # their blended field, x, y, z a vertex
         self.frames = np.zeros((5, n, n))  # Grassmann: V cos S, V S^-1 sin S, R_0..R_2
         self.frames_of = -1.0  # the contact (buf[CONTACTS]) the frames are of
         self.scratch = np.zeros(3 + 3 * n)  # (unused) + three n-vectors
@@ -61,9 +65,9 @@ def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork,
         ch = m.chart
         surface_kernels.transported_surface(
             buf, c, ch.node_basis, ch.mode_scale, ch.sample_grid, m.sample_normals, ch.shape,
-            ch.read_rows, ch.read_columns, ch.halo, ch.charted, ch.charted_node, ch.charted_frac,
-            ch.uncharted, m.surface_basis_t, work.chart_fields, work.chart_rectangles,
-            work.chart_shifts, work.chart_fracs, work.chart_cells, out,
+            ch.blocks, ch.halo, ch.charted, ch.charted_node, ch.charted_frac, ch.uncharted,
+            ch.uncharted_basis, work.chart_grid, work.chart_neighbours, work.chart_terms,
+            work.chart_weights, work.chart_cells, work.uncharted_sum, out,
         )  # fmt: skip
     elif interpolation == "grassmann":
         g = m.grassmann

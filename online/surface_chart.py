@@ -30,7 +30,10 @@ Layouts (N = layers x rows x columns nodes, row-major; flat node index
 :func:`_node_basis`), component planes apart so the rows are contiguous; ``sample_grid``
 (P, 2) the samples' places in nodes of the grid; ``vertex_node`` (V,) the flat index of
 the lower-left node of each charted vertex's cell (-1: not charted) and ``vertex_frac``
-(V, 2) its place in that cell.
+(V, 2) its place in that cell; ``blocks`` (B,) the first flat nodes of the runs of LANES
+nodes the kernel sums the neighbours on (:func:`node_blocks`: every node a charted vertex
+reads, at any contact, and few others); ``uncharted_basis`` (P, n, 3U) the modes at the
+uncharted vertices, contiguous.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from hapticrom.online.node_blocks import LANES
 from hapticrom.shared.errors import ArtifactError
 from hapticrom.shared.geometry import plan_view
 
@@ -76,9 +80,14 @@ class SurfaceChart:
     charted: np.ndarray  # (C,) int64: the others, in the order of their cells (locality)
     charted_node: np.ndarray  # (C,) int64: vertex_node of those, in that order
     charted_frac: np.ndarray  # (2, C) float32: vertex_frac of those, in that order, a plane
-    # each (the read's first loop vectorises over the planes: surface_kernels.read_grid)
+    # each (the reads' first loop vectorises over the planes: surface_kernels.read_weights)
     read_rows: np.ndarray  # (2,) int64: the rows [a0, a1) the charted vertices' cells read
     read_columns: np.ndarray  # (2,) int64: the columns [b0, b1) they read
+    uncharted_basis: np.ndarray  # (P, n, 3U) float32: the samples' modes at the uncharted
+    # vertices, contiguous (x, y, z a vertex), for their blended field
+    blocks: np.ndarray  # (B,) int64, ascending: the first flat nodes of the runs of LANES
+    # nodes the kernel sums the neighbours on, covering every node a charted vertex reads
+    # at any contact (node_blocks; :func:`node_blocks`)
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -180,6 +189,7 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
     sheet = (plan, height, triangles, tri_layer.astype(np.int64))
     node_basis, mode_scale = _node_basis(surface_basis, sheet, start, h, shape, vertex_node,
                                          sample_grid)  # fmt: skip
+    uncharted = np.flatnonzero(vertex_node < 0).astype(np.int64)
     return SurfaceChart(
         origin=origin,
         axes=axes,
@@ -191,13 +201,51 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
         mode_scale=mode_scale,
         vertex_node=vertex_node,
         vertex_frac=vertex_frac,
-        uncharted=np.flatnonzero(vertex_node < 0).astype(np.int64),
+        uncharted=uncharted,
+        uncharted_basis=uncharted_basis(surface_basis, uncharted),
         charted=charted,
         charted_node=np.ascontiguousarray(vertex_node[charted]),
         charted_frac=np.ascontiguousarray(vertex_frac[charted].T, dtype=np.float32),
         read_rows=np.array([a.min(), a.max() + 2] if len(used) else [0, 0], dtype=np.int64),
         read_columns=np.array([b.min(), b.max() + 2] if len(used) else [0, 0], dtype=np.int64),
+        blocks=node_blocks(vertex_node[charted], shape, halo),
     )
+
+
+def uncharted_basis(surface_basis: np.ndarray, uncharted: np.ndarray) -> np.ndarray:
+    """(P, n, 3U) float32: the rows of ``surface_basis`` (P, 3V, n) of the ``uncharted``
+    vertices, transposed: a mode's values there are contiguous (the blend sums them as
+    vectors; read from the whole basis, 3 -> 1 us on the cornea demo)."""
+    rows = (3 * uncharted[:, None] + np.arange(3)).ravel()
+    return np.ascontiguousarray(surface_basis[:, rows, :].transpose(0, 2, 1), dtype=np.float32)
+
+
+def read_nodes(charted_node: np.ndarray, columns: int) -> np.ndarray:
+    """The flat nodes the charted vertices' bilinear reads can touch (ascending): a cell's
+    four nodes, and those of the cells a row, a column or both back (where the contact's
+    fraction of a cell passes the vertex's own)."""
+    steps = [da * columns + db for da in (-1, 0, 1) for db in (-1, 0, 1)]
+    return np.unique(np.add.outer(np.asarray(charted_node, dtype=np.int64), steps))
+
+
+def node_blocks(charted_node: np.ndarray, shape, halo: int) -> np.ndarray:
+    """The first nodes of runs of LANES nodes covering :func:`read_nodes`: each starts at
+    the first node the runs before it leave out, moved back where its nodes, shifted by a
+    neighbour's offset (at most ``halo - 1`` rows and columns), would leave the grid. The
+    cells lie ``halo`` nodes from the grid's edges (:func:`_vertex_cells`), so the runs fit;
+    ArtifactError (a chart the kernel could not sum) if they do not."""
+    _, _, columns = (int(v) for v in shape)
+    nodes = int(np.prod(shape))
+    reach = (halo - 1) * (columns + 1)
+    needed = read_nodes(charted_node, columns)
+    blocks = _greedy_runs(needed, nodes - LANES - reach)
+    runs = blocks[:, None] + np.arange(LANES)
+    if len(needed) and (blocks.min() < reach or not np.isin(needed, runs).all()):
+        raise ArtifactError(
+            f"the surface chart's {len(needed)} read nodes do not fit runs of {LANES} nodes "
+            f"inside its {nodes}-node grid (halo {halo})"
+        )
+    return blocks
 
 
 @njit(cache=True)
@@ -241,6 +289,20 @@ def _rasterise(plan, height, triangles, tri_layer, start, h, shape):
                 node_bary[node, 0], node_bary[node, 1], node_bary[node, 2] = 1.0 - s - r, s, r
                 node_height[node] = z
     return node_tri, node_bary, node_height, node_tri >= 0
+
+
+@njit(cache=True)
+def _greedy_runs(needed, last):
+    """The first nodes of runs of LANES nodes: each at the first of the ascending ``needed``
+    nodes the runs before it leave out, at most ``last``."""
+    starts = np.empty(len(needed), dtype=np.int64)
+    count, covered_to = 0, -1
+    for node in needed:
+        if node >= covered_to:
+            starts[count] = min(node, last)
+            covered_to = starts[count] + LANES
+            count += 1
+    return starts[:count].copy()
 
 
 @njit(cache=True)
@@ -318,9 +380,8 @@ def _node_basis(surface_basis, sheet, start, h, shape, vertex_node, sample_grid)
     against 0.25 %), and a vertex reads the sum once (surface_kernels.transported_surface).
 
     Why 16 bits: a surface streams three samples' modes (1.3 MB on the cornea demo in single
-    precision), and half the bytes is a fifth less time (surface_kernels.add_neighbour: 19
-    against 15 us);
-    the rounding is 1.5e-5 of a mode's largest value, far below the fit's tolerance.
+    precision), and half the bytes is a fifth less time (the neighbours' sums at stop 35: 19
+    against 15 us); the rounding is 1.5e-5 of a mode's largest value, far below the fit's tolerance.
 
     The nodes first take the surface's values (barycentric in the covering triangle of each
     node's source); a bilinear read at a vertex then smooths a sharp dent (measured on the

@@ -45,6 +45,16 @@ from hapticrom.online.kernels import (
     ro_f8_3d,
     ro_i8_1d,
 )
+from hapticrom.online.node_blocks import (
+    LANES,
+    MODES_A_BLOCK,
+    ROTATION,
+    block_modes,
+    block_rotate,
+    block_store,
+    node_read,
+)
+from hapticrom.online.vector_tiles import tile, tile_zero
 
 
 # -- the neighbours' reduced coordinates -------------------------------------------------------
@@ -111,242 +121,168 @@ def rotation(a, b):
             f * vz * vx - vy, f * vz * vy + vx, c + f * vz * vz)  # fmt: skip
 
 
-@njit(inline="always")
-def layer_run(shape, layer, rows, columns):
-    """[first, last): the flat nodes of one layer from the rectangle's first node (row
-    rows[0], column columns[0]) to its last (rows[1] - 1, columns[1] - 1), the columns
-    outside it on the rows between included: one contiguous loop a layer does the rectangle
-    faster than a loop a row (measured: 30 against 38 us for the cornea's three contractions;
-    the loops' set-up, not the 30 % more nodes, was the cost)."""
-    n_rows, n_cols = shape[1], shape[2]
-    first = (layer * n_rows + rows[0]) * n_cols + columns[0]
-    return first, (layer * n_rows + rows[1] - 1) * n_cols + columns[1]
-
-
-MODES_A_PASS = 4  # modes summed in one pass over the nodes (the last pass padded with zeros)
+@njit(cache=True)
+def terms_width(modes):
+    """The columns of a neighbour's terms (``transported_surface``): its rotation, then its
+    modes' coefficients padded to whole blocks of MODES_A_BLOCK."""
+    return ROTATION + -(-modes // MODES_A_BLOCK) * MODES_A_BLOCK
 
 
 @njit(inline="always")
-def four_modes(a, c, b):
-    """sum_k c_k a_k[b] in single precision (16-bit modes); ``a`` four planes, ``c`` four
-    coefficients."""
-    return (c[0] * np.float32(a[0][b]) + c[1] * np.float32(a[1][b])
-            + c[2] * np.float32(a[2][b]) + c[3] * np.float32(a[3][b]))  # fmt: skip
+def neighbour_terms(buf, coefficients, mode_scale, sample_grid, sample_normals, ia, ib, n_cols,
+                    limit, neighbours, terms):  # fmt: skip
+    """The neighbours with a weight, one slot each (their number is returned):
+    ``neighbours[slot]`` = (sample i, its shift in flat nodes), the whole-node offset of its
+    lattice clamped to ``limit`` nodes a way (with fastmath a NaN compares as anything, but
+    int(NaN) is the least int64, which the clamp takes to -limit: a corrupt state reads
+    inside the halo); ``terms[slot]`` = w R (row-major: the rotation from the sample's normal
+    to the contact's, weighed), then c_m s_im, the coefficients times the modes' scales,
+    zero past the last mode (float32: see :mod:`hapticrom.online.node_blocks`)."""
+    normal = buf[NORMAL : NORMAL + 3]
+    count = 0
+    for j in range(3):
+        w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
+        if w == 0.0:
+            continue
+        oa = min(max(int(np.floor(sample_grid[i, 0]) - ia), -limit), limit)
+        ob = min(max(int(np.floor(sample_grid[i, 1]) - ib), -limit), limit)
+        neighbours[count, 0], neighbours[count, 1] = i, oa * n_cols + ob
+        t = terms[count]
+        R = rotation(sample_normals[i], normal)
+        for q in range(ROTATION):
+            t[q] = w * R[q]
+        t[ROTATION:] = 0.0
+        for m in range(min(coefficients.shape[1], mode_scale.shape[1], terms.shape[1] - ROTATION)):
+            t[ROTATION + m] = coefficients[j, m] * mode_scale[i, m]
+        count += 1
+    return count
 
 
 @njit(inline="always")
-def pass_coefficients(mode_scale, i, c, k):
-    """The pass from mode k on: its four modes (past the last, the last again) and their
-    coefficients times their scales (float32; zero for a repeated mode). Once a pass."""
-    n = c.shape[0]
-    k1, k2, k3 = min(k + 1, n - 1), min(k + 2, n - 1), min(k + 3, n - 1)
-    zero = np.float32(0.0)
-    cs = (np.float32(c[k] * mode_scale[i, k]),
-          np.float32(c[k1] * mode_scale[i, k1]) if k + 1 < n else zero,
-          np.float32(c[k2] * mode_scale[i, k2]) if k + 2 < n else zero,
-          np.float32(c[k3] * mode_scale[i, k3]) if k + 3 < n else zero)  # fmt: skip
-    return (k, k1, k2, k3), cs
+def sum_blocks(node_basis, blocks, neighbours, terms, count, reach, grid):
+    """grid[g : g + LANES] = sum over the ``count`` slots of R_j sum_m c_jm phi_jm at the
+    block's nodes moved by the slot's shift, interleaved (x, y, z, 0) a node, for every
+    block g of the chart (``blocks``): the modes' sums and the rotated sum in registers,
+    each block written once (:mod:`hapticrom.online.node_blocks`). A block whose nodes, moved
+    by up to ``reach`` flat nodes, would leave the modes or the grid is skipped (a chart's
+    blocks never are: ``surface_chart.node_blocks``)."""
+    P, acc = tile(grid), tile(grid)
+    modes = node_basis.shape[1]
+    last = min(node_basis.shape[3], grid.shape[0]) - LANES - reach
+    for b in range(blocks.shape[0]):
+        g = blocks[b]
+        if g < reach or g > last:
+            continue
+        for j in range(count):
+            src, i = g + neighbours[j, 1], neighbours[j, 0]
+            for k in range(0, modes, MODES_A_BLOCK):
+                block_modes(P, node_basis, i, terms, j, k, src, k == 0)
+            block_rotate(acc, P, terms, j, j == 0)
+        if count == 0:  # no weight (a corrupt state): a zero field
+            tile_zero(acc)
+        block_store(grid, g, acc)
 
 
 @njit(inline="always")
-def pass_planes(node_basis, i, modes, s, e):
-    """The four ``modes``' x, y, z planes over the nodes [s, e) of sample i."""
-    k0, k1, k2, k3 = modes
-    x = (node_basis[i, k0, 0, s:e], node_basis[i, k1, 0, s:e],
-         node_basis[i, k2, 0, s:e], node_basis[i, k3, 0, s:e])  # fmt: skip
-    y = (node_basis[i, k0, 1, s:e], node_basis[i, k1, 1, s:e],
-         node_basis[i, k2, 1, s:e], node_basis[i, k3, 1, s:e])  # fmt: skip
-    z = (node_basis[i, k0, 2, s:e], node_basis[i, k1, 2, s:e],
-         node_basis[i, k2, 2, s:e], node_basis[i, k3, 2, s:e])  # fmt: skip
-    return x, y, z
-
-
-@njit(inline="always")
-def keep_partial_sums(x, y, z, cs, qx, qy, qz, opens):
-    """q (=, or += after the first pass) the pass's sums at each node: a pass before the
-    last (more than four modes)."""
-    if opens:
-        for b in range(qx.shape[0]):
-            qx[b] = four_modes(x, cs, b)
-            qy[b] = four_modes(y, cs, b)
-            qz[b] = four_modes(z, cs, b)
-    else:
-        for b in range(qx.shape[0]):
-            qx[b] += four_modes(x, cs, b)
-            qy[b] += four_modes(y, cs, b)
-            qz[b] += four_modes(z, cs, b)
-
-
-@njit(inline="always")
-def add_rotated_sums(x, y, z, cs, qx, qy, qz, opens, M, gx, gy, gz, first):
-    """g (=, or += after the first neighbour) M (the pass's sums, plus the partial sums q
-    unless it ``opens``): the last pass. Four loops, so that no branch is inside one."""
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = M
-    if opens and first:
-        for b in range(gx.shape[0]):
-            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
-            gx[b] = m00 * px + m01 * py + m02 * pz
-            gy[b] = m10 * px + m11 * py + m12 * pz
-            gz[b] = m20 * px + m21 * py + m22 * pz
-    elif opens:
-        for b in range(gx.shape[0]):
-            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
-            gx[b] += m00 * px + m01 * py + m02 * pz
-            gy[b] += m10 * px + m11 * py + m12 * pz
-            gz[b] += m20 * px + m21 * py + m22 * pz
-    elif first:
-        for b in range(gx.shape[0]):
-            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
-            px, py, pz = px + qx[b], py + qy[b], pz + qz[b]
-            gx[b] = m00 * px + m01 * py + m02 * pz
-            gy[b] = m10 * px + m11 * py + m12 * pz
-            gz[b] = m20 * px + m21 * py + m22 * pz
-    else:
-        for b in range(gx.shape[0]):
-            px, py, pz = four_modes(x, cs, b), four_modes(y, cs, b), four_modes(z, cs, b)
-            px, py, pz = px + qx[b], py + qy[b], pz + qz[b]
-            gx[b] += m00 * px + m01 * py + m02 * pz
-            gy[b] += m10 * px + m11 * py + m12 * pz
-            gz[b] += m20 * px + m21 * py + m22 * pz
-
-
-@njit(inline="always")
-def add_neighbour(node_basis, mode_scale, i, c, M, shape, rows, columns, offset, partial, grid,
-                  first):  # fmt: skip
-    """grid (3, N) (+)= M u_i(node + offset) over the rectangle of rows [rows[0], rows[1]) and
-    columns [columns[0], columns[1]) (its :func:`layer_run`s), u_i = sum_m c_m s_im phi_im
-    the field of sample i (modes ``node_basis`` (P, n, 3, N) int16 on its own lattice, times
-    their scales ``mode_scale`` (P, n)): a neighbour's field shifted by whole nodes, rotated
-    and weighed (M = w R, 9 values), written (``first``) or added.
-
-    Each neighbour's field lies on its own lattice (surface_chart), so the shifts differ by
-    whole nodes and the neighbours add on one grid, which a vertex then reads once
-    (:func:`read_grid`). One pass over the nodes sums MODES_A_PASS modes and adds their
-    rotated sum to the grid, with no field in between; the passes before the last (more
-    than four modes) keep partial sums in ``partial`` (3, N) float32 scratch. Measured on
-    the cornea demo, three neighbours: 30 us as a contraction and then a rotated sum, 19 us
-    in one pass, 15 us with 16-bit modes (README, "The rendered surface"). The branches stay
-    outside the node loops: inside, the loops did not vectorise (164 against 55 us a
-    surface)."""
-    R = (np.float32(M[0]), np.float32(M[1]), np.float32(M[2]), np.float32(M[3]),
-         np.float32(M[4]), np.float32(M[5]), np.float32(M[6]), np.float32(M[7]),
-         np.float32(M[8]))  # fmt: skip
-    n = c.shape[0]
-    for k in range(0, n, MODES_A_PASS):
-        opens, closes = k == 0, k + MODES_A_PASS >= n
-        modes, cs = pass_coefficients(mode_scale, i, c, k)
-        for layer in range(shape[0]):
-            g0, g1 = layer_run(shape, layer, rows, columns)
-            x, y, z = pass_planes(node_basis, i, modes, g0 + offset, g1 + offset)
-            qx, qy, qz = partial[0, g0:g1], partial[1, g0:g1], partial[2, g0:g1]
-            if not closes:
-                keep_partial_sums(x, y, z, cs, qx, qy, qz, opens)
-            else:
-                add_rotated_sums(x, y, z, cs, qx, qy, qz, opens, R, grid[0, g0:g1],
-                                 grid[1, g0:g1], grid[2, g0:g1], first)  # fmt: skip
-
-
-@njit(inline="always")
-def bilinear_at(f, s, columns, w00, w10, w01, w11):
-    """f at a point of the cell whose lower-left node is s (unsigned: the index needs no
-    negative-index check; weights of its four nodes)."""
-    t = s + columns
-    one = np.uint64(1)
-    return w00 * f[s] + w10 * f[t] + w01 * f[s + one] + w11 * f[t + one]
-
-
-@njit(inline="always")
-def read_grid(grid, charted, charted_node, charted_frac, pa, pb, n_cols, fracs, cells, out):
-    """out[v] = grid (3, N) at every charted vertex, bilinear, on the lattice moved by the
-    contact's fraction of a cell (pa rows, pb columns): the vertex's place in its cell less
-    that fraction, a cell back where it turns negative. Single precision, as the grid: 1e-7
-    of the dent.
-
-    Two loops: the first finds each vertex's shifted place and cell (``fracs`` (2, C)
-    float32 and ``cells`` (C,) scratch) over contiguous planes without a branch, so it
-    vectorises; the second reads. One loop doing both ran 18.7 against 13.3 us for the
-    cornea demo's 4,352 charted vertices (its reads are scalar: a gather a value)."""
+def read_weights(charted_node, charted_frac, pa, pb, n_cols, weights, cells):
+    """Each charted vertex's cell on the lattice moved by the contact's fraction of a cell
+    (pa rows, pb columns) and its four bilinear weights there (``weights`` (4, C) float32
+    scratch: w00, w10, w01, w11; ``cells`` (C,)): its place in its cell less that fraction,
+    a cell back where that turns negative. Branch-free over contiguous planes, so it
+    vectorises (one loop that also read: 18.7 against 13.3 us, stop 40). Returns the number
+    of vertices (fewer where the scratch is short)."""
     one, zero = np.float32(1.0), np.float32(0.0)
     fa0, fb0 = np.float32(pa), np.float32(pb)
-    fa_in, fb_in, fa_out, fb_out = charted_frac[0], charted_frac[1], fracs[0], fracs[1]
-    n = min(charted.shape[0], fracs.shape[1], cells.shape[0])  # scratch too short: fewer
+    fa_in, fb_in = charted_frac[0], charted_frac[1]
+    w00, w10, w01, w11 = weights[0], weights[1], weights[2], weights[3]
+    n = min(charted_node.shape[0], charted_frac.shape[1], weights.shape[1], cells.shape[0])
     for k in range(n):
         fa, fb = fa_in[k] - fa0, fb_in[k] - fb0
         da, db = fa < zero, fb < zero
-        fa_out[k] = fa + one if da else fa
-        fb_out[k] = fb + one if db else fb
-        cells[k] = charted_node[k] - (n_cols if da else 0) - (1 if db else 0)
-    columns = np.uint64(n_cols)
-    for k in range(n):  # in the order of the cells: the reads stay local
-        fa, fb = fa_out[k], fb_out[k]
-        s = np.uint64(cells[k])
+        fa = fa + one if da else fa
+        fb = fb + one if db else fb
         ga, gb = one - fa, one - fb
-        w00, w10, w01, w11 = ga * gb, fa * gb, ga * fb, fa * fb
-        v = charted[k]
-        out[v, 0] = bilinear_at(grid[0], s, columns, w00, w10, w01, w11)
-        out[v, 1] = bilinear_at(grid[1], s, columns, w00, w10, w01, w11)
-        out[v, 2] = bilinear_at(grid[2], s, columns, w00, w10, w01, w11)
+        w00[k], w10[k], w01[k], w11[k] = ga * gb, fa * gb, ga * fb, fa * fb
+        cells[k] = charted_node[k] - (n_cols if da else 0) - (1 if db else 0)
+    return n
 
 
 @njit(inline="always")
-def blended_vertices(buf, coefficients, basis_t, vertices, out):
-    """out[v] = sum_j w_j A_j c_j at the listed vertices only (the uncharted ones): a
-    neighbour's mode at a time over the vertices, whose sums are independent (a chain of
-    sums a vertex waits on each addition: 6.7 against 4 us on the cornea demo)."""
-    for v in vertices:
-        out[v, 0] = out[v, 1] = out[v, 2] = 0.0
+def read_nodes(grid, charted, n, n_cols, weights, cells, out):
+    """out[v] = the grid at the first n charted vertices, bilinear in their cells
+    (:func:`read_weights`), in the order of the cells (the reads stay local). Single
+    precision, as the grid: 1e-7 of the dent."""
+    w00, w10, w01, w11 = weights[0], weights[1], weights[2], weights[3]
+    for k in range(n):
+        x, y, z = node_read(grid, cells[k], n_cols, w00[k], w10[k], w01[k], w11[k])
+        v = charted[k]
+        out[v, 0], out[v, 1], out[v, 2] = x, y, z
+
+
+@njit(inline="always")
+def blended_uncharted(buf, coefficients, basis, vertices, total, out):
+    """out[v] = sum_j w_j A_j c_j at the uncharted ``vertices`` (U,): the neighbours' modes
+    there (``basis`` (P, n, 3U), contiguous) summed as vectors into ``total`` (3U,) float64
+    scratch, then written to the vertices (from the whole basis, a mode's values scattered
+    over 3V: 3 against 1 us on the cornea demo). Scratch too short: the vertices it holds."""
+    u = min(vertices.shape[0], total.shape[0] // 3, basis.shape[2] // 3)
+    values = total[: 3 * u]
+    values[:] = 0.0
     for j in range(3):
         w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
         if w == 0.0:
             continue
         for m in range(coefficients.shape[1]):
             wc = w * coefficients[j, m]
-            a = basis_t[i, m]
-            for v in vertices:
-                out[v, 0] += wc * a[3 * v]
-                out[v, 1] += wc * a[3 * v + 1]
-                out[v, 2] += wc * a[3 * v + 2]
+            a = basis[i, m]
+            for q in range(3 * u):
+                values[q] += wc * a[q]
+    for k in range(u):
+        v = vertices[k]
+        out[v, 0], out[v, 1], out[v, 2] = values[3 * k], values[3 * k + 1], values[3 * k + 2]
 
 
 @njit(
     "void(float64[::1], float64[:, ::1], Array(int16, 4, 'C', readonly=True), "
     "Array(float64, 2, 'C', readonly=True), "
     "Array(float64, 2, 'C', readonly=True), Array(float64, 2, 'C', readonly=True), "
-    "Array(int64, 1, 'C', readonly=True), Array(int64, 1, 'C', readonly=True), "
-    "Array(int64, 1, 'C', readonly=True), int64, "
+    "Array(int64, 1, 'C', readonly=True), Array(int64, 1, 'C', readonly=True), int64, "
     "Array(int64, 1, 'C', readonly=True), Array(int64, 1, 'C', readonly=True), "
     "Array(float32, 2, 'C', readonly=True), "
     "Array(int64, 1, 'C', readonly=True), Array(float32, 3, 'C', readonly=True), "
-    "float32[:, :, ::1], int64[:, ::1], float64[:, ::1], float32[:, ::1], int64[::1], "
-    "float64[:, ::1])",
+    "float32[:, ::1], int64[:, ::1], float32[:, ::1], float32[:, ::1], int64[::1], "
+    "float64[::1], float64[:, ::1])",
     cache=True,
     nogil=True,
     fastmath=True,
 )
 def transported_surface(buf, coefficients, node_basis, mode_scale, sample_grid, sample_normals,
-                        shape, rows, columns, halo, charted, charted_node, charted_frac, uncharted,
-                        basis_t, fields, rectangles, shifts, fracs, cells, out):  # fmt: skip
+                        shape, blocks, halo, charted, charted_node, charted_frac, uncharted,
+                        uncharted_basis, grid, neighbours, terms, weights, cells, total,
+                        out):  # fmt: skip
     """out (V, 3) = sum_j w_j R_j u_j(X + x_j - x) (mm): each neighbour's field carried to
     the contact (shifted in plan view by x_j - x, rotated from its normal to the contact's)
-    on the chart's grid, read at the charted vertices; the uncharted keep the blended field.
+    on the chart's grid, read at the charted vertices; the uncharted keep the blended field
+    (:func:`blended_uncharted`: ``uncharted_basis`` (P, n, 3U), ``total`` (3U,) scratch).
     x = sum_j w_j x_j in plan view, so the field is as continuous as the weights.
 
     In nodes (``sample_grid``, the chart's), x = I + p with I whole and p the contact's
     fraction of a cell; neighbour j's field lies on its own lattice, the grid moved by the
     fraction of x_j, so it is read at X - p + (floor(x_j) - I): a whole-node shift of its
-    lattice. The neighbours add on one grid (:func:`add_neighbour`) read once at X - p
-    (:func:`read_grid`), the same bilinear reads as three reads a vertex.
+    lattice. The neighbours add on one grid (:func:`sum_blocks`, over the chart's
+    ``blocks`` of the nodes the vertices read) read once at X - p (:func:`read_nodes`), the
+    same bilinear reads as three reads a vertex.
 
     ``node_basis`` (P, n, 3, N) int16 and ``mode_scale`` (P, n): the samples' modes on
-    their lattices, in units of their scales (surface_chart). ``fields`` (2, 3, N) float32
-    scratch: the partial sums of a neighbour's modes beyond MODES_A_PASS, then the
-    neighbours' sum (single precision: it is rendered, 1e-7 of a millimetre is far below a
-    pixel, and twice the lanes vectorise); ``rectangles`` (3, 5) int64: the node rows and
-    columns each neighbour's field is read on, and its shift in flat nodes; ``shifts``
-    (3, 12): its weight, the contact's fraction of a cell and w R (filled here: scratch);
-    ``fracs`` (2, C) float32 and ``cells`` (C,) int64: each charted vertex's place and
-    cell on the moved lattice (scratch, :func:`read_grid`). ``charted_frac`` (2, C)
-    float32: the charted vertices' places in their cells, a plane each.
+    their lattices, in units of their scales (surface_chart). Scratch: ``grid`` (N, 4)
+    float32, the neighbours' sum interleaved a node (single precision: it is rendered, 1e-7
+    of a millimetre is far below a pixel, and twice the lanes vectorise); ``neighbours``
+    (3, 2) int64 and ``terms`` (3, terms_width(n)) float32, the neighbours' slots
+    (:func:`neighbour_terms`); ``weights`` (4, C) float32 and ``cells`` (C,) int64, each
+    charted vertex's read (:func:`read_weights`). ``charted_frac`` (2, C) float32: the
+    charted vertices' places in their cells, a plane each. Scratch of the wrong size renders
+    the charted vertices as zero (the terms, the grid) or fewer of them (the reads, the
+    uncharted sum), and reads and writes nothing outside it.
     """
     xa = xb = 0.0
     for j in range(3):
@@ -356,35 +292,21 @@ def transported_surface(buf, coefficients, node_basis, mode_scale, sample_grid, 
     ia, ib = np.floor(xa), np.floor(xb)
     pa, pb = xa - ia, xb - ib
     limit = halo - 1  # a corrupt state cannot read past the halo
-    normal = buf[NORMAL : NORMAL + 3]
     n_cols = shape[2]
-    grid_rows = (rows[0] - 1, rows[1])  # a vertex's read moves a cell back at most
-    grid_columns = (columns[0] - 1, columns[1])
-    count = 0  # the neighbours with a weight
-    for j in range(3):
-        w, i = buf[WEIGHTS + j], int(buf[SAMPLES + j])
-        if w == 0.0:
-            continue
-        # Clamped as integers: with fastmath a NaN compares as anything, but int(NaN) is the
-        # least int64 here, which the clamp takes to -limit (a corrupt state).
-        oa = min(max(int(np.floor(sample_grid[i, 0]) - ia), -limit), limit)
-        ob = min(max(int(np.floor(sample_grid[i, 1]) - ib), -limit), limit)
-        r = rectangles[count]
-        r[0], r[1] = grid_rows[0] + oa, grid_rows[1] + oa
-        r[2], r[3] = grid_columns[0] + ob, grid_columns[1] + ob
-        r[4] = oa * n_cols + ob
-        c = shifts[count]
-        c[0], c[1], c[2] = w, pa, pb
-        c[3:12] = rotation(sample_normals[i], normal)
-        for q in range(3, 12):
-            c[q] *= w
-        add_neighbour(node_basis, mode_scale, i, coefficients[j], c[3:12], shape, grid_rows,
-                      grid_columns, r[4], fields[0], fields[1], count == 0)  # fmt: skip
-        count += 1
-    if count == 0:  # no weight (a corrupt state): nothing to read
-        fields[1, :, :] = 0.0
-    read_grid(fields[1], charted, charted_node, charted_frac, pa, pb, n_cols, fracs, cells, out)
-    blended_vertices(buf, coefficients, basis_t, uncharted, out)
+    count = 0
+    modes = node_basis.shape[1]
+    narrow = modes == 0 or terms.shape[1] < terms_width(modes) or terms.shape[0] < 3
+    if not (narrow or neighbours.shape[0] < 3 or neighbours.shape[1] < 2):
+        count = neighbour_terms(buf, coefficients, mode_scale, sample_grid, sample_normals, ia,
+                                ib, n_cols, limit, neighbours, terms)  # fmt: skip
+    if grid.shape[0] >= node_basis.shape[3] and grid.shape[1] == 4 and weights.shape[0] == 4:
+        sum_blocks(node_basis, blocks, neighbours, terms, count, limit * (n_cols + 1), grid)
+        n = read_weights(charted_node, charted_frac, pa, pb, n_cols, weights, cells)
+        read_nodes(grid, charted, min(n, charted.shape[0]), n_cols, weights, cells, out)
+    else:  # the grid does not hold the nodes (x, y, z, 0) a row, or the reads their weights
+        for v in charted:
+            out[v, 0] = out[v, 1] = out[v, 2] = 0.0
+    blended_uncharted(buf, coefficients, uncharted_basis, uncharted, total, out)
 
 
 # -- the compliance field: PODI plus the linear dent at the contact -------------------------

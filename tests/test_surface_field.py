@@ -101,10 +101,10 @@ class PlateModel:
         self.chart = surface_chart(self.vertices, self.triangles, self.points, self.normals,
                                    self.sample_triangles, self.basis)  # fmt: skip
         nodes = int(np.prod(self.chart.shape))
-        self.fields = np.zeros((2, 3, nodes), dtype=np.float32)
-        self.rectangles = np.zeros((3, 5), dtype=np.int64)
-        self.shifts = np.zeros((3, 12))
-        self.fracs = np.zeros((2, len(self.chart.charted)), dtype=np.float32)
+        self.grid = np.zeros((nodes, 4), dtype=np.float32)
+        self.neighbours = np.zeros((3, 2), dtype=np.int64)
+        self.terms = np.zeros((3, surface_kernels.terms_width(len(radii))), dtype=np.float32)
+        self.weights = np.zeros((4, len(self.chart.charted)), dtype=np.float32)
         self.cells = np.zeros(len(self.chart.charted), dtype=np.int64)
         self.buf = np.zeros(kernels.buffer_size(2))
         self.coefficients = np.tile(np.asarray(coefficients, dtype=float), (3, 1))
@@ -131,9 +131,9 @@ class PlateModel:
         out, c = np.zeros_like(self.vertices), self.chart
         surface_kernels.transported_surface(
             self.buf, self.coefficients, c.node_basis, c.mode_scale, c.sample_grid, self.normals,
-            c.shape, c.read_rows, c.read_columns, c.halo, c.charted, c.charted_node, c.charted_frac,
-            c.uncharted, self.basis_t, self.fields, self.rectangles, self.shifts, self.fracs,
-            self.cells, out,
+            c.shape, c.blocks, c.halo, c.charted, c.charted_node, c.charted_frac, c.uncharted,
+            c.uncharted_basis, self.grid, self.neighbours, self.terms, self.weights, self.cells,
+            np.zeros(3 * len(c.uncharted)), out,
         )  # fmt: skip
         return out
 
@@ -210,8 +210,9 @@ def test_shifted_lattices_converge_at_second_order():
 
 @pytest.mark.parametrize("n", [2, 3, 5, 9])
 def test_every_mode_is_carried(n):
-    """A sample's modes are summed four at a pass (surface_kernels.add_neighbour: fewer
-    padded, more through partial sums), each in units of its own scale (16 bits): with n
+    """A sample's modes are summed four at a call (node_blocks.block_modes: fewer padded
+    with zero terms, more summed on in the same registers), each in units of its own scale
+    (16 bits): with n
     dents of different radii and amplitudes (1 to 1e3, so the scales differ) a sample and
     coefficients of alternating sign, the transported field is the sum of the n dents under
     the tool, within the one-mode plate's 3 %. A mode left out, counted twice or scaled by

@@ -23,6 +23,7 @@ from test_surface_field import dent, lattice, plate, samples_on
 
 from hapticrom.online import load, surface_kernels
 from hapticrom.online import surface_chart as surface_chart_module
+from hapticrom.online.node_blocks import LANES
 from hapticrom.online.surface_chart import SurfaceChart, surface_chart
 from hapticrom.shared.artifact import read_artifact, write_artifact
 from hapticrom.shared.errors import ArtifactError, InputError, SimulatorBusyError
@@ -110,30 +111,35 @@ def clamped(chart: SurfaceChart, o: float) -> int:
 
 
 def index_violations(chart: SurfaceChart, oa: int, ob: int) -> list[str]:
-    """What transported_surface would index outside the grid, or read outside the rectangles
-    it wrote, for one neighbour at the clamped offset (oa, ob) nodes (empty: none)."""
+    """What transported_surface would index outside the grid, or read where no block wrote,
+    for one neighbour at the clamped offset (oa, ob) nodes (empty: none)."""
     _, rows, cols = (int(v) for v in chart.shape)
-    g0, g1 = int(chart.read_rows[0]) - 1, int(chart.read_rows[1])  # the summed grid's rows
-    h0, h1 = int(chart.read_columns[0]) - 1, int(chart.read_columns[1])
+    nodes = int(np.prod(chart.shape))
+    reach = (chart.halo - 1) * (cols + 1)  # the largest shift the clamp lets through
+    blocks = np.asarray(chart.blocks)
     problems = []
-    # add_neighbour: the summed grid's rectangle moved by the offset
-    r0, r1, c0, c1 = g0 + oa, g1 + oa, h0 + ob, h1 + ob
-    if g0 < 0 or r0 < 0 or r1 > rows or c0 < 0 or c1 > cols:
-        problems.append(
-            f"add_neighbour reads rows [{r0}, {r1}) columns [{c0}, {c1}) leave the {rows} x "
-            f"{cols} grid (the summed grid's rows [{g0}, {g1}))"
-        )
-    # read_grid: the vertex's cell, a row and a column back where the contact's fraction
+    # sum_blocks: each block's LANES nodes, and the neighbour's modes there moved by the offset
+    skipped = blocks[(blocks < reach) | (blocks > nodes - LANES - reach)]
+    if len(skipped):
+        problems.append(f"sum_blocks skips block {int(skipped[0])} (reach {reach}, {nodes} nodes)")
+    moved = blocks + oa * cols + ob
+    if len(moved) and (moved.min() < 0 or moved.max() + LANES > nodes):
+        problems.append(f"sum_blocks reads modes at nodes [{moved.min()}, {moved.max() + LANES})")
+    written = np.zeros(nodes, dtype=bool)
+    for g in blocks[(blocks >= 0) & (blocks + LANES <= nodes)]:
+        written[g : g + LANES] = True
+    # read_nodes: the vertex's cell, a row and a column back where the contact's fraction
     # passes its own, and the cell's three other nodes
     for da in (0, 1):
         for db in (0, 1):
             s = chart.charted_node - da * cols - db
             for node in (s, s + 1, s + cols, s + cols + 1):
-                layer, a, b = node // (rows * cols), (node % (rows * cols)) // cols, node % cols
+                layer = node // (rows * cols)
                 same_layer = layer == chart.charted_node // (rows * cols)
-                inside = (node >= 0) & same_layer & (a >= g0) & (a < g1) & (b >= h0) & (b < h1)
+                inside = (node >= 0) & (node < nodes) & same_layer
+                inside[inside] &= written[node[inside]]
                 if not inside.all():
-                    problems.append(f"read_grid reads node {int(node[~inside][0])} outside")
+                    problems.append(f"read_nodes reads node {int(node[~inside][0])} unwritten")
     return problems
 
 
@@ -173,9 +179,9 @@ def far_tilted_chart():
 @pytest.mark.parametrize("build", [plate_chart, long_edge_chart, far_tilted_chart])
 def test_the_clamped_shift_keeps_every_index_inside_the_grid(build):
     """Defence. For every offset the clamp lets through (up to halo - 1 nodes either way),
-    every slice add_neighbour takes lies in the grid, and every node read_grid reads
-    (whatever the contact's fraction) lies in the summed grid's rectangle, in the vertex's
-    own layer: the kernel's reads stay in bounds."""
+    every block sum_blocks writes and every block of modes it reads lies in the grid, and
+    every node read_nodes reads (whatever the contact's fraction) lies in a block it wrote,
+    in the vertex's own layer: the kernel's reads stay in bounds."""
     chart = build()
     assert chart is not None and len(chart.charted) > 0
     for oa in extreme_offsets(chart):
@@ -183,16 +189,18 @@ def test_the_clamped_shift_keeps_every_index_inside_the_grid(build):
             assert index_violations(chart, oa, ob) == [], (oa, ob)
 
 
-def test_the_mirror_sees_a_rectangle_beyond_the_halo():
-    """The mirror can fail: the plate's chart with the charted cells' rows and columns widened
-    to the whole grid (no halo left) is reported at the largest offsets, not at zero."""
+def test_the_mirror_sees_blocks_that_leave_the_grid_or_miss_a_read():
+    """The mirror can fail: the plate's chart with a block moved to the grid's last nodes
+    (shifted modes would be read past its end) or with a block left out (nodes the
+    vertices read that no block writes) is reported, at offset zero too."""
     chart = plate_chart()
-    _, rows, cols = (int(v) for v in chart.shape)
-    wide = dataclasses.replace(chart, read_rows=np.array([1, rows]),
-                               read_columns=np.array([1, cols]))  # fmt: skip
-    limit = chart.halo - 1
-    assert index_violations(wide, 0, 0) == []
-    assert index_violations(wide, limit, 0) and index_violations(wide, 0, -limit)
+    nodes = int(np.prod(chart.shape))
+    assert index_violations(chart, 0, 0) == []
+    edge = dataclasses.replace(chart, blocks=np.append(chart.blocks, nodes - LANES))
+    assert index_violations(edge, 0, 0)
+    middle = len(chart.blocks) // 2
+    holed = dataclasses.replace(chart, blocks=np.delete(chart.blocks, middle))
+    assert any("unwritten" in p for p in index_violations(holed, 0, 0))
 
 
 @pytest.fixture(scope="module")
@@ -207,23 +215,24 @@ def plate_model(tmp_path_factory):
 
 
 def render_on_poisoned_scratch(model, sim) -> np.ndarray:
-    """The kernel itself, on the simulator's state, with its per-neighbour scratch fields
-    filled with NaN first: add_neighbour writes the rectangle the reads need (the first
-    neighbour's pass, or the first of several), so a NaN in the result is a read outside it
-    (an independent check of the mirror). The reads' scratch places are NaN too: each read
-    must find its own first."""
+    """The kernel itself, on the simulator's state, with its grid, its neighbours' terms and
+    its reads' weights filled with NaN first: the blocks write every node the reads need,
+    so a NaN in the result is a read where no block wrote (an independent check of the
+    mirror); each term and each read's weights must be found before they are used."""
     chart = model.chart
     coefficients = np.zeros((3, model.num_modes))
     surface_kernels.curves_coefficients(sim._buf, model.coefficients, coefficients)
-    fields = np.full((2, 3, int(np.prod(chart.shape))), np.nan, dtype=np.float32)
+    grid = np.full((int(np.prod(chart.shape)), 4), np.nan, dtype=np.float32)
+    terms = np.full((3, surface_kernels.terms_width(model.num_modes)), np.nan, dtype=np.float32)
     out = np.full_like(model.vertices, np.nan)
     surface_kernels.transported_surface(
         sim._buf, coefficients, chart.node_basis, chart.mode_scale, chart.sample_grid,
-        model.sample_normals, chart.shape, chart.read_rows, chart.read_columns, chart.halo,
-        chart.charted, chart.charted_node, chart.charted_frac, chart.uncharted,
-        model.surface_basis_t, fields, np.zeros((3, 5), dtype=np.int64), np.zeros((3, 12)),
-        np.full((2, len(chart.charted)), np.nan, dtype=np.float32),
-        np.zeros(len(chart.charted), dtype=np.int64), out,
+        model.sample_normals, chart.shape, chart.blocks, chart.halo, chart.charted,
+        chart.charted_node, chart.charted_frac, chart.uncharted, chart.uncharted_basis, grid,
+        np.zeros((3, 2), dtype=np.int64), terms,
+        np.full((4, len(chart.charted)), np.nan, dtype=np.float32),
+        np.zeros(len(chart.charted), dtype=np.int64),
+        np.full(3 * len(chart.uncharted), np.nan), out,
     )  # fmt: skip
     return out
 
@@ -264,7 +273,7 @@ def test_every_reachable_contact_shifts_within_the_halo(plate_model, point):
     out = sim.surface_displacement(np.empty_like(model.vertices))
     assert np.all(np.isfinite(out))
     poisoned = render_on_poisoned_scratch(model, sim)
-    assert np.all(np.isfinite(poisoned))  # no node outside the contracted rectangles was read
+    assert np.all(np.isfinite(poisoned))  # no node outside the written blocks was read
     np.testing.assert_allclose(poisoned, out, rtol=0, atol=1e-6)
 
 
@@ -502,7 +511,7 @@ def test_a_chart_with_no_charted_vertex_contracts_inside_the_grid():
     contracts a rectangle [ia, ia + 1) x [ib, ib + 1) around it: negative slice starts for
     layer 0 (numba wraps them), and at ia = 0, ib = -1 the slice [-1:0], which is empty and
     then written through (out[0] lands on the last node: in the array by luck, not by
-    design). Either no chart (None) or a rectangle inside the grid."""
+    design). Either no chart (None) or nothing read outside the grid (now: no block)."""
     vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     points, normals, sample_triangles = sample_triangle(1.0)
     chart = surface_chart(vertices, np.array([[0, 1, 2]]), points, normals, sample_triangles,
@@ -567,3 +576,34 @@ def test_the_crafted_artifacts_pass_the_reader(tmp_path):
     path = write_model(tmp_path / "m.h5", vertices, triangles, points, normals,
                        sample_triangles, dip(vertices, 3))  # fmt: skip
     assert read_artifact(path).symbols["T"] == len(triangles)
+
+
+def test_scratch_of_the_wrong_size_is_not_written_past(plate_model):
+    """Finding (review of the blocks, low). Scratch of the old layout ((2, C) weights) or
+    coefficients with more modes than the chart (terms sized for the chart) made the kernel
+    write past them. Each is now a view into a larger buffer of markers: nothing outside
+    the view changes, and the charted vertices render as zero (no weights to read with)."""
+    model = plate_model
+    sim = model.simulator()
+    sim.set_contact(np.array([0.37, -0.81, 0.0]))
+    sim.step_displacement(np.array([0.0, 0.0, -0.5]))
+    chart, C = model.chart, len(model.chart.charted)
+    n = model.num_modes
+    own = np.zeros((3, n))
+    surface_kernels.curves_coefficients(sim._buf, model.coefficients, own)
+    coefficients = np.zeros((3, n + 6))
+    coefficients[:, :n] = own
+    width = surface_kernels.terms_width(n)
+    terms_buffer = np.full((6, width), 7.0, dtype=np.float32)
+    weights_buffer = np.full((6, C), 7.0, dtype=np.float32)
+    out = np.full_like(model.vertices, np.nan)
+    surface_kernels.transported_surface(
+        sim._buf, coefficients, chart.node_basis, chart.mode_scale, chart.sample_grid,
+        model.sample_normals, chart.shape, chart.blocks, chart.halo, chart.charted,
+        chart.charted_node, chart.charted_frac, chart.uncharted, chart.uncharted_basis,
+        np.zeros((int(np.prod(chart.shape)), 4), dtype=np.float32),
+        np.zeros((3, 2), dtype=np.int64), terms_buffer[:3], weights_buffer[:2],
+        np.zeros(C, dtype=np.int64), np.zeros(3 * len(chart.uncharted)), out,
+    )  # fmt: skip
+    assert np.all(terms_buffer[3:] == 7.0) and np.all(weights_buffer[2:] == 7.0)
+    assert np.all(out[chart.charted] == 0.0) and np.all(np.isfinite(out))
