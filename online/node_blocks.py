@@ -205,33 +205,45 @@ def block_store(typingctx, grid, g, acc):
 
 
 @intrinsic
-def node_read(typingctx, grid, s, columns, w00, w10, w01, w11):
-    """(x, y, z) float32 at a point of the cell whose lower-left node is s, bilinear: w00
-    grid[s] + w10 grid[s + columns] + w01 grid[s + 1] + w11 grid[s + columns + 1], each
-    node's (x, y, z, 0) one 16-byte load (grid (N, 4) float32: the callers check that a
-    row is four values; the address is the node times 16 bytes, with no stride to load)."""
+def node_read(typingctx, out, v, grid, s, columns, w00, w10, w01, w11):
+    """out[v, 0:3] = (x, y, z) at a point of the cell whose lower-left node is s, bilinear:
+    w00 grid[s] + w10 grid[s + columns] + w01 grid[s + 1] + w11 grid[s + columns + 1] in
+    single precision, each node's (x, y, z, 0) one 16-byte load, the sum widened to double
+    at once and stored as two values and one (grid (N, 4) float32, out (V, 3) float64: the
+    callers check that their rows are four and three values; the addresses are the node
+    times 16 bytes and the vertex times 24, with no stride to load)."""
     weights = (w00, w10, w01, w11)
-    if not (_is_c(grid, 2, types.float32) and isinstance(s, types.Integer)
+    if not (_is_c(out, 2, types.float64) and out.mutable and isinstance(v, types.Integer)
+            and _is_c(grid, 2, types.float32) and isinstance(s, types.Integer)
             and isinstance(columns, types.Integer)
             and all(isinstance(w, types.Float) for w in weights)):  # fmt: skip
         return None
-    sig = types.UniTuple(types.float32, 3)(grid, s, columns, *weights)
+    sig = types.void(out, v, grid, s, columns, *weights)
 
     def codegen(context, builder, sig, args):
         vector = _float_vector(4)
         fma = _fma(builder, 4)
-        nodes = builder.bitcast(context.make_array(sig.args[0])(context, builder, args[0]).data,
+        nodes = builder.bitcast(context.make_array(sig.args[2])(context, builder, args[2]).data,
                                 vector.as_pointer())  # fmt: skip
-        s = _index(context, builder, args[1], sig.args[1])
-        t = builder.add(s, _index(context, builder, args[2], sig.args[2]))
+        s = _index(context, builder, args[3], sig.args[3])
+        t = builder.add(s, _index(context, builder, args[4], sig.args[4]))
         one = ir.Constant(_I64, 1)
         total = None
-        for node, w in ((s, 3), (t, 4), (builder.add(s, one), 5), (builder.add(t, one), 6)):
+        for node, w in ((s, 5), (t, 6), (builder.add(s, one), 7), (builder.add(t, one), 8)):
             value = builder.load(builder.gep(nodes, [node]), align=4)
             weight = _splat(builder, context.cast(builder, args[w], sig.args[w], types.float32), 4)
             total = (builder.fmul(weight, value) if total is None
                      else builder.call(fma, [weight, value, total]))  # fmt: skip
-        values = [builder.extract_element(total, ir.Constant(_I32, c)) for c in range(3)]
-        return context.make_tuple(builder, sig.return_type, values)
+        wide = builder.fpext(total, ir.VectorType(ir.DoubleType(), 4))
+        doubles = builder.bitcast(context.make_array(sig.args[0])(context, builder, args[0]).data,
+                                  ir.DoubleType().as_pointer())  # fmt: skip
+        row = builder.gep(doubles, [builder.mul(_index(context, builder, args[1], sig.args[1]),
+                                                ir.Constant(_I64, 3))])  # fmt: skip
+        pair = builder.shuffle_vector(wide, wide, _mask([0, 1]))
+        builder.store(pair, builder.bitcast(row, ir.VectorType(ir.DoubleType(), 2).as_pointer()),
+                      align=8)  # fmt: skip
+        third = builder.extract_element(wide, ir.Constant(_I32, 2))
+        builder.store(third, builder.gep(row, [ir.Constant(_I64, 2)]), align=8)
+        return context.get_dummy_value()
 
     return sig, codegen

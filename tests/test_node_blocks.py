@@ -68,25 +68,26 @@ def test_a_block_is_the_neighbours_rotated_mode_sums(modes, neighbours):
 
 
 @njit
-def _read(grid, cells, columns, weights):
-    out = np.empty((len(cells), 3), dtype=np.float32)
+def _read(grid, cells, columns, weights, vertices, out):
     for k in range(len(cells)):
-        x, y, z = node_read(grid, cells[k], columns, weights[k, 0], weights[k, 1],
-                            weights[k, 2], weights[k, 3])  # fmt: skip
-        out[k, 0], out[k, 1], out[k, 2] = x, y, z
-    return out
+        node_read(out, vertices[k], grid, cells[k], columns, weights[k, 0], weights[k, 1],
+                  weights[k, 2], weights[k, 3])  # fmt: skip
 
 
-def test_a_node_read_is_the_bilinear_of_four_nodes():
+def test_a_node_read_is_the_bilinear_of_four_nodes_into_its_vertex_only():
     rng = np.random.default_rng(7)
     columns, nodes = 13, 13 * 11
     grid = rng.standard_normal((nodes, 4)).astype(np.float32)
     cells = rng.integers(0, nodes - columns - 1, size=50)
     weights = rng.uniform(0, 1, (50, 4)).astype(np.float32)
-    got = _read(grid, cells, columns, weights)
+    vertices = rng.permutation(80)[:50]
+    out = np.full((80, 3), np.nan)
+    _read(grid, cells, columns, weights, vertices, out)
     corners = np.stack([cells, cells + columns, cells + 1, cells + columns + 1], axis=1)
     expected = np.einsum("kq,kqc->kc", weights, grid[corners, :3])
-    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(out[vertices], expected, rtol=1e-5, atol=1e-6)
+    untouched = np.setdiff1d(np.arange(80), vertices)
+    assert np.all(np.isnan(out[untouched]))  # each read writes its own row, three values
 
 
 @njit
@@ -96,16 +97,22 @@ def _store_into(grid):
 
 
 @njit
-def _read_from(grid):
-    return node_read(grid, 0, 1, 1.0, 0.0, 0.0, 0.0)
+def _read_from(grid, out):
+    node_read(out, 0, grid, 0, 1, 1.0, 0.0, 0.0, 0.0)
 
 
 def test_the_intrinsics_refuse_arrays_they_would_misread():
-    """Strided, Fortran-ordered, double or read-only grids are refused at compile time."""
-    grid = np.zeros((32, 4), dtype=np.float32)
+    """Strided, Fortran-ordered, double or read-only grids and outputs are refused at
+    compile time."""
+    grid, out = np.zeros((32, 4), dtype=np.float32), np.zeros((4, 3))
     for bad in (grid[::2], np.asfortranarray(grid), grid.astype(np.float64)):
         with pytest.raises(TypingError):
-            _read_from(bad)
+            _read_from(bad, out)
+    frozen = out.copy()
+    frozen.flags.writeable = False
+    for bad in (out[::2], np.asfortranarray(out), out.astype(np.float32), frozen):
+        with pytest.raises(TypingError):
+            _read_from(grid, bad)
     readonly = grid.copy()
     readonly.flags.writeable = False
     with pytest.raises(TypingError):
