@@ -81,8 +81,6 @@ class SurfaceChart:
     charted_node: np.ndarray  # (C,) int64: vertex_node of those, in that order
     charted_frac: np.ndarray  # (2, C) float32: vertex_frac of those, in that order, a plane
     # each (the reads' first loop vectorises over the planes: surface_kernels.read_weights)
-    read_rows: np.ndarray  # (2,) int64: the rows [a0, a1) the charted vertices' cells read
-    read_columns: np.ndarray  # (2,) int64: the columns [b0, b1) they read
     uncharted_basis: np.ndarray  # (P, n, 3U) float32: the samples' modes at the uncharted
     # vertices, contiguous (x, y, z a vertex), for their blended field
     blocks: np.ndarray  # (B,) int64, ascending: the first flat nodes of the runs of LANES
@@ -183,8 +181,6 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
         return None
     charted = np.flatnonzero(vertex_node >= 0)
     charted = charted[np.argsort(vertex_node[charted], kind="stable")].astype(np.int64)
-    a = (used % (rows * columns)) // columns
-    b = used % columns
     sample_grid = (sample_plan - start) / h
     sheet = (plan, height, triangles, tri_layer.astype(np.int64))
     node_basis, mode_scale = _node_basis(surface_basis, sheet, start, h, shape, vertex_node,
@@ -206,8 +202,6 @@ def surface_chart(vertices, triangles, sample_points, sample_normals, sample_tri
         charted=charted,
         charted_node=np.ascontiguousarray(vertex_node[charted]),
         charted_frac=np.ascontiguousarray(vertex_frac[charted].T, dtype=np.float32),
-        read_rows=np.array([a.min(), a.max() + 2] if len(used) else [0, 0], dtype=np.int64),
-        read_columns=np.array([b.min(), b.max() + 2] if len(used) else [0, 0], dtype=np.int64),
         blocks=node_blocks(vertex_node[charted], shape, halo),
     )
 

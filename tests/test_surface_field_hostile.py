@@ -507,11 +507,11 @@ def test_a_surface_with_no_facing_triangle_is_not_refused_as_unreadable(tmp_path
 def test_a_chart_with_no_charted_vertex_contracts_inside_the_grid():
     """Finding (index contract, low). A surface whose vertices face the samples but none has
     its cell covered (here a single triangle: no grid cell fits in it) gets a chart with no
-    charted vertex and read_rows = read_columns = [0, 0]. transported_surface still
-    contracts a rectangle [ia, ia + 1) x [ib, ib + 1) around it: negative slice starts for
-    layer 0 (numba wraps them), and at ia = 0, ib = -1 the slice [-1:0], which is empty and
-    then written through (out[0] lands on the last node: in the array by luck, not by
-    design). Either no chart (None) or nothing read outside the grid (now: no block)."""
+    charted vertex. The kernel of the time still contracted a rectangle [ia, ia + 1) x
+    [ib, ib + 1) around it: negative slice starts for layer 0 (numba wraps them), and at
+    ia = 0, ib = -1 the slice [-1:0], which is empty and then written through (out[0]
+    landed on the last node: in the array by luck, not by design). Either no chart (None)
+    or nothing read outside the grid (since stop 53: no block, nothing summed)."""
     vertices = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     points, normals, sample_triangles = sample_triangle(1.0)
     chart = surface_chart(vertices, np.array([[0, 1, 2]]), points, normals, sample_triangles,
