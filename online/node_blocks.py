@@ -15,9 +15,10 @@ nodes (LLVM's vector body is four 16-lane vectors, behind alias checks), so runs
 nodes ran scalar (80 against 9 us on the cornea demo), and the grid's interleaved stores
 ran scalar too (80 us). Measured on the cornea demo (an AMD EPYC with AVX-512, stop 53,
 min over 20,000 calls): the three neighbours' sums over every layer's rectangle (8,816
-nodes) 9.1 us, over these blocks of the needed nodes (388 blocks, 6,208 nodes) 7.4 us
-with the grid written once; the reads 10.7 -> 6.2 us (four 16-byte loads a vertex, the
-address the node times 16 bytes: with the grid's row stride loaded and multiplied, 8.0).
+nodes) 9.1 us, over these blocks of the needed nodes (388 blocks, 6,208 nodes) 7.0 us
+with the grid written once; the read loop 10.7 -> 5.6 us (four 16-byte loads a vertex, the
+address the node times 16 bytes: with the grid's row stride loaded and multiplied, 8.0;
+returning three floats for numba to store, 5.9).
 
 The arrays are C-contiguous (checked at compile time); indices are not checked: the callers
 check them (the chart's blocks, ``surface_kernels``).
