@@ -40,9 +40,9 @@ ROTATION = 9  # a neighbour's terms: its weighed rotation (row-major), then its 
 # int16): a surface at a new contact reads three samples' modes that are no longer in the
 # core's caches, and the hardware's prefetchers follow 36 streams of short runs poorly.
 # Measured on the cornea demo (stop 53): the sums alone over new samples after the caches
-# were flushed, p99 40-60 -> 20-25 us; the whole surface at a new contact every call, in
-# turn over six pairs, p99 49-80 -> 38-67 us (at most 50 in 10 of 12 runs, against 4 of
-# 12), p50 unchanged (22-24 us).
+# were flushed, p99 40-60 -> 20-25 us (two runs); the whole surface at a new contact every
+# call, in turn over six pairs, p99 49-80 -> 38-67 us (at most 50 in 10 of 12 runs, against
+# 4 of 12), p50 unchanged (22-24 us).
 PREFETCH_NODES = 128
 _I32 = ir.IntType(32)
 _I64 = ir.IntType(64)
