@@ -31,7 +31,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from hapticrom.online.vector_tiles import TILE_BYTES
+from hapticrom.online.vector_tiles import TILE_BYTES, tile_row
 
 LANES = TILE_BYTES // 4  # nodes a block: one vector of float32
 MODES_A_BLOCK = 4  # modes one block_modes call sums (the terms past the last are zero)
@@ -84,11 +84,6 @@ def _item(context, builder, aryty, ary, indices, pointee):
     return builder.bitcast(item, pointee.as_pointer())
 
 
-def _tile_row(builder, tile, row):
-    start = builder.gep(tile, [ir.Constant(_I64, row * LANES)])
-    return builder.bitcast(start, _float_vector().as_pointer())
-
-
 def _index(context, builder, value, ty):
     return context.cast(builder, value, ty, types.intp)
 
@@ -137,7 +132,7 @@ def block_modes(typingctx, P, node_basis, i, terms, j, k, src, first):
                 x = builder.sitofp(builder.load(pointer, align=2), vector)
                 total = (builder.fmul(weights[q], x) if total is None
                          else builder.call(fma, [weights[q], x, total]))  # fmt: skip
-            row = _tile_row(builder, args[0], c)
+            row = tile_row(context, builder, types.float32, args[0], c)
             total = builder.fadd(_keep_or_zero(builder, first, row), total)
             builder.store(total, row, align=4)
         return context.get_dummy_value()
@@ -180,9 +175,12 @@ def block_rotate(typingctx, acc, P, terms, j, first):
         fma = _fma(builder)
         j = _index(context, builder, args[3], sig.args[3])
         first = _first(context, builder, sig, args, 4)
-        p = [builder.load(_tile_row(builder, args[1], c), align=4) for c in range(3)]
+        p = [
+            builder.load(tile_row(context, builder, types.float32, args[1], c), align=4)
+            for c in range(3)
+        ]
         for r in range(3):
-            row = _tile_row(builder, args[0], r)
+            row = tile_row(context, builder, types.float32, args[0], r)
             total = _keep_or_zero(builder, first, row)
             for c in range(3):
                 pointer = _item(context, builder, sig.args[2], args[2],
@@ -212,7 +210,10 @@ def block_store(typingctx, grid, g, acc):
     sig = types.void(grid, g, acc)
 
     def codegen(context, builder, sig, args):
-        x, y, z = (builder.load(_tile_row(builder, args[2], r), align=4) for r in range(3))
+        x, y, z = (
+            builder.load(tile_row(context, builder, types.float32, args[2], r), align=4)
+            for r in range(3)
+        )
         zero = ir.Constant(_float_vector(), None)
         half = LANES // 2
         pairs = [[v for b in range(s, s + half) for v in (b, LANES + b)] for s in (0, half)]

@@ -214,7 +214,7 @@ def uncharted_basis(surface_basis: np.ndarray, uncharted: np.ndarray) -> np.ndar
     return np.ascontiguousarray(surface_basis[:, rows, :].transpose(0, 2, 1), dtype=np.float32)
 
 
-def read_nodes(charted_node: np.ndarray, columns: int) -> np.ndarray:
+def nodes_read(charted_node: np.ndarray, columns: int) -> np.ndarray:
     """The flat nodes the charted vertices' bilinear reads can touch (ascending): a cell's
     four nodes, and those of the cells a row, a column or both back (where the contact's
     fraction of a cell passes the vertex's own)."""
@@ -223,7 +223,7 @@ def read_nodes(charted_node: np.ndarray, columns: int) -> np.ndarray:
 
 
 def node_blocks(charted_node: np.ndarray, shape, halo: int) -> np.ndarray:
-    """The first nodes of runs of LANES nodes covering :func:`read_nodes`: each starts at
+    """The first nodes of runs of LANES nodes covering :func:`nodes_read`: each starts at
     the first node the runs before it leave out, moved back where its nodes, shifted by a
     neighbour's offset (at most ``halo - 1`` rows and columns), would leave the grid. The
     cells lie ``halo`` nodes from the grid's edges (:func:`_vertex_cells`), so the runs fit;
@@ -231,7 +231,7 @@ def node_blocks(charted_node: np.ndarray, shape, halo: int) -> np.ndarray:
     _, _, columns = (int(v) for v in shape)
     nodes = int(np.prod(shape))
     reach = (halo - 1) * (columns + 1)
-    needed = read_nodes(charted_node, columns)
+    needed = nodes_read(charted_node, columns)
     blocks = _greedy_runs(needed, nodes - LANES - reach)
     runs = blocks[:, None] + np.arange(LANES)
     if len(needed) and (blocks.min() < reach or not np.isin(needed, runs).all()):

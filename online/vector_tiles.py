@@ -43,8 +43,9 @@ def _vector(context, dtype) -> ir.VectorType:
     return ir.VectorType(context.get_value_type(dtype), _lanes(dtype))
 
 
-def _row_pointer(context, builder, dtype, acc, row):
-    """The tile's row ``row`` as a pointer to one vector."""
+def tile_row(context, builder, dtype, acc, row):
+    """The tile's row ``row`` as a pointer to one vector (codegen: for intrinsics that
+    work on tiles, here and in node_blocks)."""
     lanes = _lanes(dtype)
     start = builder.gep(acc, [ir.Constant(_I64, row * lanes)])
     return builder.bitcast(start, _vector(context, dtype).as_pointer())
@@ -97,7 +98,7 @@ def tile_zero(typingctx, acc):
     def codegen(context, builder, sig, args):
         zero = ir.Constant(_vector(context, dtype), None)
         for row in range(TILE_ROWS):
-            builder.store(zero, _row_pointer(context, builder, dtype, args[0], row),
+            builder.store(zero, tile_row(context, builder, dtype, args[0], row),
                           align=_align(dtype))  # fmt: skip
         return context.get_dummy_value()
 
@@ -129,7 +130,7 @@ def tile_fma(typingctx, acc, A, i, j, b0, b1, b2, b3):
             b = builder.insert_element(ir.Constant(vector, ir.Undefined), b,
                                        ir.Constant(ir.IntType(32), 0))  # fmt: skip
             b = builder.shuffle_vector(b, ir.Constant(vector, ir.Undefined), broadcast)
-            pointer = _row_pointer(context, builder, dtype, args[0], row)
+            pointer = tile_row(context, builder, dtype, args[0], row)
             total = builder.load(pointer, align=_align(dtype))
             builder.store(builder.call(fma, [b, a, total]), pointer, align=_align(dtype))
         return context.get_dummy_value()
@@ -145,7 +146,7 @@ def _write_tile(context, builder, sig, args, add: bool):
     for row in range(TILE_ROWS):
         at = builder.add(i, ir.Constant(i.type, row))
         pointer = _array_pointer(context, builder, sig.args[1], args[1], at, j)
-        value = builder.load(_row_pointer(context, builder, dtype, args[0], row),
+        value = builder.load(tile_row(context, builder, dtype, args[0], row),
                              align=_align(dtype))  # fmt: skip
         if add:
             value = builder.fadd(builder.load(pointer, align=_align(dtype)), value)

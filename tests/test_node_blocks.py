@@ -18,7 +18,7 @@ from hapticrom.online.node_blocks import (
     block_store,
     node_read,
 )
-from hapticrom.online.surface_chart import node_blocks, read_nodes
+from hapticrom.online.surface_chart import node_blocks, nodes_read
 from hapticrom.online.surface_kernels import terms_width
 from hapticrom.online.vector_tiles import tile
 from hapticrom.shared.errors import ArtifactError
@@ -126,7 +126,7 @@ def test_the_chart_blocks_cover_every_read_and_stay_inside_the_grid():
     _, _, columns = (int(v) for v in chart.shape)
     nodes = int(np.prod(chart.shape))
     reach = (chart.halo - 1) * (columns + 1)
-    needed = read_nodes(chart.charted_node, columns)
+    needed = nodes_read(chart.charted_node, columns)
     runs = (chart.blocks[:, None] + np.arange(LANES)).ravel()
     assert np.isin(needed, runs).all()
     assert chart.blocks.min() >= reach and chart.blocks.max() + LANES + reach <= nodes
@@ -141,4 +141,4 @@ def test_a_chart_whose_reads_cannot_fit_runs_is_refused():
     with pytest.raises(ArtifactError, match="runs of"):
         node_blocks(charted_node, shape, halo=5)
     blocks = node_blocks(charted_node, shape, halo=2)
-    assert np.isin(read_nodes(charted_node, 9), blocks[:, None] + np.arange(LANES)).all()
+    assert np.isin(nodes_read(charted_node, 9), blocks[:, None] + np.arange(LANES)).all()
