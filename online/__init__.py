@@ -20,7 +20,11 @@ a damaged artifact is an :class:`ArtifactError`.
 Modules: :mod:`~hapticrom.online.model` (the loaded artifact), :mod:`~hapticrom.online.simulator`
 (the servo loop's object), :mod:`~hapticrom.online.kernels` (the numba kernels and the state
 buffer's layout), :mod:`~hapticrom.online.proxy` (``step_position``: the tool tip against
-the surface), :mod:`~hapticrom.online.scalpel` (the simulator's cutting controller),
+the surface), the rendered surface (:mod:`~hapticrom.online.renderer`,
+:mod:`~hapticrom.online.packed_surface`: one call on packed arrays, the bodies the C ABI's
+:mod:`~hapticrom.online.cabi` runs too; :mod:`~hapticrom.online.surface_kernels`,
+:mod:`~hapticrom.online.surface_chart`, :mod:`~hapticrom.online.node_blocks`),
+:mod:`~hapticrom.online.scalpel` (the simulator's cutting controller),
 :mod:`~hapticrom.online.cutting`, :mod:`~hapticrom.online.coupled_patch`,
 :mod:`~hapticrom.online.tool_load`, :mod:`~hapticrom.online.cut_render`,
 :mod:`~hapticrom.online.cut_worker` (the cuts), :mod:`~hapticrom.online.latency`,

@@ -7,7 +7,8 @@ is one implementation of the physics: each entry point views the caller's raw po
 arrays (``numba.carray``: no copy, no allocation) and calls the runtime's own ``@njit``
 kernels (:mod:`~hapticrom.online.kernels`, :mod:`~hapticrom.online.proxy`,
 :mod:`~hapticrom.online.surface_kernels`) on the very state buffer, proxy state and tables a
-:class:`~hapticrom.online.simulator.Simulator` steps.
+:class:`~hapticrom.online.simulator.Simulator` steps. A surface runs the bodies of
+:mod:`~hapticrom.online.packed_surface` on its packed arrays, as Python's surfaces do.
 
 Loading (:func:`open_simulator`, called by ``hapticrom_load`` under the GIL) builds a
 Simulator and returns the *handle*: one int64 array (its fields named by
@@ -54,9 +55,11 @@ import numpy as np
 from numba import carray, cfunc, njit, types
 
 from hapticrom.online import kernels as k
+from hapticrom.online import packed_surface as ps
 from hapticrom.online import proxy as px
-from hapticrom.online import surface_kernels as sk
 from hapticrom.online.model import ReducedModel, load
+from hapticrom.online.packed_surface import address
+from hapticrom.online.renderer import SurfaceWork
 from hapticrom.online.simulator import Simulator, friction_values
 from hapticrom.shared.errors import ArtifactError, HapticromError, InputError
 
@@ -261,191 +264,53 @@ def store_friction(values, buf, buf_size):
     return OK
 
 
-# -- the rendered surface ------------------------------------------------------------------------
-# A surface reads many arrays: their addresses are packed into one array (``arrays``) and
-# their shapes into another (``dims``, DIMS per array), in the order of SURFACE_ARRAYS.
-SURFACE_ARRAYS = (
-    "coefficients_out",  # (3, n) float64 scratch: the neighbours' reduced coordinates
-    "coefficients",  # curves: (P, K, n) float64; POD-ANM: section offsets (P + 1,) int64
-    "series",  # POD-ANM: the series' coefficients (Z, N1, n) float64; curves: unused
-    "surface_basis_t",  # (P, n, 3V) float32
-    "node_basis",  # transport: the chart's (P, n, 3, N) int16 (the others too)
-    "mode_scale",  # (P, n) float64: the modes' scales
-    "sample_grid",  # (P, 2): the samples' places on the chart's grid, in nodes
-    "sample_normals",  # (P, 3)
-    "chart_shape",  # (3,) int64
-    "chart_blocks",  # (B,) int64: the first nodes of the runs the neighbours are summed on
-    "halo",  # (1,) int64
-    "charted",  # (C,) int64
-    "charted_node",  # (C,) int64
-    "charted_frac",  # (2, C) float32
-    "uncharted",  # (U,) int64
-    "chart_grid",  # (N, 4) float32 scratch
-    "neighbours",  # (3, 2) int64 scratch
-    "terms",  # (3, terms_width(n)) float32 scratch
-    "sample_points",  # compliance: (P, 3) float64
-    "surface_vertices",  # (V, 3) float64
-    "field_triangles",  # (TL, 3) int64, the loadable triangles
-    "contact_fields",  # (R, 3V) float32
-    "triangle_rows",  # (TL, 3) int64
-    "sample_rows",  # (P,) int64
-    "surface_weights",  # (3,) float64 scratch
-    "triangle_grid",  # (7,) float64: origin, cell size, dims of the triangles' grid
-    "grid_starts",  # (cells + 1,) int64
-    "grid_ids",  # (entries,) int64
-    "read_weights",  # transport: (4, C) float32 scratch
-    "read_cells",  # (C,) int64 scratch
-    "uncharted_basis",  # transport: (P, n, 3U) float32
-    "uncharted_sum",  # (3U,) float64 scratch
-)
-DIMS = 4
-(A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_MODE_SCALE,
- A_SAMPLE_GRID,
- A_SAMPLE_NORMALS, A_SHAPE, A_BLOCKS, A_HALO, A_CHARTED, A_CHARTED_NODE,
- A_CHARTED_FRAC, A_UNCHARTED, A_CHART_GRID, A_NEIGHBOURS, A_TERMS, A_SAMPLE_POINTS,
- A_SURFACE_VERTICES, A_FIELD_TRIANGLES, A_CONTACT_FIELDS, A_TRIANGLE_ROWS, A_SAMPLE_ROWS,
- A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS, A_READ_WEIGHTS,
- A_READ_CELLS, A_UNCHARTED_BASIS, A_UNCHARTED_SUM) = range(len(SURFACE_ARRAYS))  # fmt: skip
-
-
-@njit(inline="always")
-def _view1(arrays, dims, i, dtype):
-    return carray(arrays[i], (dims[DIMS * i],), dtype)
-
-
-@njit(inline="always")
-def _view2(arrays, dims, i, dtype):
-    return carray(arrays[i], (dims[DIMS * i], dims[DIMS * i + 1]), dtype)
-
-
-@njit(inline="always")
-def _view3(arrays, dims, i, dtype):
-    d = DIMS * i
-    return carray(arrays[i], (dims[d], dims[d + 1], dims[d + 2]), dtype)
-
-
-@njit(inline="always")
-def _view4(arrays, dims, i, dtype):
-    d = DIMS * i
-    return carray(arrays[i], (dims[d], dims[d + 1], dims[d + 2], dims[d + 3]), dtype)
-
-
-@njit(inline="always")
-def _anm_coefficients(arrays, dims, buf):
-    c = _view2(arrays, dims, A_COEFFICIENTS_OUT, np.float64)
-    sk.anm_coefficients(buf, _view1(arrays, dims, A_COEFFICIENTS, np.int64),
-                        _view3(arrays, dims, A_SERIES, np.float64), c)  # fmt: skip
-    return c
-
-
-@njit(inline="always")
-def _curves_coefficients(arrays, dims, buf):
-    c = _view2(arrays, dims, A_COEFFICIENTS_OUT, np.float64)
-    sk.curves_coefficients(buf, _view3(arrays, dims, A_COEFFICIENTS, np.float64), c)
-    return c
-
-
-@njit(inline="always")
-def _transported(arrays, dims, buf, c, out):
-    """``surface_kernels.transported_surface`` on the packed arrays."""
-    sk.transported_surface(
-        buf, c, _view4(arrays, dims, A_NODE_BASIS, np.int16),
-        _view2(arrays, dims, A_MODE_SCALE, np.float64),
-        _view2(arrays, dims, A_SAMPLE_GRID, np.float64),
-        _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
-        _view1(arrays, dims, A_SHAPE, np.int64), _view1(arrays, dims, A_BLOCKS, np.int64),
-        _view1(arrays, dims, A_HALO, np.int64)[0],
-        _view1(arrays, dims, A_CHARTED, np.int64), _view1(arrays, dims, A_CHARTED_NODE, np.int64),
-        _view2(arrays, dims, A_CHARTED_FRAC, np.float32),
-        _view1(arrays, dims, A_UNCHARTED, np.int64),
-        _view3(arrays, dims, A_UNCHARTED_BASIS, np.float32),
-        _view2(arrays, dims, A_CHART_GRID, np.float32),
-        _view2(arrays, dims, A_NEIGHBOURS, np.int64), _view2(arrays, dims, A_TERMS, np.float32),
-        _view2(arrays, dims, A_READ_WEIGHTS, np.float32),
-        _view1(arrays, dims, A_READ_CELLS, np.int64),
-        _view1(arrays, dims, A_UNCHARTED_SUM, np.float64), out,
-    )  # fmt: skip
-
-
-@njit(inline="always")
-def _linear_dent(arrays, dims, buf, out):
-    """``surface_kernels.add_linear_dent`` on the packed arrays, the contact located on the
-    loadable surface at every call (a surface call keeps no state between calls)."""
-    weights = _view1(arrays, dims, A_SURFACE_WEIGHTS, np.float64)
-    triangle = sk.locate_on_surface(
-        buf, _view2(arrays, dims, A_SAMPLE_POINTS, np.float64),
-        _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
-        _view2(arrays, dims, A_SURFACE_VERTICES, np.float64),
-        _view2(arrays, dims, A_FIELD_TRIANGLES, np.int64),
-        _view1(arrays, dims, A_GRID, np.float64), _view1(arrays, dims, A_GRID_STARTS, np.int64),
-        _view1(arrays, dims, A_GRID_IDS, np.int64), weights,
-    )  # fmt: skip
-    sk.add_linear_dent(buf, triangle, weights, _view2(arrays, dims, A_CONTACT_FIELDS, np.float32),
-                       _view2(arrays, dims, A_TRIANGLE_ROWS, np.int64),
-                       _view1(arrays, dims, A_SAMPLE_ROWS, np.int64), out)  # fmt: skip
-
-
+# -- the rendered surface: packed_surface's bodies on the caller's pointers -------------------
 _surface_signature = _status(_pointers, _i8p, _f8p, types.int64, _f8p, types.int64)
 
 
 @cfunc(_surface_signature, cache=True)
 def surface_transport_anm(arrays, dims, buf, buf_size, out, vertices):
     """``Simulator.surface_displacement`` ("transport", POD-ANM) of the state ``buf`` into
-    out (V, 3) mm."""
-    state = carray(buf, (buf_size,))
-    c = _anm_coefficients(arrays, dims, state)
-    _transported(arrays, dims, state, c, carray(out, (vertices, 3)))
+    out (V, 3) mm; ``arrays`` and ``dims``: :func:`packed_surface.pack`'s addresses and
+    shapes."""
+    ps.transport_anm(arrays, dims, carray(buf, (buf_size,)), carray(out, (vertices, 3)))
     return OK
 
 
 @cfunc(_surface_signature, cache=True)
 def surface_transport_curves(arrays, dims, buf, buf_size, out, vertices):
     """As :func:`surface_transport_anm`, the stored curves' coefficients."""
-    state = carray(buf, (buf_size,))
-    c = _curves_coefficients(arrays, dims, state)
-    _transported(arrays, dims, state, c, carray(out, (vertices, 3)))
+    ps.transport_curves(arrays, dims, carray(buf, (buf_size,)), carray(out, (vertices, 3)))
     return OK
 
 
 @cfunc(_surface_signature, cache=True)
 def surface_podi_anm(arrays, dims, buf, buf_size, out, vertices):
     """``Simulator.surface_displacement`` ("podi", POD-ANM) into out (V, 3) mm."""
-    state = carray(buf, (buf_size,))
-    c = _anm_coefficients(arrays, dims, state)
-    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32),
-                       carray(out, (vertices, 3)))  # fmt: skip
+    ps.podi_anm(arrays, dims, carray(buf, (buf_size,)), carray(out, (vertices, 3)))
     return OK
 
 
 @cfunc(_surface_signature, cache=True)
 def surface_podi_curves(arrays, dims, buf, buf_size, out, vertices):
     """``Simulator.surface_displacement`` ("podi", stored curves) into out (V, 3) mm."""
-    state = carray(buf, (buf_size,))
-    c = _curves_coefficients(arrays, dims, state)
-    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32),
-                       carray(out, (vertices, 3)))  # fmt: skip
+    ps.podi_curves(arrays, dims, carray(buf, (buf_size,)), carray(out, (vertices, 3)))
     return OK
 
 
 @cfunc(_surface_signature, cache=True)
 def surface_compliance_anm(arrays, dims, buf, buf_size, out, vertices):
-    """``Simulator.surface_displacement`` ("compliance", POD-ANM) into out (V, 3) mm."""
-    state = carray(buf, (buf_size,))
-    c = _anm_coefficients(arrays, dims, state)
-    field = carray(out, (vertices, 3))
-    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32), field)
-    _linear_dent(arrays, dims, state, field)
+    """``Simulator.surface_displacement`` ("compliance", POD-ANM) into out (V, 3) mm: the
+    contact located on the loadable surface at every call (a surface call keeps no state
+    between calls)."""
+    ps.compliance_anm(arrays, dims, carray(buf, (buf_size,)), carray(out, (vertices, 3)))
     return OK
 
 
 @cfunc(_surface_signature, cache=True)
 def surface_compliance_curves(arrays, dims, buf, buf_size, out, vertices):
     """``Simulator.surface_displacement`` ("compliance", stored curves) into out (V, 3) mm."""
-    state = carray(buf, (buf_size,))
-    c = _curves_coefficients(arrays, dims, state)
-    field = carray(out, (vertices, 3))
-    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32), field)
-    _linear_dent(arrays, dims, state, field)
+    ps.compliance_curves(arrays, dims, carray(buf, (buf_size,)), carray(out, (vertices, 3)))
     return OK
 
 
@@ -494,81 +359,21 @@ _REGISTRY: dict[int, _Entry] = {}
 _KEYS = itertools.count(1)
 
 
-def _address(a: np.ndarray) -> int:
-    if not a.flags.c_contiguous:
-        raise ValueError("internal: an array handed to C must be C-contiguous")
-    return a.ctypes.data
-
-
 def _bits(x: float) -> int:
     """A float64's bits as an int64 (the handle is one int64 array)."""
     return int(np.array(x, dtype=np.float64).view(np.int64))
 
 
-def _surface_arrays(sim: Simulator) -> dict[str, np.ndarray]:
-    """The arrays a surface of ``sim`` reads, by SURFACE_ARRAYS name; the scratch is the
-    render side's own (a surface never writes what the servo thread's calls write)."""
-    m = sim.model
-    n = m.num_modes
-    if sim.response == "anm":
-        arrays = {"coefficients": m.anm["offsets"], "series": m.anm["coefficients"]}
-    else:
-        arrays = {"coefficients": m.coefficients}
-    arrays["coefficients_out"] = np.zeros((3, n))
-    arrays["surface_basis_t"] = m.surface_basis_t
-    if sim.interpolation == "transport":
-        ch = m.chart
-        nodes = int(np.prod(ch.shape))
-        arrays |= {
-            "node_basis": ch.node_basis, "mode_scale": ch.mode_scale,
-            "sample_grid": ch.sample_grid,
-            "sample_normals": m.sample_normals, "chart_shape": ch.shape,
-            "chart_blocks": ch.blocks,
-            "halo": np.array([ch.halo], dtype=np.int64), "charted": ch.charted,
-            "charted_node": ch.charted_node, "charted_frac": ch.charted_frac,
-            "uncharted": ch.uncharted, "chart_grid": np.zeros((nodes, 4), dtype=np.float32),
-            "neighbours": np.zeros((3, 2), dtype=np.int64),
-            "terms": np.zeros((3, sk.terms_width(n)), dtype=np.float32),
-            "read_weights": np.zeros((4, len(ch.charted)), dtype=np.float32),
-            "read_cells": np.zeros(len(ch.charted), dtype=np.int64),
-            "uncharted_basis": ch.uncharted_basis,
-            "uncharted_sum": np.zeros(3 * len(ch.uncharted)),
-        }  # fmt: skip
-    if sim.interpolation == "compliance":
-        f = m.contact_fields
-        arrays |= {
-            "sample_points": m.sample_points, "sample_normals": m.sample_normals,
-            "surface_vertices": m.vertices, "field_triangles": f["triangles"],
-            "contact_fields": f["fields"], "triangle_rows": f["triangle_rows"],
-            "sample_rows": f["sample_rows"], "surface_weights": np.zeros(3),
-            "triangle_grid": f["grid"], "grid_starts": f["grid_starts"], "grid_ids": f["grid_ids"],
-        }  # fmt: skip
-    return arrays
-
-
-def _pack(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(addresses (A,) int64, shapes (A, DIMS) int64) in SURFACE_ARRAYS order; an array the
-    configuration does not read is a null address and a zero shape."""
-    addresses = np.zeros(len(SURFACE_ARRAYS), dtype=np.int64)
-    dims = np.zeros((len(SURFACE_ARRAYS), DIMS), dtype=np.int64)
-    for i, name in enumerate(SURFACE_ARRAYS):
-        a = arrays.get(name)
-        if a is None:
-            continue
-        addresses[i] = _address(a)
-        dims[i, : a.ndim] = a.shape
-    return addresses, dims
-
-
 def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
     """The handle of ``sim`` and the arrays it points into."""
     m = sim.model
-    arrays = _surface_arrays(sim)
-    addresses, dims = _pack(arrays)
+    # the render side's own scratch: a surface never writes what the servo thread's calls write
+    work = SurfaceWork(m, sim.interpolation, sim.response)
+    addresses, dims = work.addresses, work.dims
     snapshot = np.zeros_like(sim._buf)
     proxy_snapshot = np.zeros(PROXY_HEAD)
     points = np.ascontiguousarray(m.sample_points)
-    kept = [*arrays.values(), addresses, dims, snapshot, proxy_snapshot, points]
+    kept = [work, *work.arrays.values(), snapshot, proxy_snapshot, points]
     anm = sim.response == "anm"
     values = {
         "abi": ABI_VERSION, "key": key,
@@ -580,16 +385,16 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
         "surface": SURFACES[sim.interpolation, sim.response].address,
         "step_position": step_position.address, "stiffness": stiffness.address,
         "set_friction": store_friction.address,
-        "buf": _address(sim._buf), "buf_size": sim._buf.size, "snapshot": _address(snapshot),
-        "table": _address(sim._table), "table_size": sim._table.size,
-        "sheet": _address(sim._sheet), "sheet_size": sim._sheet.size,
-        "proxy": _address(sim._proxy), "proxy_size": sim._proxy.size, "proxy_head": PROXY_HEAD,
-        "proxy_snapshot": _address(proxy_snapshot),
-        "indicator": _address(m.indicator), "samples": len(m.indicator),
-        "surface_arrays": _address(addresses), "surface_dims": _address(dims),
-        "vertices": _address(m.vertices), "vertex_count": len(m.vertices),
-        "triangles": _address(m.triangles), "triangle_count": len(m.triangles),
-        "sample_points": _address(points), "modes": m.num_modes,
+        "buf": address(sim._buf), "buf_size": sim._buf.size, "snapshot": address(snapshot),
+        "table": address(sim._table), "table_size": sim._table.size,
+        "sheet": address(sim._sheet), "sheet_size": sim._sheet.size,
+        "proxy": address(sim._proxy), "proxy_size": sim._proxy.size, "proxy_head": PROXY_HEAD,
+        "proxy_snapshot": address(proxy_snapshot),
+        "indicator": address(m.indicator), "samples": len(m.indicator),
+        "surface_arrays": address(addresses), "surface_dims": address(dims),
+        "vertices": address(m.vertices), "vertex_count": len(m.vertices),
+        "triangles": address(m.triangles), "triangle_count": len(m.triangles),
+        "sample_points": address(points), "modes": m.num_modes,
         "interpolation": CODES[sim.interpolation],
         "response": 1 if anm else 2,
         "trained_depth": _bits(m.trained_depth), "trained_force": _bits(m.trained_force),

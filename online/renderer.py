@@ -19,16 +19,17 @@ import time
 
 import numpy as np
 
-from hapticrom.online import kernels, surface_kernels
+from hapticrom.online import kernels, packed_surface, surface_kernels
 from hapticrom.shared.errors import InputError, OutputArrayError, SimulatorBusyError
 
 MAX_ATTEMPTS = 10_000  # copies a renderer tries before it gives up (the servo never paused)
 
 
 class SurfaceWork:
-    """The scratch one thread's surfaces are computed in (none of it is shared)."""
+    """The scratch one thread's surfaces are computed in (none of it is shared), and the
+    packed arrays a surface reads (:mod:`~hapticrom.online.packed_surface`)."""
 
-    def __init__(self, model, interpolation: str):
+    def __init__(self, model, interpolation: str, response: str):
         n = model.num_modes
         self.coefficients = np.zeros((3, n))  # the neighbours' reduced coordinates
         # The transported field: the neighbours' sum on the chart's grid, (x, y, z, 0) a
@@ -51,25 +52,32 @@ class SurfaceWork:
         self.surface_weights = np.zeros(3)
         self.surface_triangle = 0
         self.located_of = -1.0  # the contact (buf[CONTACTS]) they are of
+        self.chart_halo = np.array([model.chart.halo if transport else 0], dtype=np.int64)
+        # Every array a surface reads, packed once (kept alive here: the addresses point
+        # into them), and the one call that renders from them (None: Grassmann, and the
+        # compliance surface, whose location is kept per contact: surface_of's own path).
+        packed = interpolation in ("transport", "podi", "compliance")
+        self.arrays = (
+            packed_surface.surface_arrays(model, interpolation, response, self) if packed else {}
+        )
+        self.addresses, self.dims = packed_surface.pack(self.arrays)
+        self.entry = packed_surface.ENTRIES.get((interpolation, response))
 
 
 def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork, out) -> None:
-    """The surface displacement (V, 3) mm of the state ``buf`` into ``out`` (no cuts)."""
+    """The surface displacement (V, 3) mm of the state ``buf`` into ``out`` (no cuts):
+    transported and PODI surfaces in one call on ``work``'s packed arrays, the others here."""
+    entry = work.entry
+    if entry is not None:
+        entry(work.addresses, work.dims, buf, out)
+        return
     m, c = model, work.coefficients
     if response == "anm":
         a = m.anm
         surface_kernels.anm_coefficients(buf, a["offsets"], a["coefficients"], c)
     elif interpolation != "grassmann":
         surface_kernels.curves_coefficients(buf, m.coefficients, c)
-    if interpolation == "transport":
-        ch = m.chart
-        surface_kernels.transported_surface(
-            buf, c, ch.node_basis, ch.mode_scale, ch.sample_grid, m.sample_normals, ch.shape,
-            ch.blocks, ch.halo, ch.charted, ch.charted_node, ch.charted_frac, ch.uncharted,
-            ch.uncharted_basis, work.chart_grid, work.chart_neighbours, work.chart_terms,
-            work.chart_weights, work.chart_cells, work.uncharted_sum, out,
-        )  # fmt: skip
-    elif interpolation == "grassmann":
+    if interpolation == "grassmann":
         g = m.grassmann
         contacts = float(buf[kernels.CONTACTS])
         if work.frames_of != contacts:  # prepared once per contact
@@ -121,7 +129,7 @@ class SurfaceRenderer:
     def __init__(self, simulator):
         self.simulator = simulator
         self._buf = np.zeros_like(simulator._buf)  # the copy a surface is rendered from
-        self._work = SurfaceWork(simulator.model, simulator.interpolation)
+        self._work = SurfaceWork(simulator.model, simulator.interpolation, simulator.response)
         self.sequence = 0  # the simulator's writing calls before the last rendered state
         self._inside = False  # a flag, not a lock (see Simulator)
 

@@ -293,7 +293,7 @@ class Simulator:
         # bound once: no lookups per step
         self._step_displacement = k.step_displacement_anm if anm else k.step_displacement_curves
         self._step_force = k.step_force_anm if anm else k.step_force_curves
-        self._work = SurfaceWork(model, interpolation)  # the surface's scratch
+        self._work = SurfaceWork(model, interpolation, response)  # the surface's scratch
         # Writing calls add 1 before and after: a SurfaceRenderer copies the state whole.
         self._sequence = 0
         self._controlled = "displacement"  # the last step's control (the cuts' field needs it)

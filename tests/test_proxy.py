@@ -364,7 +364,7 @@ def test_a_render_thread_draws_whole_steps_while_the_servo_steps(model):
     drawer.start()
     thread.join()
     drawer.join()
-    work = SurfaceWork(model, sim.interpolation)
+    work = SurfaceWork(model, sim.interpolation, sim.response)
     expected = np.zeros_like(model.vertices)
     distinct = {sequence for _, sequence in frames}
     assert len(distinct) > 5  # the frames caught the servo at many different steps

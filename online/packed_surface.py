@@ -1,0 +1,318 @@
+"""The rendered surface from packed arrays: one layout for the Python simulator and the C ABI.
+
+A surface reads up to 32 arrays, the model's and its scratch. Their addresses are packed
+once into one int64 array and their shapes into another (``dims``, DIMS an array), in the
+order of :data:`SURFACE_ARRAYS` (:func:`pack` of :func:`surface_arrays`); a surface is then
+one call on four arguments. C's cfuncs (:mod:`~hapticrom.online.cabi`) get the two as
+pointers; Python's :data:`ENTRIES` get them as arrays (``Simulator.surface_displacement``
+and a ``SurfaceRenderer``, for the transported and the PODI surfaces). Both run the same
+bodies (:data:`BODIES`), which view the addresses as arrays (``numba.carray``: no copy) and
+call :mod:`~hapticrom.online.surface_kernels`.
+
+Why Python goes through them too: numba's dispatch of the transported kernel's 21
+arguments took 1.4 us, the coefficients' own call 0.35 us, and Python's lookups around the
+two about 1 us more. On the cornea demo's untrained contact, one call on the packed arrays
+is 16.7 against 19.8 us (min over 20,000 calls, one process), the surface bit for bit the
+same.
+
+The entries trust their addresses and shapes: only :func:`pack` makes them, from arrays that
+the :class:`~hapticrom.online.renderer.SurfaceWork` holding them keeps alive (its scratch
+and the model's arrays, checked at load). Never call an entry with arrays of your own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import carray, njit, types
+from numba.extending import intrinsic
+
+from hapticrom.online import surface_kernels as sk
+
+# -- the layout ------------------------------------------------------------------------------
+# The arrays in their packed order, each with what it holds (a name missing from a
+# configuration's surface_arrays is packed as a null address and a zero shape).
+SURFACE_ARRAYS = (
+    "coefficients_out",  # (3, n) float64 scratch: the neighbours' reduced coordinates
+    "coefficients",  # curves: (P, K, n) float64; POD-ANM: section offsets (P + 1,) int64
+    "series",  # POD-ANM: the series' coefficients (Z, N1, n) float64; curves: unused
+    "surface_basis_t",  # (P, n, 3V) float32
+    "node_basis",  # transport: the chart's (P, n, 3, N) int16 (the others too)
+    "mode_scale",  # (P, n) float64: the modes' scales
+    "sample_grid",  # (P, 2): the samples' places on the chart's grid, in nodes
+    "sample_normals",  # (P, 3)
+    "chart_shape",  # (3,) int64
+    "chart_blocks",  # (B,) int64: the first nodes of the runs the neighbours are summed on
+    "halo",  # (1,) int64
+    "charted",  # (C,) int64
+    "charted_node",  # (C,) int64
+    "charted_frac",  # (2, C) float32
+    "uncharted",  # (U,) int64
+    "chart_grid",  # (N, 4) float32 scratch
+    "neighbours",  # (3, 2) int64 scratch
+    "terms",  # (3, terms_width(n)) float32 scratch
+    "sample_points",  # compliance: (P, 3) float64
+    "surface_vertices",  # (V, 3) float64
+    "field_triangles",  # (TL, 3) int64, the loadable triangles
+    "contact_fields",  # (R, 3V) float32
+    "triangle_rows",  # (TL, 3) int64
+    "sample_rows",  # (P,) int64
+    "surface_weights",  # (3,) float64 scratch
+    "triangle_grid",  # (7,) float64: origin, cell size, dims of the triangles' grid
+    "grid_starts",  # (cells + 1,) int64
+    "grid_ids",  # (entries,) int64
+    "read_weights",  # transport: (4, C) float32 scratch
+    "read_cells",  # (C,) int64 scratch
+    "uncharted_basis",  # transport: (P, n, 3U) float32
+    "uncharted_sum",  # (3U,) float64 scratch
+)
+DIMS = 4
+(A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_MODE_SCALE,
+ A_SAMPLE_GRID,
+ A_SAMPLE_NORMALS, A_SHAPE, A_BLOCKS, A_HALO, A_CHARTED, A_CHARTED_NODE,
+ A_CHARTED_FRAC, A_UNCHARTED, A_CHART_GRID, A_NEIGHBOURS, A_TERMS, A_SAMPLE_POINTS,
+ A_SURFACE_VERTICES, A_FIELD_TRIANGLES, A_CONTACT_FIELDS, A_TRIANGLE_ROWS, A_SAMPLE_ROWS,
+ A_SURFACE_WEIGHTS, A_GRID, A_GRID_STARTS, A_GRID_IDS, A_READ_WEIGHTS,
+ A_READ_CELLS, A_UNCHARTED_BASIS, A_UNCHARTED_SUM) = range(len(SURFACE_ARRAYS))  # fmt: skip
+
+
+@njit(inline="always")
+def _view1(arrays, dims, i, dtype):
+    return carray(arrays[i], (dims[DIMS * i],), dtype)
+
+
+@njit(inline="always")
+def _view2(arrays, dims, i, dtype):
+    return carray(arrays[i], (dims[DIMS * i], dims[DIMS * i + 1]), dtype)
+
+
+@njit(inline="always")
+def _view3(arrays, dims, i, dtype):
+    d = DIMS * i
+    return carray(arrays[i], (dims[d], dims[d + 1], dims[d + 2]), dtype)
+
+
+@njit(inline="always")
+def _view4(arrays, dims, i, dtype):
+    d = DIMS * i
+    return carray(arrays[i], (dims[d], dims[d + 1], dims[d + 2], dims[d + 3]), dtype)
+
+
+@njit(inline="always")
+def _anm_coefficients(arrays, dims, buf):
+    c = _view2(arrays, dims, A_COEFFICIENTS_OUT, np.float64)
+    sk.anm_coefficients(buf, _view1(arrays, dims, A_COEFFICIENTS, np.int64),
+                        _view3(arrays, dims, A_SERIES, np.float64), c)  # fmt: skip
+    return c
+
+
+@njit(inline="always")
+def _curves_coefficients(arrays, dims, buf):
+    c = _view2(arrays, dims, A_COEFFICIENTS_OUT, np.float64)
+    sk.curves_coefficients(buf, _view3(arrays, dims, A_COEFFICIENTS, np.float64), c)
+    return c
+
+
+@njit(inline="always")
+def _transported(arrays, dims, buf, c, out):
+    """``surface_kernels.transported_surface`` on the packed arrays."""
+    sk.transported_surface(
+        buf, c, _view4(arrays, dims, A_NODE_BASIS, np.int16),
+        _view2(arrays, dims, A_MODE_SCALE, np.float64),
+        _view2(arrays, dims, A_SAMPLE_GRID, np.float64),
+        _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
+        _view1(arrays, dims, A_SHAPE, np.int64), _view1(arrays, dims, A_BLOCKS, np.int64),
+        _view1(arrays, dims, A_HALO, np.int64)[0],
+        _view1(arrays, dims, A_CHARTED, np.int64), _view1(arrays, dims, A_CHARTED_NODE, np.int64),
+        _view2(arrays, dims, A_CHARTED_FRAC, np.float32),
+        _view1(arrays, dims, A_UNCHARTED, np.int64),
+        _view3(arrays, dims, A_UNCHARTED_BASIS, np.float32),
+        _view2(arrays, dims, A_CHART_GRID, np.float32),
+        _view2(arrays, dims, A_NEIGHBOURS, np.int64), _view2(arrays, dims, A_TERMS, np.float32),
+        _view2(arrays, dims, A_READ_WEIGHTS, np.float32),
+        _view1(arrays, dims, A_READ_CELLS, np.int64),
+        _view1(arrays, dims, A_UNCHARTED_SUM, np.float64), out,
+    )  # fmt: skip
+
+
+@njit(inline="always")
+def _linear_dent(arrays, dims, buf, out):
+    """``surface_kernels.add_linear_dent`` on the packed arrays, the contact located on the
+    loadable surface at every call (a surface call keeps no state between calls)."""
+    weights = _view1(arrays, dims, A_SURFACE_WEIGHTS, np.float64)
+    triangle = sk.locate_on_surface(
+        buf, _view2(arrays, dims, A_SAMPLE_POINTS, np.float64),
+        _view2(arrays, dims, A_SAMPLE_NORMALS, np.float64),
+        _view2(arrays, dims, A_SURFACE_VERTICES, np.float64),
+        _view2(arrays, dims, A_FIELD_TRIANGLES, np.int64),
+        _view1(arrays, dims, A_GRID, np.float64), _view1(arrays, dims, A_GRID_STARTS, np.int64),
+        _view1(arrays, dims, A_GRID_IDS, np.int64), weights,
+    )  # fmt: skip
+    sk.add_linear_dent(buf, triangle, weights, _view2(arrays, dims, A_CONTACT_FIELDS, np.float32),
+                       _view2(arrays, dims, A_TRIANGLE_ROWS, np.int64),
+                       _view1(arrays, dims, A_SAMPLE_ROWS, np.int64), out)  # fmt: skip
+
+
+# -- the bodies, one a surface: C's cfuncs and Python's entries run these ---------------------
+@njit(inline="always")
+def transport_anm(arrays, dims, state, out):
+    """The transported surface, POD-ANM's coefficients, of the state into out (V, 3) mm."""
+    _transported(arrays, dims, state, _anm_coefficients(arrays, dims, state), out)
+
+
+@njit(inline="always")
+def transport_curves(arrays, dims, state, out):
+    """As :func:`transport_anm`, the stored curves' coefficients."""
+    _transported(arrays, dims, state, _curves_coefficients(arrays, dims, state), out)
+
+
+@njit(inline="always")
+def podi_anm(arrays, dims, state, out):
+    """PODI's blend of the three neighbours' fields, POD-ANM's coefficients."""
+    c = _anm_coefficients(arrays, dims, state)
+    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32), out)
+
+
+@njit(inline="always")
+def podi_curves(arrays, dims, state, out):
+    """As :func:`podi_anm`, the stored curves' coefficients."""
+    c = _curves_coefficients(arrays, dims, state)
+    sk.blended_surface(state, c, _view3(arrays, dims, A_BASIS_T, np.float32), out)
+
+
+@njit(inline="always")
+def compliance_anm(arrays, dims, state, out):
+    """PODI's blend plus the linear dent at the contact, POD-ANM's coefficients."""
+    podi_anm(arrays, dims, state, out)
+    _linear_dent(arrays, dims, state, out)
+
+
+@njit(inline="always")
+def compliance_curves(arrays, dims, state, out):
+    """As :func:`compliance_anm`, the stored curves' coefficients."""
+    podi_curves(arrays, dims, state, out)
+    _linear_dent(arrays, dims, state, out)
+
+
+BODIES = {
+    ("transport", "anm"): transport_anm,
+    ("transport", "curves"): transport_curves,
+    ("podi", "anm"): podi_anm,
+    ("podi", "curves"): podi_curves,
+    ("compliance", "anm"): compliance_anm,
+    ("compliance", "curves"): compliance_curves,
+}
+
+
+# -- Python's entries: the packed arrays as int64 arrays ----------------------------------------
+def _data_as(context, builder, signature, args):
+    data = context.make_array(signature.args[0])(context, builder, args[0]).data
+    return builder.bitcast(data, context.get_value_type(signature.return_type))
+
+
+@intrinsic
+def _addresses_of(typingctx, addresses):
+    """An int64 array's data as the ``void **`` the bodies read the arrays' addresses from."""
+    if isinstance(addresses, types.Array) and addresses.dtype == types.int64:
+        return types.CPointer(types.voidptr)(addresses), _data_as
+    return None
+
+
+@intrinsic
+def _shapes_of(typingctx, dims):
+    """An int64 array's data as the ``int64 *`` the bodies read the arrays' shapes from."""
+    if isinstance(dims, types.Array) and dims.dtype == types.int64:
+        return types.CPointer(types.int64)(dims), _data_as
+    return None
+
+
+# Four explicit functions, not one factory's closures: numba names a cached function's
+# files by its qualified name and line, so closures would share (and overwrite) them.
+_ENTRY = "void(int64[::1], int64[:, ::1], float64[::1], float64[:, ::1])"
+
+
+@njit(_ENTRY, cache=True, nogil=True)
+def _transport_anm(addresses, dims, buf, out):
+    transport_anm(_addresses_of(addresses), _shapes_of(dims), buf, out)
+
+
+@njit(_ENTRY, cache=True, nogil=True)
+def _transport_curves(addresses, dims, buf, out):
+    transport_curves(_addresses_of(addresses), _shapes_of(dims), buf, out)
+
+
+@njit(_ENTRY, cache=True, nogil=True)
+def _podi_anm(addresses, dims, buf, out):
+    podi_anm(_addresses_of(addresses), _shapes_of(dims), buf, out)
+
+
+@njit(_ENTRY, cache=True, nogil=True)
+def _podi_curves(addresses, dims, buf, out):
+    podi_curves(_addresses_of(addresses), _shapes_of(dims), buf, out)
+
+
+# (interpolation, response) -> entry(addresses, dims, buf, out) with pack()'s two arrays. The
+# compliance surface keeps its own Python path (it locates the contact once per contact).
+ENTRIES = {
+    ("transport", "anm"): _transport_anm,
+    ("transport", "curves"): _transport_curves,
+    ("podi", "anm"): _podi_anm,
+    ("podi", "curves"): _podi_curves,
+}
+
+
+# -- packing -----------------------------------------------------------------------------------
+def surface_arrays(model, interpolation: str, response: str, work) -> dict[str, np.ndarray]:
+    """The arrays a surface of ``interpolation`` and ``response`` reads, by SURFACE_ARRAYS
+    name: the model's and the scratch of ``work`` (a ``renderer.SurfaceWork``: a thread's own,
+    so a surface never writes what another thread's calls write)."""
+    m = model
+    if response == "anm":
+        arrays = {"coefficients": m.anm["offsets"], "series": m.anm["coefficients"]}
+    else:
+        arrays = {"coefficients": m.coefficients}
+    arrays["coefficients_out"] = work.coefficients
+    arrays["surface_basis_t"] = m.surface_basis_t
+    if interpolation == "transport":
+        ch = m.chart
+        arrays |= {
+            "node_basis": ch.node_basis, "mode_scale": ch.mode_scale,
+            "sample_grid": ch.sample_grid,
+            "sample_normals": m.sample_normals, "chart_shape": ch.shape,
+            "chart_blocks": ch.blocks, "halo": work.chart_halo, "charted": ch.charted,
+            "charted_node": ch.charted_node, "charted_frac": ch.charted_frac,
+            "uncharted": ch.uncharted, "chart_grid": work.chart_grid,
+            "neighbours": work.chart_neighbours, "terms": work.chart_terms,
+            "read_weights": work.chart_weights, "read_cells": work.chart_cells,
+            "uncharted_basis": ch.uncharted_basis, "uncharted_sum": work.uncharted_sum,
+        }  # fmt: skip
+    if interpolation == "compliance":
+        f = m.contact_fields
+        arrays |= {
+            "sample_points": m.sample_points, "sample_normals": m.sample_normals,
+            "surface_vertices": m.vertices, "field_triangles": f["triangles"],
+            "contact_fields": f["fields"], "triangle_rows": f["triangle_rows"],
+            "sample_rows": f["sample_rows"], "surface_weights": work.surface_weights,
+            "triangle_grid": f["grid"], "grid_starts": f["grid_starts"], "grid_ids": f["grid_ids"],
+        }  # fmt: skip
+    return arrays
+
+
+def pack(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(addresses (A,) int64, shapes (A, DIMS) int64) in SURFACE_ARRAYS order; an array the
+    configuration does not read is a null address and a zero shape."""
+    addresses = np.zeros(len(SURFACE_ARRAYS), dtype=np.int64)
+    dims = np.zeros((len(SURFACE_ARRAYS), DIMS), dtype=np.int64)
+    for i, name in enumerate(SURFACE_ARRAYS):
+        a = arrays.get(name)
+        if a is None:
+            continue
+        addresses[i] = address(a)
+        dims[i, : a.ndim] = a.shape
+    return addresses, dims
+
+
+def address(a: np.ndarray) -> int:
+    """The address of a C-contiguous array's data (ValueError for any other)."""
+    if not a.flags.c_contiguous:
+        raise ValueError("internal: an array handed to C must be C-contiguous")
+    return a.ctypes.data
