@@ -50,8 +50,12 @@ def synthetic_result(untrained_p99: float, floor_p99: float) -> dict:
     """A measure() result with every call at 1 us but the untrained surface and its floor."""
     calls = {"p50_us": 1.0, "p99_us": 1.0, "max_us": 1.0, "calls": 10}
     result = {key: dict(calls) for key in latency.CALLS}
-    result["surface_untrained"] = {**calls, "p50_us": 20.0, "p99_us": untrained_p99}
-    result["constant_work"] = {**calls, "p50_us": 20.0, "p99_us": floor_p99}
+    for key, floor_key in latency.FLOORS.items():
+        result[key]["over_limit"] = result[floor_key]["over_limit"] = 0.0
+    share = 0.012 if untrained_p99 > 50 else 0.004
+    result["surface_untrained"] = {**calls, "p50_us": 20.0, "p99_us": untrained_p99,
+                                   "over_limit": share}  # fmt: skip
+    result["constant_work"] = {**calls, "p50_us": 20.0, "p99_us": floor_p99, "over_limit": 0.003}
     gaps = {"threshold_us": 10.0, "per_second": 500.0, "time_fraction": 0.01}
     result.update(artifact="a.h5", interpolation="transport", response="curves",
                   surface_vertices=4, load_and_warm_up_s=0.5, speedup_p50=1.0, speedup_p99=1.0,
@@ -72,6 +76,8 @@ def test_verdict_names_the_host_only_when_its_floor_misses_too(surface, floor, v
     assert f"{surface:.2f} us, {verdict}" in line
     assert f"beside it: p99 {floor:.1f} us" in line
     assert ("the host's" in line) == host
+    share = "1.20" if surface > 50 else "0.40"
+    assert f"over 50 us: {share} % of calls, constant work 0.30 %" in line
 
 
 def test_report_gives_the_chance_a_call_meets_a_gap():
@@ -80,3 +86,15 @@ def test_report_gives_the_chance_a_call_meets_a_gap():
     assert "500 times a second (1.00 % of the time)" in text
     assert "a call of 20 us meets such a gap in about 1.0 % of calls" in text
     assert np.isfinite(latency.host_gaps(0.01)["per_second"])
+
+
+def test_the_share_over_a_target_agrees_with_its_p99(small_artifact):
+    """Each surface and its floor carry the share of calls over the target's limit, in the
+    same unit as the p99: the p99 is under the limit exactly when at most 1 % are over it."""
+    result = latency.measure(small_artifact, steps=2000, baseline_steps=200)
+    for key, stat, limit in latency.TARGETS.values():
+        for name in (key, latency.FLOORS[key]) if key in latency.FLOORS else ():
+            share, p99 = result[name]["over_limit"], result[name][stat]
+            assert 0.0 <= share <= 1.0
+            assert (share <= 0.01) == (p99 <= limit), (name, share, p99)
+    assert result["surface_untrained"]["calls"] == result["constant_work"]["calls"] == 2000
