@@ -373,7 +373,7 @@ def _handle(key: int, sim: Simulator) -> tuple[np.ndarray, list[np.ndarray]]:
     snapshot = np.zeros_like(sim._buf)
     proxy_snapshot = np.zeros(PROXY_HEAD)
     points = np.ascontiguousarray(m.sample_points)
-    kept = [work, *work.arrays.values(), snapshot, proxy_snapshot, points]
+    kept = [*work.arrays.values(), addresses, dims, snapshot, proxy_snapshot, points]
     anm = sim.response == "anm"
     values = {
         "abi": ABI_VERSION, "key": key,
