@@ -30,6 +30,7 @@ class SurfaceWork:
     packed arrays a surface reads (:mod:`~hapticrom.online.packed_surface`)."""
 
     def __init__(self, model, interpolation: str, response: str):
+        self.model, self.interpolation, self.response = model, interpolation, response
         n = model.num_modes
         self.coefficients = np.zeros((3, n))  # the neighbours' reduced coordinates
         # The transported field: the neighbours' sum on the chart's grid, (x, y, z, 0) a
@@ -62,6 +63,11 @@ class SurfaceWork:
         )
         self.addresses, self.dims = packed_surface.pack(self.arrays)
         self.entry = packed_surface.ENTRIES.get((interpolation, response))
+
+    def __reduce__(self):
+        """A copy (copy, deepcopy, pickle) is made afresh: copied, the packed addresses would
+        still point into this object's arrays, and render into them after it is gone."""
+        return SurfaceWork, (self.model, self.interpolation, self.response)
 
 
 def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork, out) -> None:

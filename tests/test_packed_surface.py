@@ -92,3 +92,24 @@ def test_the_packed_addresses_are_the_works_own_arrays(model, interpolation):
 def test_pack_refuses_an_array_that_is_not_c_contiguous():
     with pytest.raises(ValueError, match="C-contiguous"):
         packed_surface.pack({"coefficients": np.zeros((4, 6))[:, ::2]})
+
+
+def test_a_copied_simulator_renders_from_its_own_arrays(model):
+    """deepcopy packs the copy afresh: its addresses are its own arrays', and it renders
+    the same surface after the original is gone (copied as they were, the addresses would
+    point into the original's freed scratch)."""
+    import copy
+    import gc
+
+    interpolation = "transport" if model.chart is not None else "podi"
+    sim = model.simulator(interpolation, "curves")
+    sim.set_contact(model.sample_points[model.sample_triangles[0]].mean(axis=0))
+    sim.step_displacement(-0.5 * model.trained_depth * np.asarray(sim.contact_normal))
+    expected = sim.surface_displacement(np.zeros_like(model.vertices)).copy()
+    twin = copy.deepcopy(sim)
+    work = twin._work
+    assert work.addresses[0] == work.arrays["coefficients_out"].ctypes.data
+    assert work.addresses[0] != sim._work.addresses[0]
+    del sim
+    gc.collect()
+    np.testing.assert_array_equal(twin.surface_displacement(np.zeros_like(expected)), expected)
