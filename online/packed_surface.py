@@ -27,44 +27,54 @@ from numba import carray, njit, types
 from numba.extending import intrinsic
 
 from hapticrom.online import surface_kernels as sk
+from hapticrom.shared.errors import ArtifactError
 
 # -- the layout ------------------------------------------------------------------------------
-# The arrays in their packed order, each with what it holds (a name missing from a
-# configuration's surface_arrays is packed as a null address and a zero shape).
-SURFACE_ARRAYS = (
-    "coefficients_out",  # (3, n) float64 scratch: the neighbours' reduced coordinates
-    "coefficients",  # curves: (P, K, n) float64; POD-ANM: section offsets (P + 1,) int64
-    "series",  # POD-ANM: the series' coefficients (Z, N1, n) float64; curves: unused
-    "surface_basis_t",  # (P, n, 3V) float32
-    "node_basis",  # transport: the chart's (P, n, 3, N) int16 (the others too)
-    "mode_scale",  # (P, n) float64: the modes' scales
-    "sample_grid",  # (P, 2): the samples' places on the chart's grid, in nodes
-    "sample_normals",  # (P, 3)
-    "chart_shape",  # (3,) int64
-    "chart_blocks",  # (B,) int64: the first nodes of the runs the neighbours are summed on
-    "halo",  # (1,) int64
-    "charted",  # (C,) int64
-    "charted_node",  # (C,) int64
-    "charted_frac",  # (2, C) float32
-    "uncharted",  # (U,) int64
-    "chart_grid",  # (N, 4) float32 scratch
-    "neighbours",  # (3, 2) int64 scratch
-    "terms",  # (3, terms_width(n)) float32 scratch
-    "sample_points",  # compliance: (P, 3) float64
-    "surface_vertices",  # (V, 3) float64
-    "field_triangles",  # (TL, 3) int64, the loadable triangles
-    "contact_fields",  # (R, 3V) float32
-    "triangle_rows",  # (TL, 3) int64
-    "sample_rows",  # (P,) int64
-    "surface_weights",  # (3,) float64 scratch
-    "triangle_grid",  # (7,) float64: origin, cell size, dims of the triangles' grid
-    "grid_starts",  # (cells + 1,) int64
-    "grid_ids",  # (entries,) int64
-    "read_weights",  # transport: (4, C) float32 scratch
-    "read_cells",  # (C,) int64 scratch
-    "uncharted_basis",  # transport: (P, n, 3U) float32
-    "uncharted_sum",  # (3U,) float64 scratch
+# The arrays in their packed order: name, dtype, number of dimensions, and what it holds (a
+# name missing from a configuration's surface_arrays is packed as a null address and a zero
+# shape). pack() checks every array against its entry: the bodies view the bytes as that.
+_f8, _f4, _i8, _i2 = (
+    np.dtype(np.float64),
+    np.dtype(np.float32),
+    np.dtype(np.int64),
+    np.dtype(np.int16),
 )
+LAYOUT = (
+    ("coefficients_out", _f8, 2),  # (3, n) scratch: the neighbours' reduced coordinates
+    ("coefficients", _f8, 3),  # curves: (P, K, n); POD-ANM: ANM_COEFFICIENTS
+    ("series", _f8, 3),  # POD-ANM: the series' coefficients (Z, N1, n); curves: unused
+    ("surface_basis_t", _f4, 3),  # (P, n, 3V)
+    ("node_basis", _i2, 4),  # transport: the chart's (P, n, 3, N) (the others too)
+    ("mode_scale", _f8, 2),  # (P, n): the modes' scales
+    ("sample_grid", _f8, 2),  # (P, 2): the samples' places on the chart's grid, in nodes
+    ("sample_normals", _f8, 2),  # (P, 3)
+    ("chart_shape", _i8, 1),  # (3,)
+    ("chart_blocks", _i8, 1),  # (B,): the first nodes of the runs the neighbours are summed on
+    ("halo", _i8, 1),  # (1,)
+    ("charted", _i8, 1),  # (C,)
+    ("charted_node", _i8, 1),  # (C,)
+    ("charted_frac", _f4, 2),  # (2, C)
+    ("uncharted", _i8, 1),  # (U,)
+    ("chart_grid", _f4, 2),  # (N, 4) scratch
+    ("neighbours", _i8, 2),  # (3, 2) scratch
+    ("terms", _f4, 2),  # (3, terms_width(n)) scratch
+    ("sample_points", _f8, 2),  # compliance: (P, 3)
+    ("surface_vertices", _f8, 2),  # (V, 3)
+    ("field_triangles", _i8, 2),  # (TL, 3), the loadable triangles
+    ("contact_fields", _f4, 2),  # (R, 3V)
+    ("triangle_rows", _i8, 2),  # (TL, 3)
+    ("sample_rows", _i8, 1),  # (P,)
+    ("surface_weights", _f8, 1),  # (3,) scratch
+    ("triangle_grid", _f8, 1),  # (7,): origin, cell size, dims of the triangles' grid
+    ("grid_starts", _i8, 1),  # (cells + 1,)
+    ("grid_ids", _i8, 1),  # (entries,)
+    ("read_weights", _f4, 2),  # transport: (4, C) scratch
+    ("read_cells", _i8, 1),  # (C,) scratch
+    ("uncharted_basis", _f4, 3),  # transport: (P, n, 3U)
+    ("uncharted_sum", _f8, 1),  # (3U,) scratch
+)
+ANM_COEFFICIENTS = (_i8, 1)  # POD-ANM's "coefficients": the sections' offsets (P + 1,)
+SURFACE_ARRAYS = tuple(name for name, _, _ in LAYOUT)
 DIMS = 4
 (A_COEFFICIENTS_OUT, A_COEFFICIENTS, A_SERIES, A_BASIS_T, A_NODE_BASIS, A_MODE_SCALE,
  A_SAMPLE_GRID,
@@ -297,15 +307,24 @@ def surface_arrays(model, interpolation: str, response: str, work) -> dict[str, 
     return arrays
 
 
-def pack(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def pack(arrays: dict[str, np.ndarray], response: str = "curves") -> tuple[np.ndarray, np.ndarray]:
     """(addresses (A,) int64, shapes (A, DIMS) int64) in SURFACE_ARRAYS order; an array the
-    configuration does not read is a null address and a zero shape."""
-    addresses = np.zeros(len(SURFACE_ARRAYS), dtype=np.int64)
-    dims = np.zeros((len(SURFACE_ARRAYS), DIMS), dtype=np.int64)
-    for i, name in enumerate(SURFACE_ARRAYS):
+    configuration does not read is a null address and a zero shape. ArtifactError naming
+    the array if one is not the dtype and dimensions of its LAYOUT entry (a model built by
+    hand skips the load's conversions; the bodies would read its bytes as another type)."""
+    addresses = np.zeros(len(LAYOUT), dtype=np.int64)
+    dims = np.zeros((len(LAYOUT), DIMS), dtype=np.int64)
+    for i, (name, dtype, ndim) in enumerate(LAYOUT):
         a = arrays.get(name)
         if a is None:
             continue
+        if name == "coefficients" and response == "anm":
+            dtype, ndim = ANM_COEFFICIENTS
+        if not isinstance(a, np.ndarray) or a.dtype != dtype or a.ndim != ndim:
+            raise ArtifactError(
+                f"the surface's {name} must be a {ndim}-d {dtype} array, got "
+                f"{getattr(a, 'ndim', '?')}-d {getattr(a, 'dtype', type(a).__name__)}"
+            )
         addresses[i] = address(a)
         dims[i, : a.ndim] = a.shape
     return addresses, dims

@@ -61,7 +61,7 @@ class SurfaceWork:
         self.arrays = (
             packed_surface.surface_arrays(model, interpolation, response, self) if packed else {}
         )
-        self.addresses, self.dims = packed_surface.pack(self.arrays)
+        self.addresses, self.dims = packed_surface.pack(self.arrays, response)
         self.entry = packed_surface.ENTRIES.get((interpolation, response))
 
     def __reduce__(self):
@@ -70,14 +70,16 @@ class SurfaceWork:
         return SurfaceWork, (self.model, self.interpolation, self.response)
 
 
-def surface_of(model, interpolation: str, response: str, buf, work: SurfaceWork, out) -> None:
-    """The surface displacement (V, 3) mm of the state ``buf`` into ``out`` (no cuts):
-    transported and PODI surfaces in one call on ``work``'s packed arrays, the others here."""
+def surface_of(buf, work: SurfaceWork, out) -> None:
+    """The surface displacement (V, 3) mm of the state ``buf`` into ``out`` (no cuts) for
+    ``work``'s model, interpolation and response: transported and PODI surfaces in one call
+    on its packed arrays, the others here."""
     entry = work.entry
     if entry is not None:
         entry(work.addresses, work.dims, buf, out)
         return
-    m, c = model, work.coefficients
+    m, c = work.model, work.coefficients
+    interpolation, response = work.interpolation, work.response
     if response == "anm":
         a = m.anm
         surface_kernels.anm_coefficients(buf, a["offsets"], a["coefficients"], c)
@@ -154,7 +156,7 @@ class SurfaceRenderer:
         self._inside = True
         try:
             self._copy_state()
-            surface_of(sim.model, sim.interpolation, sim.response, self._buf, self._work, out)
+            surface_of(self._buf, self._work, out)
         finally:
             self._inside = False
         return out

@@ -65,7 +65,12 @@ import numpy as np
 
 from hapticrom.online import kernels, proxy
 from hapticrom.online.model import INTERPOLATIONS, RESPONSES, ReducedModel
-from hapticrom.online.renderer import SurfaceRenderer, SurfaceWork, surface_of
+from hapticrom.online.renderer import (
+    SurfaceRenderer,
+    SurfaceWork,
+    check_surface_out,
+    surface_of,
+)
 from hapticrom.online.scalpel import CuttingController, readonly
 from hapticrom.shared.errors import (
     InputError,
@@ -633,6 +638,14 @@ class Simulator:
         """Every topology change so far (CutEvent: faces, new nodes, patch size, seconds)."""
         return [] if self.cutting is None else list(self.cutting.cuts.events)
 
+    def __reduce__(self):
+        """Refused: copied or pickled, the outputs (views into the state buffer) would come
+        apart from the copy's buffer, and the surface's packed addresses are the original's."""
+        raise TypeError(
+            "a Simulator cannot be copied or pickled: make another with model.simulator(...) "
+            "and replay the calls that brought this one to its state"
+        )
+
     # -- rendering -------------------------------------------------------------------
     def renderer(self) -> SurfaceRenderer:
         """A render thread's view of this simulator: its ``surface(out)`` renders the state of
@@ -643,12 +656,7 @@ class Simulator:
     def surface_displacement(self, out: np.ndarray) -> np.ndarray:
         """Fill ``out`` (V, 3) float64 with the surface vertices' displacement (mm), on the
         thread that steps (another thread: :meth:`renderer`)."""
-        m = self.model
-        if out.shape != m.vertices.shape or out.dtype != np.float64 or not out.flags.c_contiguous:
-            raise OutputArrayError(
-                f"out must be a C-contiguous float64 array of shape {m.vertices.shape}, "
-                f"got {out.dtype} {out.shape}"
-            )
+        check_surface_out(self.model, out)
         if self._inside:
             self._busy("surface_displacement")
         self._inside = True
@@ -659,7 +667,7 @@ class Simulator:
         return out
 
     def _surface(self, out: np.ndarray) -> None:
-        surface_of(self.model, self.interpolation, self.response, self._buf, self._work, out)
+        surface_of(self._buf, self._work, out)
         if self.cutting is not None:
             self.cutting.add_field(out, self._force, self.depth, self._controlled)
 

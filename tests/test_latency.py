@@ -40,22 +40,23 @@ def test_floor_is_timed_beside_each_call_after_its_setup():
         lambda a: log.append(("call", a)), lambda a: log.append(("before", a)), list(range(300))
     )
     assert times.shape == floor.shape == (300,)
-    assert (floor > 0).all() and (times > 0).all()
+    assert (floor >= 0).all() and (times >= 0).all()
     timed = log[-600:]  # the timed loop, after the warm-up and the median's probe
     assert timed[0::2] == [("before", a) for a in range(300)]
     assert timed[1::2] == [("call", a) for a in range(300)]
 
 
-def synthetic_result(untrained_p99: float, floor_p99: float) -> dict:
+def synthetic_result(untrained_p99: float, floor_p99: float, surface_share: float = 0.004,
+                     floor_share: float = 0.003) -> dict:  # fmt: skip
     """A measure() result with every call at 1 us but the untrained surface and its floor."""
     calls = {"p50_us": 1.0, "p99_us": 1.0, "max_us": 1.0, "calls": 10}
     result = {key: dict(calls) for key in latency.CALLS}
     for key, floor_key in latency.FLOORS.items():
         result[key]["over_limit"] = result[floor_key]["over_limit"] = 0.0
-    share = 0.012 if untrained_p99 > 50 else 0.004
     result["surface_untrained"] = {**calls, "p50_us": 20.0, "p99_us": untrained_p99,
-                                   "over_limit": share}  # fmt: skip
-    result["constant_work"] = {**calls, "p50_us": 20.0, "p99_us": floor_p99, "over_limit": 0.003}
+                                   "over_limit": surface_share}  # fmt: skip
+    result["constant_work"] = {**calls, "p50_us": 20.0, "p99_us": floor_p99,
+                               "over_limit": floor_share}  # fmt: skip
     gaps = {"threshold_us": 10.0, "per_second": 500.0, "time_fraction": 0.01}
     result.update(artifact="a.h5", interpolation="transport", response="curves",
                   surface_vertices=4, load_and_warm_up_s=0.5, speedup_p50=1.0, speedup_p99=1.0,
@@ -68,16 +69,23 @@ def untrained_line(text: str) -> str:
 
 
 @pytest.mark.parametrize(
-    ("surface", "floor", "verdict", "host"),
-    [(30.0, 24.0, "met", False), (60.0, 40.0, "missed", False), (60.0, 55.0, "missed", True)],
+    ("surface", "floor", "shares", "verdict", "host"),
+    [
+        (30.0, 24.0, (0.004, 0.003), "met", False),
+        (60.0, 40.0, (0.012, 0.006), "missed", False),  # the floor met the limit
+        (60.0, 55.0, (0.014, 0.011), "missed", True),
+        (90.0, 55.0, (0.200, 0.011), "missed", False),  # far more of its calls over it
+    ],
 )
-def test_verdict_names_the_host_only_when_its_floor_misses_too(surface, floor, verdict, host):
-    line = untrained_line(latency.report(synthetic_result(surface, floor)))
+def test_verdict_names_the_host_only_when_its_floor_misses_as_often(
+    surface, floor, shares, verdict, host
+):
+    line = untrained_line(latency.report(synthetic_result(surface, floor, *shares)))
     assert f"{surface:.2f} us, {verdict}" in line
     assert f"beside it: p99 {floor:.1f} us" in line
     assert ("the host's" in line) == host
-    share = "1.20" if surface > 50 else "0.40"
-    assert f"over 50 us: {share} % of calls, constant work 0.30 %" in line
+    over = f"over 50 us: {100 * shares[0]:.2f} % of calls, constant work {100 * shares[1]:.2f} %"
+    assert over in line
 
 
 def test_report_gives_the_chance_a_call_meets_a_gap():
@@ -90,11 +98,12 @@ def test_report_gives_the_chance_a_call_meets_a_gap():
 
 def test_the_share_over_a_target_agrees_with_its_p99(small_artifact):
     """Each surface and its floor carry the share of calls over the target's limit, in the
-    same unit as the p99: the p99 is under the limit exactly when at most 1 % are over it."""
+    same unit as the p99: more than 1 % of calls over the limit puts the p99 over it (the
+    converse need not hold: np.percentile interpolates between calls)."""
     result = latency.measure(small_artifact, steps=2000, baseline_steps=200)
     for key, stat, limit in latency.TARGETS.values():
         for name in (key, latency.FLOORS[key]) if key in latency.FLOORS else ():
             share, p99 = result[name]["over_limit"], result[name][stat]
             assert 0.0 <= share <= 1.0
-            assert (share <= 0.01) == (p99 <= limit), (name, share, p99)
+            assert share <= 0.01 or p99 > limit, (name, share, p99)
     assert result["surface_untrained"]["calls"] == result["constant_work"]["calls"] == 2000

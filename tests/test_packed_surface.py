@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from hapticrom.online import load, packed_surface, surface_kernels
-from hapticrom.online.renderer import SurfaceWork
+from hapticrom.online.renderer import SurfaceWork, surface_of
+from hapticrom.shared.errors import ArtifactError, OutputArrayError
 
 
 @pytest.fixture(scope="module")
@@ -91,13 +92,13 @@ def test_the_packed_addresses_are_the_works_own_arrays(model, interpolation):
 
 def test_pack_refuses_an_array_that_is_not_c_contiguous():
     with pytest.raises(ValueError, match="C-contiguous"):
-        packed_surface.pack({"coefficients": np.zeros((4, 6))[:, ::2]})
+        packed_surface.pack({"coefficients": np.zeros((2, 4, 6))[:, :, ::2]})
 
 
-def test_a_copied_simulator_renders_from_its_own_arrays(model):
-    """deepcopy packs the copy afresh: its addresses are its own arrays', and it renders
-    the same surface after the original is gone (copied as they were, the addresses would
-    point into the original's freed scratch)."""
+def test_a_copied_work_renders_from_its_own_arrays(model):
+    """A SurfaceWork's copy is packed afresh: its addresses are its own arrays', and it
+    renders the same surface after the original is gone (copied as they were, the addresses
+    would point into the original's freed scratch)."""
     import copy
     import gc
 
@@ -106,10 +107,53 @@ def test_a_copied_simulator_renders_from_its_own_arrays(model):
     sim.set_contact(model.sample_points[model.sample_triangles[0]].mean(axis=0))
     sim.step_displacement(-0.5 * model.trained_depth * np.asarray(sim.contact_normal))
     expected = sim.surface_displacement(np.zeros_like(model.vertices)).copy()
-    twin = copy.deepcopy(sim)
-    work = twin._work
-    assert work.addresses[0] == work.arrays["coefficients_out"].ctypes.data
-    assert work.addresses[0] != sim._work.addresses[0]
-    del sim
+    work = SurfaceWork(model, interpolation, "curves")
+    twin = copy.deepcopy(work)
+    assert twin.addresses[0] == twin.arrays["coefficients_out"].ctypes.data
+    assert twin.addresses[0] != work.addresses[0]
+    del work
     gc.collect()
-    np.testing.assert_array_equal(twin.surface_displacement(np.zeros_like(expected)), expected)
+    out = np.zeros_like(expected)
+    surface_of(sim._buf.copy(), twin, out)
+    np.testing.assert_array_equal(out, expected)
+
+
+def test_a_simulator_is_not_copied(model):
+    """Its outputs are views into its state buffer and its surface's packed addresses are its
+    own: copies would come apart from both, so they are refused with one clear error."""
+    import copy
+    import pickle
+
+    sim = model.simulator()
+    for copier in (copy.copy, copy.deepcopy, pickle.dumps):
+        with pytest.raises(TypeError, match="cannot be copied or pickled"):
+            copier(sim)
+
+
+def test_the_renderer_thread_renders_what_the_kernels_render(model):
+    interpolation = "transport" if model.chart is not None else "podi"
+    sim = model.simulator(interpolation, "curves")
+    renderer = sim.renderer()
+    out = np.zeros_like(model.vertices)
+    for point in contacts(model, 4):
+        sim.set_contact(point)
+        sim.step_displacement(-0.4 * model.trained_depth * np.asarray(sim.contact_normal))
+        renderer.surface(out)
+        np.testing.assert_array_equal(out, array_by_array(model, interpolation, "curves", sim._buf))
+
+
+def test_a_read_only_out_is_refused_by_name(model):
+    sim = model.simulator()
+    with pytest.raises(OutputArrayError, match="writeable"):
+        sim.surface_displacement(model.vertices)  # read only
+
+
+def test_pack_refuses_an_array_of_another_type_naming_it():
+    """A model built by hand skips the load's conversions: the bodies would read a float64
+    basis's bytes as float32, so the packing refuses it."""
+    with pytest.raises(ArtifactError, match="surface_basis_t must be a 3-d float32 array"):
+        packed_surface.pack({"surface_basis_t": np.zeros((2, 3, 6))})
+    offsets = np.zeros(5, dtype=np.int64)  # POD-ANM's coefficients are the sections' offsets
+    packed_surface.pack({"coefficients": offsets}, "anm")
+    with pytest.raises(ArtifactError, match="coefficients must be a 3-d float64"):
+        packed_surface.pack({"coefficients": offsets}, "curves")

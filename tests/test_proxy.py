@@ -369,7 +369,7 @@ def test_a_render_thread_draws_whole_steps_while_the_servo_steps(model):
     distinct = {sequence for _, sequence in frames}
     assert len(distinct) > 5  # the frames caught the servo at many different steps
     for surface, sequence in frames:
-        surface_of(model, sim.interpolation, sim.response, states[sequence], work, expected)
+        surface_of(states[sequence], work, expected)
         np.testing.assert_array_equal(surface, expected)
 
 
