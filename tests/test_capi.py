@@ -1091,7 +1091,8 @@ def test_a_free_running_step_position_servo_never_tears_the_rendered_surface(
 
 def test_the_position_bench_reports_every_call(built, model, small_artifact, tmp_path):
     """``servo_loop --tips --bench`` (what make capi-bench runs): a latency line for each
-    call, the contact and free ticks counted apart (they add up to the calls)."""
+    call, the contact and free ticks counted apart (they add up to the calls), and the
+    constant work timed beside each surface, with both shares over 50 us."""
     tips = write_tips(tmp_path / "tips.csv", scripted(model, 300))
     command = [str(built / "servo_loop"), str(small_artifact), "--tips", str(tips), "--bench",
                "3000", "--bench-surfaces", "5"]  # fmt: skip
@@ -1099,12 +1100,16 @@ def test_the_position_bench_reports_every_call(built, model, small_artifact, tmp
     assert result.returncode == 0, result.stdout + result.stderr
     calls = {m[1].strip(): int(m[2]) for m in re.finditer(r"^(.{20}) +(\d+) calls", result.stdout,
                                                           re.MULTILINE)}  # fmt: skip
-    assert {k: calls[k] for k in ("step_position", "stiffness", "get_state", "surface")} == {
+    named = ("step_position", "stiffness", "get_state", "surface", "constant work")
+    assert {k: calls[k] for k in named} == {
         "step_position": 3000,
         "stiffness": 3000,
         "get_state": 3000,
         "surface": 5,
+        "constant work": 5,
     }
+    assert re.search(r"^surface over 50 us: [\d.]+ % of calls, the constant work beside it "
+                     r"[\d.]+ %$", result.stdout, re.MULTILINE), result.stdout  # fmt: skip
     assert calls["in contact"] + calls["free"] == 3000 and calls["in contact"] > 0
 
 

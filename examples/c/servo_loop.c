@@ -33,7 +33,8 @@
  * (mm), after a header of V (uint64). --bench: no threads; the latency of N set_contact,
  * get_state and step_displacement calls along the path (with --tips: step_position,
  * stiffness and get_state along the tips, round and round) and of M surfaces (clock_gettime,
- * CLOCK_MONOTONIC, per call), as p50 / p99 / p99.9 / max in ns.
+ * CLOCK_MONOTONIC, per call), as p50 / p99 / p99.9 / max in ns; each surface is followed by
+ * a call of constant work as long as their median, timed too (the host's floor).
  *
  * Exit status 0 if every call succeeded, 1 otherwise (the message on stderr), 2 on usage.
  */
@@ -451,27 +452,72 @@ static uint32_t elapsed(int64_t t0, int64_t t1) {
     return (uint32_t)(t1 - t0 > UINT32_MAX ? UINT32_MAX : t1 - t0);
 }
 
-/* M surfaces, each after a tick of the path (states along it); their latency. */
+/* n dependent multiply-adds: a call whose work never varies, so its p99 is what the
+ * machine itself (timer ticks, the hypervisor) adds to a call that long. */
+static double constant_work(size_t n, double x) {
+    for (size_t i = 0; i < n; i++) x = x * 0.999999 + 1e-7;
+    return x;
+}
+
+/* The n for which constant_work lasts about median_ns (the least of three timings). */
+static size_t constant_work_count(uint32_t median_ns, volatile double *sink) {
+    int64_t best = INT64_MAX;
+    for (int k = 0; k < 3; k++) {
+        int64_t t0 = now_ns();
+        *sink += constant_work(1000000, 1.0);
+        int64_t took = now_ns() - t0;
+        if (took < best) best = took;
+    }
+    size_t n = (size_t)(1e6 * (double)median_ns / (double)(best > 0 ? best : 1));
+    return n ? n : 1;
+}
+
+/* One surface after tick k of the path (contact points: spread along it; tips: in order, the
+ * proxy follows them); its latency in ns, or UINT32_MAX if a call failed. */
+static uint32_t timed_surface(struct run *r, size_t i, double *surface, size_t length) {
+    size_t k = r->path.position ? i % r->path.ticks : (i * 7919) % r->path.ticks;
+    if (check(run_tick(r, k), "bench tick")) return UINT32_MAX;
+    int64_t t0 = now_ns();
+    int status = hapticrom_surface(r->sim, surface, length, NULL);
+    uint32_t ns = elapsed(t0, now_ns());
+    return check(status, "bench surface") ? UINT32_MAX : ns;
+}
+
+static double share_over(const uint32_t *ns, size_t n, uint32_t limit) {
+    size_t over = 0;
+    for (size_t i = 0; i < n; i++) over += ns[i] > limit;
+    return (double)over / (double)n;
+}
+
+/* M surfaces, each after a tick of the path (states along it), each followed by a call of
+ * constant work as long as the surfaces' median (measured on 200 first): the floor the host
+ * puts under the surface's tail, met in the same milliseconds. */
 static int bench_surfaces(struct run *r, size_t surfaces) {
     if (!surfaces) return 0;
-    uint32_t *ns = malloc(surfaces * sizeof *ns);
+    enum { PROBE = 200 };
+    uint32_t *ns = malloc(surfaces * sizeof *ns), *floor_ns = malloc(surfaces * sizeof *ns);
+    uint32_t probe[PROBE];
     size_t length = 3 * r->info.vertex_count;
     double *surface = malloc(length * sizeof(double));
-    int failed = !ns || !surface;
+    volatile double sink = 0.0;
+    int failed = !ns || !floor_ns || !surface;
+    for (size_t i = 0; i < PROBE && !failed; i++)
+        failed = (probe[i] = timed_surface(r, i, surface, length)) == UINT32_MAX;
+    if (!failed) qsort(probe, PROBE, sizeof *probe, compare_u32);
+    size_t n = failed ? 0 : constant_work_count(probe[PROBE / 2], &sink);
     for (size_t i = 0; i < surfaces && !failed; i++) {
-        /* contact points: spread along the path; tips: in order (the proxy follows them) */
-        size_t k = r->path.position ? i % r->path.ticks : (i * 7919) % r->path.ticks;
-        if (check(run_tick(r, k), "bench tick")) {
-            failed = 1;
-            break;
-        }
+        failed = (ns[i] = timed_surface(r, i, surface, length)) == UINT32_MAX;
         int64_t t0 = now_ns();
-        int status = hapticrom_surface(r->sim, surface, length, NULL);
-        ns[i] = elapsed(t0, now_ns());
-        failed = check(status, "bench surface") != 0;
+        sink += constant_work(n, 1.0);
+        floor_ns[i] = elapsed(t0, now_ns());
     }
-    if (!failed) report("surface", ns, surfaces);
-    free(ns), free(surface);
+    if (!failed) {
+        printf("surface over 50 us: %.2f %% of calls, the constant work beside it %.2f %%\n",
+               100 * share_over(ns, surfaces, 50000), 100 * share_over(floor_ns, surfaces, 50000));
+        report("surface", ns, surfaces);
+        report("  constant work", floor_ns, surfaces);
+    }
+    free(ns), free(floor_ns), free(surface);
     return failed;
 }
 
