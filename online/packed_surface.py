@@ -17,7 +17,8 @@ same.
 
 The entries trust their addresses and shapes: only :func:`pack` makes them, from arrays that
 the :class:`~hapticrom.online.renderer.SurfaceWork` holding them keeps alive (its scratch
-and the model's arrays, checked at load). Never call an entry with arrays of your own.
+and the model's arrays, each checked against its :data:`LAYOUT` entry; a copy of the work
+packs its own). Never call an entry with arrays of your own.
 """
 
 from __future__ import annotations
