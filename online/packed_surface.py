@@ -6,8 +6,8 @@ order of :data:`SURFACE_ARRAYS` (:func:`pack` of :func:`surface_arrays`); a surf
 one call on four arguments. C's cfuncs (:mod:`~hapticrom.online.cabi`) get the two as
 pointers; Python's :data:`ENTRIES` get them as arrays (``Simulator.surface_displacement``
 and a ``SurfaceRenderer``, for the transported and the PODI surfaces). Both run the same
-bodies (:data:`BODIES`), which view the addresses as arrays (``numba.carray``: no copy) and
-call :mod:`~hapticrom.online.surface_kernels`.
+bodies (:func:`transport_anm` ... :func:`compliance_curves`), which view the addresses as
+arrays (``numba.carray``: no copy) and call :mod:`~hapticrom.online.surface_kernels`.
 
 Why Python goes through them too: numba's dispatch of the transported kernel's 21
 arguments took 1.4 us, the coefficients' own call 0.35 us, and Python's lookups around the
@@ -202,16 +202,6 @@ def compliance_curves(arrays, dims, state, out):
     """As :func:`compliance_anm`, the stored curves' coefficients."""
     podi_curves(arrays, dims, state, out)
     _linear_dent(arrays, dims, state, out)
-
-
-BODIES = {
-    ("transport", "anm"): transport_anm,
-    ("transport", "curves"): transport_curves,
-    ("podi", "anm"): podi_anm,
-    ("podi", "curves"): podi_curves,
-    ("compliance", "anm"): compliance_anm,
-    ("compliance", "curves"): compliance_curves,
-}
 
 
 # -- Python's entries: the packed arrays as int64 arrays ----------------------------------------
